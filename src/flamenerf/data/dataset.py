@@ -1,0 +1,427 @@
+"""The one dataset format, written by `synth` and `preprocess`, read by everything else.
+
+Layout (see docs/dataset_format.md)::
+
+    DATASET/
+      transforms.json          cameras, expressions, splits (instant-ngp / nerfstudio style)
+      images/000000.png        RGB frames
+      masks/000000.png         face-model silhouette = the spatial prior (255 = face)
+      depth/000000.npy         optional ground-truth z-depth (float32, metres), synthetic only
+      face_mesh.npz            faces (F, 3) int32; vertices (num_frames, V, 3) float32, world
+
+Conventions: `transform_matrix` is camera-to-world with OpenGL camera axes (x right, y up,
+camera looks down -z). Depth is z-depth (distance along the camera's viewing axis), which is
+also what the renderer returns because its ray directions have unit -z component.
+
+Every frame of the capture (splits `train` and `val`) has an integer `frame_index` that
+selects its deformation and appearance codes. Frames of synthetic-only splits
+(`reanimate`, `leakage`) have `frame_index: null`: they are rendered with frame 0's codes.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from flamenerf.errors import UserError
+
+FORMAT_VERSION = 1
+
+
+class DatasetError(UserError):
+    """A dataset file is missing or malformed. The message names the file and the problem."""
+
+
+@dataclass
+class Intrinsics:
+    """Pinhole intrinsics in pixels."""
+
+    w: int
+    h: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+
+    def scaled(self, factor: float) -> "Intrinsics":
+        """Intrinsics of the same camera at `factor` times the resolution."""
+        w, h = max(1, round(self.w * factor)), max(1, round(self.h * factor))
+        sx, sy = w / self.w, h / self.h
+        return Intrinsics(w, h, self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy)
+
+    def matrix(self) -> np.ndarray:
+        return np.array([[self.fx, 0, self.cx], [0, self.fy, self.cy], [0, 0, 1]], np.float64)
+
+
+@dataclass
+class Frame:
+    """One image of the dataset (any split)."""
+
+    position: int  # index into Dataset.frames
+    file_path: str
+    mask_path: str
+    c2w: np.ndarray  # (4, 4) float64, OpenGL axes
+    expression: np.ndarray  # (dim_expr,) float32
+    frame_index: int | None  # code index; None for frames outside the capture
+    depth_path: str | None = None
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass
+class Dataset:
+    root: Path
+    intrinsics: Intrinsics
+    near: float
+    far: float
+    expression_kind: str
+    expression_names: list[str]
+    splits: dict[str, list[int]]  # split name -> positions into `frames`
+    frames: list[Frame]
+    faces: np.ndarray  # (F, 3) int32
+    face_vertices: np.ndarray  # (num_frames, V, 3) float32, world coordinates
+    source: dict[str, Any]
+    meta: dict[str, Any]  # the whole transforms.json, for fields not modelled above
+
+    @property
+    def expression_dim(self) -> int:
+        return len(self.expression_names)
+
+    @property
+    def num_codes(self) -> int:
+        """Size of the per-frame code tables (deformation ω, appearance φ)."""
+        idx = [f.frame_index for f in self.frames if f.frame_index is not None]
+        return (max(idx) + 1) if idx else 1
+
+    def split(self, name: str) -> list[Frame]:
+        if name not in self.splits:
+            raise DatasetError(
+                f"{self.root / 'transforms.json'}: no split named {name!r} "
+                f"(have: {', '.join(sorted(self.splits))})"
+            )
+        return [self.frames[i] for i in self.splits[name]]
+
+    def load_image(self, frame: Frame) -> np.ndarray:
+        """(H, W, 3) float32 in [0, 1]."""
+        img = _read_png(self.root / frame.file_path, self.intrinsics)
+        if img.ndim == 2:
+            img = np.repeat(img[..., None], 3, axis=-1)
+        return img[..., :3].astype(np.float32) / 255.0
+
+    def load_mask(self, frame: Frame) -> np.ndarray:
+        """(H, W) bool, True on the face-model silhouette."""
+        m = _read_png(self.root / frame.mask_path, self.intrinsics)
+        if m.ndim == 3:
+            m = m[..., 0]
+        return m > 127
+
+    def load_depth(self, frame: Frame) -> np.ndarray | None:
+        """(H, W) float32 z-depth, or None when the dataset has no ground-truth depth."""
+        if frame.depth_path is None:
+            return None
+        path = self.root / frame.depth_path
+        try:
+            d = np.load(path)
+        except FileNotFoundError:
+            raise DatasetError(f"{path}: file is missing") from None
+        except Exception as e:  # noqa: BLE001 - any parse failure is the file's fault
+            raise DatasetError(f"{path}: not a readable .npy depth map ({e})") from None
+        if d.shape != (self.intrinsics.h, self.intrinsics.w):
+            raise DatasetError(
+                f"{path}: depth has shape {d.shape}, expected "
+                f"{(self.intrinsics.h, self.intrinsics.w)}"
+            )
+        return d.astype(np.float32)
+
+    def expression_matrix(self, frames: list[Frame]) -> np.ndarray:
+        """(len(frames), dim_expr) float32."""
+        return np.stack([f.expression for f in frames]).astype(np.float32)
+
+
+def _read_png(path: Path, intr: Intrinsics) -> np.ndarray:
+    import imageio.v3 as iio
+
+    if not path.exists():
+        raise DatasetError(f"{path}: file is missing")
+    try:
+        img = iio.imread(path)
+    except Exception as e:  # noqa: BLE001
+        raise DatasetError(f"{path}: not a readable image ({type(e).__name__})") from None
+    if img.shape[:2] != (intr.h, intr.w):
+        raise DatasetError(
+            f"{path}: image is {img.shape[1]}x{img.shape[0]}, transforms.json says "
+            f"{intr.w}x{intr.h}"
+        )
+    return img
+
+
+# ----------------------------------------------------------------------------- reading
+
+
+def _require(obj: dict, key: str, where: str, kinds: type | tuple[type, ...]) -> Any:
+    if key not in obj:
+        raise DatasetError(f"{where}: missing field {key!r}")
+    val = obj[key]
+    if not isinstance(val, kinds) or (isinstance(val, bool) and kinds is not bool):
+        raise DatasetError(f"{where}: field {key!r} has the wrong type ({type(val).__name__})")
+    return val
+
+
+def load_dataset(root: str | os.PathLike, check_files: bool = True) -> Dataset:
+    """Read and validate a dataset; any problem becomes one DatasetError naming the file."""
+    root = Path(root)
+    tj = root / "transforms.json"
+    if not root.is_dir():
+        raise DatasetError(f"{root}: dataset directory does not exist")
+    if not tj.exists():
+        raise DatasetError(f"{tj}: file is missing (is {root} a flamenerf dataset?)")
+    try:
+        meta = json.loads(tj.read_text())
+    except json.JSONDecodeError as e:
+        raise DatasetError(f"{tj}: invalid JSON at line {e.lineno} ({e.msg})") from None
+    if not isinstance(meta, dict):
+        raise DatasetError(f"{tj}: top level must be a JSON object")
+    where = str(tj)
+    num = (int, float)
+    intr = Intrinsics(
+        w=int(_require(meta, "w", where, int)),
+        h=int(_require(meta, "h", where, int)),
+        fx=float(_require(meta, "fl_x", where, num)),
+        fy=float(_require(meta, "fl_y", where, num)),
+        cx=float(_require(meta, "cx", where, num)),
+        cy=float(_require(meta, "cy", where, num)),
+    )
+    near = float(_require(meta, "near", where, num))
+    far = float(_require(meta, "far", where, num))
+    if not (0 <= near < far):
+        raise DatasetError(f"{where}: need 0 <= near < far, got near={near}, far={far}")
+    em = _require(meta, "expression_model", where, dict)
+    names = _require(em, "names", f"{where} expression_model", list)
+    kind = str(em.get("kind", "unknown"))
+    dim = len(names)
+    raw_frames = _require(meta, "frames", where, list)
+    if not raw_frames:
+        raise DatasetError(f"{where}: 'frames' is empty")
+    frames = []
+    for i, fr in enumerate(raw_frames):
+        w = f"{where} frames[{i}]"
+        if not isinstance(fr, dict):
+            raise DatasetError(f"{w}: must be an object")
+        c2w = np.asarray(_require(fr, "transform_matrix", w, list), dtype=np.float64)
+        if c2w.shape != (4, 4) or not np.all(np.isfinite(c2w)):
+            raise DatasetError(f"{w}: transform_matrix must be a finite 4x4 matrix")
+        expr = np.asarray(_require(fr, "expression", w, list), dtype=np.float32)
+        if expr.shape != (dim,) or not np.all(np.isfinite(expr)):
+            raise DatasetError(
+                f"{w}: expression has {expr.size} values, expression_model names {dim}"
+            )
+        fi = fr.get("frame_index")
+        if fi is not None and (not isinstance(fi, int) or fi < 0):
+            raise DatasetError(f"{w}: frame_index must be a non-negative integer or null")
+        known = {"file_path", "mask_path", "depth_path", "transform_matrix", "expression",
+                 "frame_index"}
+        frames.append(
+            Frame(
+                position=i,
+                file_path=str(_require(fr, "file_path", w, str)),
+                mask_path=str(_require(fr, "mask_path", w, str)),
+                c2w=c2w,
+                expression=expr,
+                frame_index=fi,
+                depth_path=fr.get("depth_path"),
+                extra={k: v for k, v in fr.items() if k not in known},
+            )
+        )
+    splits_raw = _require(meta, "splits", where, dict)
+    splits: dict[str, list[int]] = {}
+    for name, idx in splits_raw.items():
+        if not isinstance(idx, list) or not all(
+            isinstance(j, int) and 0 <= j < len(frames) for j in idx
+        ):
+            raise DatasetError(
+                f"{where}: split {name!r} must list frame positions in [0, {len(frames)})"
+            )
+        splits[name] = idx
+    if "train" not in splits or not splits["train"]:
+        raise DatasetError(f"{where}: needs a non-empty 'train' split")
+    for name in ("train", "val"):
+        for j in splits.get(name, []):
+            if frames[j].frame_index is None:
+                raise DatasetError(f"{where}: frame {j} of split {name!r} has no frame_index")
+
+    mesh_path = root / "face_mesh.npz"
+    if not mesh_path.exists():
+        raise DatasetError(f"{mesh_path}: file is missing")
+    try:
+        with np.load(mesh_path) as z:
+            faces = z["faces"].astype(np.int32)
+            verts = z["vertices"].astype(np.float32)
+    except KeyError as e:
+        raise DatasetError(f"{mesh_path}: missing array {e}") from None
+    except Exception as e:  # noqa: BLE001
+        raise DatasetError(f"{mesh_path}: not a readable .npz ({type(e).__name__})") from None
+    if faces.ndim != 2 or faces.shape[1] != 3:
+        raise DatasetError(f"{mesh_path}: 'faces' must have shape (F, 3), got {faces.shape}")
+    if verts.ndim != 3 or verts.shape[0] != len(frames) or verts.shape[2] != 3:
+        raise DatasetError(
+            f"{mesh_path}: 'vertices' must have shape ({len(frames)}, V, 3), got {verts.shape}"
+        )
+    if faces.size and (faces.min() < 0 or faces.max() >= verts.shape[1]):
+        raise DatasetError(f"{mesh_path}: 'faces' index vertices out of range")
+
+    ds = Dataset(
+        root=root,
+        intrinsics=intr,
+        near=near,
+        far=far,
+        expression_kind=kind,
+        expression_names=[str(n) for n in names],
+        splits=splits,
+        frames=frames,
+        faces=faces,
+        face_vertices=verts,
+        source=meta.get("source", {}),
+        meta=meta,
+    )
+    if check_files:
+        for fr in frames:
+            for rel in (fr.file_path, fr.mask_path, fr.depth_path):
+                if rel is not None and not (root / rel).exists():
+                    raise DatasetError(f"{root / rel}: file is missing")
+    return ds
+
+
+# ----------------------------------------------------------------------------- writing
+
+
+class DatasetWriter:
+    """Writes a dataset into a temporary sibling directory and renames it into place on
+    `close()`, so an interrupted run never leaves a half-written dataset behind.
+
+    Usage::
+
+        with DatasetWriter(out, intrinsics, near, far, names, kind="synthetic") as w:
+            w.add_frame(rgb, mask, c2w, expr, frame_index, split="train", depth=d, verts=v)
+            w.set_faces(faces)
+    """
+
+    def __init__(
+        self,
+        out: str | os.PathLike,
+        intrinsics: Intrinsics,
+        near: float,
+        far: float,
+        expression_names: list[str],
+        expression_kind: str,
+        expression_info: dict[str, Any] | None = None,
+        source: dict[str, Any] | None = None,
+        overwrite: bool = False,
+    ):
+        self.out = Path(out)
+        if self.out.exists() and not overwrite:
+            raise DatasetError(f"{self.out}: already exists (pass --overwrite to replace it)")
+        self.out.parent.mkdir(parents=True, exist_ok=True)
+        self.tmp = Path(tempfile.mkdtemp(prefix=f".{self.out.name}.", dir=self.out.parent))
+        for sub in ("images", "masks"):
+            (self.tmp / sub).mkdir()
+        self.intr = intrinsics
+        self.meta: dict[str, Any] = {
+            "format_version": FORMAT_VERSION,
+            "w": intrinsics.w,
+            "h": intrinsics.h,
+            "fl_x": intrinsics.fx,
+            "fl_y": intrinsics.fy,
+            "cx": intrinsics.cx,
+            "cy": intrinsics.cy,
+            "camera_model": "OPENGL_PINHOLE",
+            "near": float(near),
+            "far": float(far),
+            "expression_model": {
+                "kind": expression_kind,
+                "dim": len(expression_names),
+                "names": list(expression_names),
+                **(expression_info or {}),
+            },
+            "source": source or {},
+            "splits": {},
+            "frames": [],
+        }
+        self.faces: np.ndarray | None = None
+        self.verts: list[np.ndarray] = []
+        self.overwrite = overwrite
+
+    def add_frame(
+        self,
+        rgb: np.ndarray,
+        mask: np.ndarray,
+        c2w: np.ndarray,
+        expression: np.ndarray,
+        frame_index: int | None,
+        split: str,
+        verts: np.ndarray,
+        depth: np.ndarray | None = None,
+        extra: dict[str, Any] | None = None,
+    ) -> int:
+        """Add one frame. rgb (H, W, 3) uint8 or float in [0, 1]; mask (H, W) bool;
+        verts (V, 3) world-space face-mesh vertices. Returns the frame's position."""
+        import imageio.v3 as iio
+
+        pos = len(self.meta["frames"])
+        name = f"{pos:06d}"
+        if rgb.dtype != np.uint8:
+            rgb = (np.clip(rgb, 0, 1) * 255 + 0.5).astype(np.uint8)
+        iio.imwrite(self.tmp / "images" / f"{name}.png", rgb[..., :3])
+        iio.imwrite(self.tmp / "masks" / f"{name}.png", (mask > 0).astype(np.uint8) * 255)
+        entry: dict[str, Any] = {
+            "file_path": f"images/{name}.png",
+            "mask_path": f"masks/{name}.png",
+            "transform_matrix": np.asarray(c2w, np.float64).tolist(),
+            "expression": [float(x) for x in np.asarray(expression).ravel()],
+            "frame_index": None if frame_index is None else int(frame_index),
+        }
+        if depth is not None:
+            (self.tmp / "depth").mkdir(exist_ok=True)
+            np.save(self.tmp / "depth" / f"{name}.npy", depth.astype(np.float32))
+            entry["depth_path"] = f"depth/{name}.npy"
+        if extra:
+            entry.update(extra)
+        self.meta["frames"].append(entry)
+        self.meta["splits"].setdefault(split, []).append(pos)
+        self.verts.append(np.asarray(verts, np.float32))
+        return pos
+
+    def set_faces(self, faces: np.ndarray) -> None:
+        self.faces = np.asarray(faces, np.int32)
+
+    def set_meta(self, key: str, value: Any) -> None:
+        self.meta[key] = value
+
+    def close(self) -> Path:
+        if self.faces is None:
+            raise DatasetError(f"{self.out}: no face-mesh triangles set before close()")
+        np.savez_compressed(
+            self.tmp / "face_mesh.npz", faces=self.faces, vertices=np.stack(self.verts)
+        )
+        (self.tmp / "transforms.json").write_text(json.dumps(self.meta, indent=1))
+        if self.out.exists():
+            shutil.rmtree(self.out)
+        os.replace(self.tmp, self.out)
+        return self.out
+
+    def abort(self) -> None:
+        shutil.rmtree(self.tmp, ignore_errors=True)
+
+    def __enter__(self) -> "DatasetWriter":
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()

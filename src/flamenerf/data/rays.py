@@ -1,0 +1,45 @@
+"""Camera rays. Directions have unit -z component in camera space, so a ray parameter t
+equals z-depth (the dataset's depth convention); normalise them before encoding."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from flamenerf.data.dataset import Intrinsics
+
+
+def pixel_directions(intr: Intrinsics, device: torch.device | str = "cpu") -> torch.Tensor:
+    """Camera-space ray directions through pixel centres, OpenGL axes. -> (H, W, 3)."""
+    ys, xs = torch.meshgrid(
+        torch.arange(intr.h, dtype=torch.float32, device=device) + 0.5,
+        torch.arange(intr.w, dtype=torch.float32, device=device) + 0.5,
+        indexing="ij",
+    )
+    return torch.stack(
+        [(xs - intr.cx) / intr.fx, -(ys - intr.cy) / intr.fy, -torch.ones_like(xs)], dim=-1
+    )
+
+
+def camera_rays(
+    intr: Intrinsics, c2w: np.ndarray | torch.Tensor, device: torch.device | str = "cpu"
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """World-space rays of every pixel. -> origins (H, W, 3), directions (H, W, 3)."""
+    c2w = torch.as_tensor(np.asarray(c2w), dtype=torch.float32, device=device)
+    d_cam = pixel_directions(intr, device)
+    dirs = d_cam @ c2w[:3, :3].T
+    origins = c2w[:3, 3].expand_as(dirs)
+    return origins, dirs
+
+
+def project_points(
+    points: np.ndarray, intr: Intrinsics, c2w: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """World points (N, 3) -> pixel coordinates (N, 2) (x right, y down) and z-depth (N,)."""
+    w2c = np.linalg.inv(c2w)
+    pc = points @ w2c[:3, :3].T + w2c[:3, 3]
+    z = -pc[:, 2]
+    zs = np.where(np.abs(z) < 1e-9, 1e-9, z)
+    u = intr.fx * pc[:, 0] / zs + intr.cx
+    v = -intr.fy * pc[:, 1] / zs + intr.cy
+    return np.stack([u, v], -1), z
