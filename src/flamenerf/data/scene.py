@@ -1,0 +1,86 @@
+"""Scene bounds and in-memory ray data for training and evaluation."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from flamenerf.data.dataset import Dataset, Frame, Intrinsics
+from flamenerf.data.rays import pixel_directions
+
+
+def scene_box(ds: Dataset, margin: float = 0.05) -> tuple[list[float], list[float]]:
+    """World AABB of every capture camera's frustum between near and far (a bounded
+    scene: samples never leave [near, far], so this box holds every sample)."""
+    intr = ds.intrinsics
+    corners = np.array([[0, 0], [intr.w, 0], [0, intr.h], [intr.w, intr.h],
+                        [intr.w / 2, intr.h / 2]], np.float64)
+    d_cam = np.stack([(corners[:, 0] - intr.cx) / intr.fx, -(corners[:, 1] - intr.cy) / intr.fy,
+                      -np.ones(len(corners))], -1)
+    pts = []
+    for fr in ds.frames:
+        R, o = fr.c2w[:3, :3], fr.c2w[:3, 3]
+        for t in (ds.near, ds.far):
+            pts.append(o + t * d_cam @ R.T)
+    pts = np.concatenate(pts)
+    lo, hi = pts.min(0), pts.max(0)
+    pad = (hi - lo) * margin
+    return (lo - pad).tolist(), (hi + pad).tolist()
+
+
+def resize_image(img: np.ndarray, w: int, h: int) -> np.ndarray:
+    """Area-average resize of an (H, W, C) float image (what a lower-resolution camera sees)."""
+    if img.shape[1] == w and img.shape[0] == h:
+        return img
+    t = torch.from_numpy(np.ascontiguousarray(img)).permute(2, 0, 1)[None].float()
+    t = torch.nn.functional.interpolate(t, size=(h, w), mode="area")
+    return t[0].permute(1, 2, 0).numpy()
+
+
+class FrameSet:
+    """Frames of a dataset held as tensors at one resolution.
+
+    images (N, H, W, 3), masks (N, H, W) bool, c2w (N, 4, 4), frame_index (N,) long
+    (frames outside the capture use code 0), expressions (N, E), face_vertices (N, V, 3).
+    """
+
+    def __init__(self, ds: Dataset, frames: list[Frame], intr: Intrinsics,
+                 load_images: bool = True):
+        self.ds, self.frames, self.intr = ds, frames, intr
+        n = len(frames)
+        if load_images:
+            imgs = [resize_image(ds.load_image(f), intr.w, intr.h) for f in frames]
+            masks = [resize_image(ds.load_mask(f)[..., None].astype(np.float32), intr.w,
+                                  intr.h)[..., 0] > 0.5 for f in frames]
+            self.images = torch.from_numpy(np.stack(imgs)).float()
+            self.masks = torch.from_numpy(np.stack(masks))
+        self.c2w = torch.from_numpy(np.stack([f.c2w for f in frames])).float()
+        self.frame_index = torch.tensor(
+            [0 if f.frame_index is None else f.frame_index for f in frames], dtype=torch.long)
+        self.expressions = torch.from_numpy(ds.expression_matrix(frames))
+        self.face_vertices = torch.from_numpy(ds.face_vertices[[f.position for f in frames]])
+        self.faces = torch.from_numpy(ds.faces).long()
+        self.dirs_cam = pixel_directions(intr)  # (H, W, 3)
+        self.n = n
+
+    def rays(self, fi: torch.Tensor, ys: torch.Tensor, xs: torch.Tensor):
+        """Rays of pixels (fi, ys, xs), each (B,) long -> origins (B, 3), dirs (B, 3)."""
+        d = self.dirs_cam[ys, xs]
+        R = self.c2w[fi, :3, :3]
+        return self.c2w[fi, :3, 3], (R @ d[..., None])[..., 0]
+
+    def sample_pixels(self, batch: int, generator: torch.Generator):
+        fi = torch.randint(self.n, (batch,), generator=generator)
+        ys = torch.randint(self.intr.h, (batch,), generator=generator)
+        xs = torch.randint(self.intr.w, (batch,), generator=generator)
+        return fi, ys, xs
+
+    def face_points(self, fi: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
+        """One uniformly random point on the face mesh of each frame in fi. -> (B, 3) world."""
+        faces = self.faces
+        tri = torch.randint(len(faces), (len(fi),), generator=generator)
+        u = torch.rand(len(fi), 2, generator=generator)
+        flip = u.sum(-1) > 1
+        u[flip] = 1 - u[flip]
+        v = self.face_vertices[fi[:, None], faces[tri]]  # (B, 3, 3)
+        return v[:, 0] + u[:, :1] * (v[:, 1] - v[:, 0]) + u[:, 1:] * (v[:, 2] - v[:, 0])

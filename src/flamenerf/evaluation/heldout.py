@@ -1,0 +1,54 @@
+"""The paper's held-out protocol: for each held-out frame freeze the model and optimise only
+its deformation code ω, starting from frame 0's, with frame 0's appearance code φ_0."""
+
+from __future__ import annotations
+
+import torch
+from tqdm import tqdm
+
+from flamenerf.data.scene import FrameSet
+from flamenerf.model.flame_nerf import FlameNeRF, RayBatch
+
+
+def fit_deformation_codes(model: FlameNeRF, frames: FrameSet, steps: int = 200,
+                          batch_rays: int = 4096, lr: float = 1e-2, seed: int = 0,
+                          quiet: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
+    """All frames of `frames` are fitted together (one batch samples every frame).
+
+    -> ω (N, code_dim) fitted, φ (N, appearance_dim) = φ_0 repeated. Model parameters are
+    never changed (they do not even receive gradients).
+    """
+    dev = next(model.parameters()).device
+    was_training = model.training
+    model.eval()
+    flags = [p.requires_grad for p in model.parameters()]
+    for p in model.parameters():
+        p.requires_grad_(False)
+    zero = torch.zeros(1, dtype=torch.long, device=dev)
+    omega0, phi0 = (c.detach() for c in model.codes(zero))
+    omega = torch.nn.Parameter(omega0.expand(frames.n, -1).clone())
+    phi = phi0.expand(frames.n, -1)
+    if model.warp is None or steps <= 0:
+        _restore(model, flags, was_training)
+        return omega.detach(), phi
+    opt = torch.optim.Adam([omega], lr=lr)
+    gen = torch.Generator().manual_seed(seed)
+    for _ in tqdm(range(steps), desc="fit ω (held-out)", disable=quiet, leave=False):
+        fi, ys, xs = frames.sample_pixels(batch_rays, gen)
+        o, d = frames.rays(fi, ys, xs)
+        fi_d = fi.to(dev)
+        rays = RayBatch(o.to(dev), d.to(dev), omega[fi_d], phi[fi_d],
+                        frames.expressions[fi].to(dev), frames.masks[fi, ys, xs].to(dev))
+        out = model(rays, jitter=True, generator=gen if dev.type == "cpu" else None)
+        loss = torch.mean((out["rgb"] - frames.images[fi, ys, xs].to(dev)) ** 2)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+    _restore(model, flags, was_training)
+    return omega.detach(), phi
+
+
+def _restore(model, flags, was_training) -> None:
+    for p, f in zip(model.parameters(), flags):
+        p.requires_grad_(f)
+    model.train(was_training)

@@ -1,0 +1,83 @@
+"""Canonical radiance fields F(γ(x'), γ(d), φ, 𝕀β) -> (σ, c): the paper's NeRF MLP and a
+hash-grid field with the same inputs and outputs."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+from flamenerf.config import FieldConfig
+from flamenerf.model.encodings import HashGrid, pe_dim, positional_encoding
+from flamenerf.model.mlp import MLP
+
+
+def trunc_exp(x: Tensor) -> Tensor:
+    # exp with a clamped argument: instant-ngp's density activation without overflow
+    return torch.exp(x.clamp(max=15.0))
+
+
+class NeRFField(nn.Module):
+    """The paper's canonical NeRF: 8x256 trunk with a skip at layer 4 over (γ(x'), 𝕀β);
+    σ from the trunk; colour from (trunk feature, γ(d), φ) through one 128-wide layer."""
+
+    def __init__(self, cfg: FieldConfig, expr_dim: int):
+        super().__init__()
+        self.cfg, self.expr_dim = cfg, expr_dim
+        in_dim = pe_dim(3, cfg.pos_freqs) + expr_dim
+        self.trunk = MLP(in_dim, cfg.width, cfg.depth, cfg.skips)
+        self.sigma = nn.Linear(cfg.width, 1)
+        self.feature = nn.Linear(cfg.width, cfg.width)
+        self.rgb = MLP(cfg.width + pe_dim(3, cfg.dir_freqs) + cfg.appearance_dim,
+                       cfg.width // 2, 1, (), out_dim=3)
+
+    def _trunk(self, x: Tensor, expr: Tensor | None) -> Tensor:
+        h = positional_encoding(x, self.cfg.pos_freqs)
+        if self.expr_dim:
+            h = torch.cat([h, expr], -1)
+        return self.trunk(h)
+
+    def density(self, x: Tensor, expr: Tensor | None) -> Tensor:
+        return torch.relu(self.sigma(self._trunk(x, expr)))[..., 0]
+
+    def forward(self, x: Tensor, d: Tensor, app: Tensor, expr: Tensor | None):
+        """x (N, 3) canonical in [-1,1]^3, d (N, 3) unit, app (N, A), expr (N, E) ->
+        σ (N,), rgb (N, 3)."""
+        h = self._trunk(x, expr)
+        sigma = torch.relu(self.sigma(h))[..., 0]
+        c = self.rgb(torch.cat([self.feature(h), positional_encoding(d, self.cfg.dir_freqs),
+                                app], -1))
+        return sigma, torch.sigmoid(c)
+
+
+class HashField(nn.Module):
+    """Hash-grid features of x', then a one-hidden-layer density head over (features, 𝕀β)
+    and a two-layer colour head over (geometry features, γ(d), φ)."""
+
+    def __init__(self, cfg: FieldConfig, expr_dim: int):
+        super().__init__()
+        self.cfg, self.expr_dim = cfg, expr_dim
+        self.grid = HashGrid(cfg.hash_levels, cfg.hash_features, cfg.hash_log2_size,
+                             cfg.hash_base_res, cfg.hash_max_res)
+        self.density_head = MLP(self.grid.out_dim + expr_dim, cfg.head_width, 1, (),
+                                out_dim=1 + cfg.geo_features)
+        self.rgb = MLP(cfg.geo_features + pe_dim(3, cfg.dir_freqs) + cfg.appearance_dim,
+                       cfg.head_width, 2, (), out_dim=3)
+
+    def _geo(self, x: Tensor, expr: Tensor | None) -> Tensor:
+        h = self.grid((x + 1) * 0.5)
+        if self.expr_dim:
+            h = torch.cat([h, expr], -1)
+        return self.density_head(h)
+
+    def density(self, x: Tensor, expr: Tensor | None) -> Tensor:
+        return trunc_exp(self._geo(x, expr)[..., 0])
+
+    def forward(self, x: Tensor, d: Tensor, app: Tensor, expr: Tensor | None):
+        g = self._geo(x, expr)
+        sigma = trunc_exp(g[..., 0])
+        c = self.rgb(torch.cat([g[..., 1:], positional_encoding(d, self.cfg.dir_freqs), app], -1))
+        return sigma, torch.sigmoid(c)
+
+
+def make_field(cfg: FieldConfig, expr_dim: int) -> nn.Module:
+    return {"mlp": NeRFField, "hash": HashField}[cfg.kind](cfg, expr_dim)

@@ -1,0 +1,232 @@
+"""FLAME-in-NeRF: a deformable NeRF conditioned on masked expression parameters.
+
+One class for every preset; the config picks the field (`mlp`/`hash`), the sampler
+(`hierarchical`/`occupancy`) and the expression mode (`masked`/`none`/`everywhere`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from flamenerf.config import ModelConfig
+from flamenerf.model.field import make_field
+from flamenerf.model.render import composite, render_weights, sample_pdf, stratified_samples
+from flamenerf.model.warp import SE3Field
+
+
+@dataclass
+class RayBatch:
+    """R rays with everything the field is conditioned on."""
+
+    origins: Tensor  # (R, 3) world
+    dirs: Tensor  # (R, 3) world, unit -z component in camera space (t = z-depth)
+    deform_code: Tensor  # (R, code_dim) ω
+    appearance_code: Tensor  # (R, appearance_dim) φ
+    expression: Tensor  # (R, E) β
+    face_ray: Tensor  # (R,) bool: the ray passes through the face silhouette
+
+    def __getitem__(self, s) -> "RayBatch":
+        return RayBatch(*(getattr(self, k)[s] for k in self.__dataclass_fields__))
+
+    def __len__(self) -> int:
+        return self.origins.shape[0]
+
+    def to(self, device) -> "RayBatch":
+        return RayBatch(*(getattr(self, k).to(device) for k in self.__dataclass_fields__))
+
+
+class FlameNeRF(nn.Module):
+    def __init__(self, cfg: ModelConfig, num_codes: int, expr_dim: int, near: float,
+                 far: float, box_min: list[float], box_max: list[float]):
+        super().__init__()
+        self.cfg = cfg
+        self.near, self.far = float(near), float(far)
+        self.expr_dim = expr_dim
+        self.init_args = dict(num_codes=num_codes, expr_dim=expr_dim, near=near, far=far,
+                              box_min=list(map(float, box_min)),
+                              box_max=list(map(float, box_max)))
+        bmin, bmax = torch.tensor(box_min), torch.tensor(box_max)
+        self.register_buffer("center", (bmin + bmax) / 2)
+        # isotropic scale, so that rigid warps in normalised space are rigid in the world
+        self.register_buffer("half_extent", ((bmax - bmin) / 2).max())
+        field_expr = 0 if cfg.expression_mode == "none" else expr_dim
+        self.deform_codes = nn.Embedding(num_codes, cfg.warp.code_dim)
+        self.appearance_codes = nn.Embedding(num_codes, cfg.field.appearance_dim)
+        nn.init.normal_(self.deform_codes.weight, std=1e-2)
+        nn.init.normal_(self.appearance_codes.weight, std=1e-2)
+        self.warp = SE3Field(cfg.warp) if cfg.warp.enabled else None
+        self.field = make_field(cfg.field, field_expr)
+        s = cfg.sampler
+        if s.kind == "hierarchical":
+            self.field_coarse = make_field(cfg.field, field_expr)
+        elif s.kind == "occupancy":
+            r = s.grid_res
+            self.register_buffer("occ_value", torch.full((r, r, r), 1e3))
+            self.register_buffer("occ_mask", torch.ones(r, r, r, dtype=torch.bool))
+        else:
+            raise ValueError(f"unknown sampler {s.kind!r}")
+
+    # ---------------------------------------------------------------- conditioning
+    def update_to_step(self, step: int) -> None:
+        """Set step-dependent state: the c2f window α(t) = m·t/N."""
+        if self.warp is not None:
+            w = self.cfg.warp
+            self.warp.set_alpha(min(w.num_freqs * step / max(w.anneal_steps, 1), w.num_freqs))
+
+    def codes(self, frame_index: Tensor) -> tuple[Tensor, Tensor]:
+        """frame_index (R,) long -> ω (R, code_dim), φ (R, appearance_dim)."""
+        return self.deform_codes(frame_index), self.appearance_codes(frame_index)
+
+    def masked_expression(self, expression: Tensor, face_ray: Tensor) -> Tensor | None:
+        """𝕀(x)·β: the spatial prior. (R, E), (R,) -> (R, E), or None for `nerfies`."""
+        mode = self.cfg.expression_mode
+        if mode == "none":
+            return None
+        e = expression * self.cfg.expression_scale
+        if mode == "masked":
+            e = e * face_ray[:, None].to(e)
+        return e
+
+    def normalize(self, x: Tensor) -> Tensor:
+        return (x - self.center) / self.half_extent
+
+    def warp_points(self, xn: Tensor, code: Tensor) -> Tensor:
+        """Normalised observation points (N, 3) -> canonical (N, 3)."""
+        return xn if self.warp is None else self.warp(xn, code)
+
+    # ---------------------------------------------------------------- querying
+    def _query(self, field: nn.Module, xn: Tensor, dirs: Tensor, code: Tensor, app: Tensor,
+               expr: Tensor | None) -> tuple[Tensor, Tensor]:
+        """Flat points (N, 3) with per-point conditioning -> σ (N,), rgb (N, 3)."""
+        xc = self.warp_points(xn, code)
+        return field(xc, dirs, app, expr)
+
+    def _query_rays(self, field, rays: RayBatch, t: Tensor, expr: Tensor | None):
+        R, S = t.shape
+        xn = self.normalize(rays.origins[:, None] + t[..., None] * rays.dirs[:, None])
+        dn = F.normalize(rays.dirs, dim=-1)
+
+        def rep(v):
+            return None if v is None else v[:, None].expand(R, S, v.shape[-1]).reshape(R * S, -1)
+
+        sigma, rgb = self._query(field, xn.reshape(-1, 3), rep(dn), rep(rays.deform_code),
+                                 rep(rays.appearance_code), rep(expr))
+        return sigma.view(R, S), rgb.view(R, S, 3)
+
+    def _deltas(self, t: Tensor, dirs: Tensor, last: float) -> Tensor:
+        """Distances between samples in normalised units. t (R, S) -> (R, S)."""
+        dt = torch.cat([t[:, 1:] - t[:, :-1], torch.full_like(t[:, :1], last)], -1)
+        return dt * (dirs.norm(dim=-1, keepdim=True) / self.half_extent)
+
+    # ---------------------------------------------------------------- rendering
+    def forward(self, rays: RayBatch, jitter: bool = False,
+                generator: torch.Generator | None = None) -> dict[str, Tensor]:
+        """-> rgb (R, 3), depth (R,), acc (R,), plus `rgb_coarse` for the hierarchical
+        sampler and `num_samples` (network evaluations, for throughput figures)."""
+        expr = self.masked_expression(rays.expression, rays.face_ray)
+        if self.cfg.sampler.kind == "hierarchical":
+            return self._forward_hierarchical(rays, expr, jitter, generator)
+        return self._forward_occupancy(rays, expr, jitter, generator)
+
+    def _forward_hierarchical(self, rays, expr, jitter, generator):
+        s = self.cfg.sampler
+        R = len(rays)
+        t_c = stratified_samples(self.near, self.far, R, s.num_coarse, jitter,
+                                 rays.origins.device, generator)
+        sig_c, rgb_c = self._query_rays(self.field_coarse, rays, t_c, expr)
+        w_c = render_weights(sig_c, self._deltas(t_c, rays.dirs, 1e10))
+        out_c = composite(w_c, rgb_c, t_c)
+        mids = 0.5 * (t_c[:, 1:] + t_c[:, :-1])
+        t_f = sample_pdf(mids, w_c[:, 1:-1], s.num_fine, jitter, generator)
+        if s.fine_reuses_coarse:
+            t_f, _ = torch.sort(torch.cat([t_c, t_f], -1), -1)
+        else:
+            t_f, _ = torch.sort(t_f, -1)
+        sig_f, rgb_f = self._query_rays(self.field, rays, t_f, expr)
+        w_f = render_weights(sig_f, self._deltas(t_f, rays.dirs, 1e10))
+        out = composite(w_f, rgb_f, t_f)
+        out["rgb_coarse"] = out_c["rgb"]
+        out["num_samples"] = torch.tensor(t_c.numel() + t_f.numel())
+        return out
+
+    def _forward_occupancy(self, rays, expr, jitter, generator):
+        s = self.cfg.sampler
+        R = len(rays)
+        t = stratified_samples(self.near, self.far, R, s.num_steps, jitter,
+                               rays.origins.device, generator)
+        xn = self.normalize(rays.origins[:, None] + t[..., None] * rays.dirs[:, None])
+        ri, si = self._occupied(xn).nonzero(as_tuple=True)
+        dn = F.normalize(rays.dirs, dim=-1)
+        sig_p, rgb_p = self._query(
+            self.field, xn[ri, si], dn[ri], rays.deform_code[ri], rays.appearance_code[ri],
+            None if expr is None else expr[ri])
+        sigma = torch.zeros(R, s.num_steps, dtype=sig_p.dtype, device=t.device)
+        sigma = sigma.index_put((ri, si), sig_p)
+        rgb = torch.zeros(R, s.num_steps, 3, dtype=rgb_p.dtype, device=t.device)
+        rgb = rgb.index_put((ri, si), rgb_p)
+        step = (self.far - self.near) / s.num_steps
+        deltas = torch.full_like(t, step) * (rays.dirs.norm(dim=-1, keepdim=True) / self.half_extent)
+        out = composite(render_weights(sigma, deltas), rgb, t)
+        out["num_samples"] = torch.tensor(int(ri.numel()))
+        return out
+
+    # ---------------------------------------------------------------- occupancy grid
+    def _cell_index(self, xn: Tensor) -> tuple[Tensor, Tensor]:
+        r = self.cfg.sampler.grid_res
+        ijk = torch.floor((xn + 1) * 0.5 * r).to(torch.int64)
+        inside = ((ijk >= 0) & (ijk < r)).all(-1)
+        ijk = ijk.clamp(0, r - 1)
+        return (ijk[..., 0] * r + ijk[..., 1]) * r + ijk[..., 2], inside
+
+    def _occupied(self, xn: Tensor) -> Tensor:
+        flat, inside = self._cell_index(xn)
+        return self.occ_mask.view(-1)[flat] & inside
+
+    @torch.no_grad()
+    def update_occupancy(self, expressions: Tensor, fraction: float = 1.0, decay: float = 0.95,
+                         generator: torch.Generator | None = None) -> float:
+        """Re-estimate which cells hold density: σ at a jittered point of each (or a random
+        `fraction` of) cell, maximised over β = 0 and a few training expressions, because
+        the grid must hold every expression's geometry. Returns the occupied fraction."""
+        s = self.cfg.sampler
+        r = s.grid_res
+        dev = self.occ_value.device
+        n = r**3
+        if fraction < 1.0:
+            cells = torch.randperm(n, device=dev, generator=generator)[: max(1, int(n * fraction))]
+            cells = torch.unique(torch.cat([cells, self.occ_mask.view(-1).nonzero()[:, 0]]))
+        else:
+            cells = torch.arange(n, device=dev)
+        k = cells
+        ijk = torch.stack([k // (r * r), (k // r) % r, k % r], -1).to(torch.float32)
+        jit = torch.rand(ijk.shape, device=dev, generator=generator)
+        xn = (ijk + jit) / r * 2 - 1
+        betas = [None] if self.cfg.expression_mode == "none" else [
+            torch.zeros(self.expr_dim, device=dev),
+            *expressions[torch.randint(len(expressions), (2,), generator=generator)]]
+        sigma = torch.zeros(len(cells), device=dev)
+        for start in range(0, len(cells), 1 << 16):
+            sl = slice(start, start + (1 << 16))
+            x = xn[sl]
+            for b in betas:
+                e = None if b is None else (b * self.cfg.expression_scale).expand(len(x), -1)
+                sigma[sl] = torch.maximum(sigma[sl], self.field.density(x, e))
+        step = (self.far - self.near) / s.num_steps / float(self.half_extent)
+        flat = self.occ_value.view(-1)
+        flat[cells] = torch.maximum(flat[cells] * decay, sigma * step)
+        occ = (self.occ_value > s.grid_threshold).float()
+        if s.grid_dilate > 0:
+            k = 2 * s.grid_dilate + 1
+            occ = F.max_pool3d(occ[None, None], k, stride=1, padding=s.grid_dilate)[0, 0]
+        self.occ_mask.copy_(occ > 0)
+        if not self.occ_mask.any():
+            self.occ_mask.fill_(True)
+        return float(self.occ_mask.float().mean())
+
+
+def build_model(cfg: ModelConfig, args: dict) -> FlameNeRF:
+    return FlameNeRF(cfg, **args)

@@ -1,0 +1,56 @@
+"""Ray sampling and volume rendering as batched pure functions (shapes in docstrings)."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+
+def stratified_samples(near: float, far: float, num_rays: int, num: int, jitter: bool,
+                       device=None, generator: torch.Generator | None = None) -> Tensor:
+    """Sample ray parameters in [near, far]: -> t (num_rays, num), sorted."""
+    edges = torch.linspace(near, far, num + 1, device=device)
+    lo, hi = edges[:-1], edges[1:]
+    if jitter:
+        u = torch.rand(num_rays, num, device=device, generator=generator)
+    else:
+        u = torch.full((num_rays, num), 0.5, device=device)
+    return lo + (hi - lo) * u
+
+
+def render_weights(sigma: Tensor, deltas: Tensor) -> Tensor:
+    """w_i = T_i (1 − exp(−σ_i δ_i)), T_i = exp(−Σ_{j<i} σ_j δ_j). (R, S) -> (R, S)."""
+    sd = sigma * deltas
+    alpha = 1.0 - torch.exp(-sd)
+    trans = torch.exp(-torch.cumsum(torch.cat([torch.zeros_like(sd[:, :1]), sd[:, :-1]], 1), 1))
+    return alpha * trans
+
+
+def sample_pdf(bins: Tensor, weights: Tensor, num: int, jitter: bool,
+               generator: torch.Generator | None = None) -> Tensor:
+    """Inverse-CDF samples from the piecewise-constant pdf `weights` (R, B) over `bins`
+    (R, B+1). -> (R, num), detached (NeRF's hierarchical sampling)."""
+    w = weights.detach() + 1e-5
+    pdf = w / w.sum(-1, keepdim=True)
+    cdf = torch.cat([torch.zeros_like(pdf[:, :1]), torch.cumsum(pdf, -1)], -1)
+    if jitter:
+        u = torch.rand(cdf.shape[0], num, device=cdf.device, generator=generator)
+    else:
+        u = torch.linspace(0.0, 1.0, num, device=cdf.device).expand(cdf.shape[0], num)
+    u = u.contiguous()
+    idx = torch.searchsorted(cdf, u, right=True).clamp(1, cdf.shape[-1] - 1)
+    c0, c1 = cdf.gather(-1, idx - 1), cdf.gather(-1, idx)
+    b0, b1 = bins.gather(-1, idx - 1), bins.gather(-1, idx)
+    frac = (u - c0) / (c1 - c0).clamp_min(1e-8)
+    return (b0 + frac * (b1 - b0)).detach()
+
+
+def composite(weights: Tensor, rgb: Tensor, t: Tensor, background: float = 0.0) -> dict:
+    """weights (R, S), rgb (R, S, 3), t (R, S) -> rgb (R, 3), depth (R,), acc (R,).
+
+    Depth is the weight-averaged t over the accumulated opacity (z-depth; see data/rays.py).
+    """
+    acc = weights.sum(-1)
+    out_rgb = (weights[..., None] * rgb).sum(-2) + background * (1 - acc[..., None])
+    depth = (weights * t).sum(-1) / acc.clamp_min(1e-6)
+    return {"rgb": out_rgb, "depth": depth, "acc": acc}

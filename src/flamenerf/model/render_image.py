@@ -1,0 +1,41 @@
+"""Render whole images in memory-bounded chunks of rays."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from flamenerf.data.dataset import Intrinsics
+from flamenerf.data.rays import camera_rays
+from flamenerf.model.flame_nerf import FlameNeRF, RayBatch
+
+
+@torch.no_grad()
+def render_image(model: FlameNeRF, intr: Intrinsics, c2w: np.ndarray | torch.Tensor,
+                 deform_code: torch.Tensor, appearance_code: torch.Tensor,
+                 expression: torch.Tensor, face_mask: np.ndarray | torch.Tensor,
+                 chunk: int = 8192) -> dict[str, torch.Tensor]:
+    """One camera, one set of codes -> rgb (H, W, 3), depth (H, W), acc (H, W) on CPU.
+
+    deform_code (D,), appearance_code (A,), expression (E,), face_mask (H, W) bool: the
+    spatial prior's silhouette for this camera and expression.
+    """
+    dev = next(model.parameters()).device
+    origins, dirs = camera_rays(intr, c2w, dev)
+    o, d = origins.reshape(-1, 3), dirs.reshape(-1, 3)
+    mask = torch.as_tensor(np.asarray(face_mask), device=dev).reshape(-1).bool()
+    n = o.shape[0]
+    outs: dict[str, list[torch.Tensor]] = {"rgb": [], "depth": [], "acc": []}
+    for s in range(0, n, chunk):
+        m = min(chunk, n - s)
+        rays = RayBatch(o[s:s + m], d[s:s + m], deform_code.to(dev).expand(m, -1),
+                        appearance_code.to(dev).expand(m, -1), expression.to(dev).expand(m, -1),
+                        mask[s:s + m])
+        out = model(rays)
+        for k in outs:
+            outs[k].append(out[k].cpu())
+    return {
+        "rgb": torch.cat(outs["rgb"]).view(intr.h, intr.w, 3).clamp(0, 1),
+        "depth": torch.cat(outs["depth"]).view(intr.h, intr.w),
+        "acc": torch.cat(outs["acc"]).view(intr.h, intr.w),
+    }

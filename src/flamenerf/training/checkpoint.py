@@ -1,0 +1,69 @@
+"""Checkpoints: one dict per `step-000001000.ckpt`, written atomically, last K kept."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from flamenerf.errors import UserError
+
+_PAT = re.compile(r"step-(\d{9})\.ckpt$")
+
+
+def atomic_write_bytes(path: Path, write) -> None:
+    """Write via a temporary file in the same directory, then rename over `path`."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            write(f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def atomic_write_text(path: Path, text: str) -> None:
+    atomic_write_bytes(Path(path), lambda f: f.write(text.encode()))
+
+
+def save_checkpoint(run_dir: Path, step: int, state: dict[str, Any], keep: int = 2) -> Path:
+    ckdir = Path(run_dir) / "checkpoints"
+    path = ckdir / f"step-{step:09d}.ckpt"
+    atomic_write_bytes(path, lambda f: torch.save(state, f))
+    old = sorted(p for p in ckdir.iterdir() if _PAT.search(p.name))[:-keep] if keep > 0 else []
+    for p in old:
+        p.unlink(missing_ok=True)
+    return path
+
+
+def latest_checkpoint(run_dir: Path) -> Path | None:
+    ckdir = Path(run_dir) / "checkpoints"
+    if not ckdir.is_dir():
+        return None
+    cks = sorted(p for p in ckdir.iterdir() if _PAT.search(p.name))
+    return cks[-1] if cks else None
+
+
+def load_checkpoint(path: Path) -> dict[str, Any]:
+    try:
+        return torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as e:  # noqa: BLE001
+        raise UserError(f"{path}: not a readable checkpoint ({type(e).__name__}: {e})") from None
+
+
+def read_json(path: Path) -> dict[str, Any]:
+    if not path.exists():
+        raise UserError(f"{path}: file is missing")
+    try:
+        return json.loads(path.read_text())
+    except json.JSONDecodeError as e:
+        raise UserError(f"{path}: invalid JSON at line {e.lineno} ({e.msg})") from None

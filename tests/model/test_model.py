@@ -1,0 +1,89 @@
+import pytest
+import torch
+
+from flamenerf.config import preset
+from flamenerf.model.flame_nerf import FlameNeRF, RayBatch
+from flamenerf.training.losses import face_region_loss
+
+E = 5
+
+
+def tiny(name: str, kind: str = "mlp") -> FlameNeRF:
+    cfg = preset(name).model
+    cfg.warp.code_dim, cfg.warp.width, cfg.warp.depth, cfg.warp.skips = 4, 16, 2, ()
+    cfg.warp.init_scale = 0.1  # a warp that really moves points, so gradients flow
+    if kind == "mlp":
+        cfg.field.kind, cfg.field.width, cfg.field.depth, cfg.field.skips = "mlp", 32, 3, (2,)
+        cfg.sampler.kind, cfg.sampler.num_coarse, cfg.sampler.num_fine = "hierarchical", 8, 8
+    else:
+        cfg.field.kind, cfg.field.hash_levels, cfg.field.hash_log2_size = "hash", 4, 10
+        cfg.field.hash_max_res, cfg.field.head_width = 64, 16
+        cfg.sampler.kind, cfg.sampler.num_steps, cfg.sampler.grid_res = "occupancy", 16, 8
+    torch.manual_seed(0)
+    m = FlameNeRF(cfg, num_codes=3, expr_dim=E, near=0.5, far=1.5,
+                  box_min=[-1, -1, -1], box_max=[1, 1, 1])
+    if kind == "mlp":  # some density on every ray, so that every ray has a gradient
+        for f in (m.field, m.field_coarse):
+            torch.nn.init.constant_(f.sigma.bias, 1.0)
+    return m
+
+
+def rays(model, n=8, face=None):
+    g = torch.Generator().manual_seed(1)
+    o = torch.zeros(n, 3)
+    o[:, 2] = 1.0
+    d = torch.randn(n, 3, generator=g) * 0.2
+    d[:, 2] = -1
+    omega, phi = model.codes(torch.zeros(n, dtype=torch.long))
+    expr = torch.rand(n, E, generator=g).requires_grad_(True)
+    face = torch.arange(n) % 2 == 0 if face is None else face
+    return RayBatch(o, d, omega, phi, expr, face)
+
+
+@pytest.mark.parametrize("kind", ["mlp", "hash"])
+def test_spatial_prior_cuts_expression_outside_mask(kind):
+    m = tiny("flame-in-nerf", kind)
+    r = rays(m)
+    out = m(r)
+    (out["rgb"].sum() + out["depth"].sum()).backward()
+    g = r.expression.grad
+    assert torch.all(g[~r.face_ray] == 0), "β leaked to rays outside the silhouette"
+    assert torch.all(g[r.face_ray].abs().sum(-1) > 0), "β has no effect inside the silhouette"
+
+
+def test_no_prior_feeds_expression_everywhere():
+    m = tiny("no-prior")
+    r = rays(m)
+    m(r)["rgb"].sum().backward()
+    assert torch.all(r.expression.grad.abs().sum(-1) > 0)
+
+
+@pytest.mark.parametrize("kind", ["mlp", "hash"])
+def test_nerfies_ignores_expression(kind):
+    m = tiny("nerfies", kind)
+    r = rays(m, face=torch.ones(8, dtype=torch.bool))
+    a = m(r)["rgb"]
+    r2 = RayBatch(r.origins, r.dirs, r.deform_code, r.appearance_code,
+                  torch.rand_like(r.expression), r.face_ray)
+    assert torch.equal(a, m(r2)["rgb"])
+    assert m.field.expr_dim == 0
+
+
+def test_face_region_loss_zero_for_identity_warp():
+    m = tiny("flame-in-nerf")
+    for head in (m.warp.rot, m.warp.trans):
+        torch.nn.init.zeros_(head.weight)
+        torch.nn.init.zeros_(head.bias)
+    x = torch.rand(64, 3) * 2 - 1
+    code = torch.randn(64, 4)
+    assert face_region_loss(m.warp_points(x, code), x).item() == 0.0
+    m2 = tiny("flame-in-nerf")
+    assert face_region_loss(m2.warp_points(x, code), x).item() > 0.0
+
+
+def test_shapes_of_outputs():
+    for kind in ("mlp", "hash"):
+        m = tiny("flame-in-nerf", kind)
+        out = m(rays(m, n=6))
+        assert out["rgb"].shape == (6, 3) and out["depth"].shape == (6,)
+        assert out["acc"].shape == (6,)
