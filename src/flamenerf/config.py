@@ -69,10 +69,13 @@ class SamplerConfig:
     """The fine network also re-evaluates the coarse samples (NeRF's 64+64=128)."""
     num_steps: int = 256
     """occupancy: uniform positions per ray before skipping empty ones."""
-    grid_res: int = 96
+    grid_res: int = 64
     grid_threshold: float = 0.01
     grid_update_every: int = 16
-    grid_warmup: int = 256
+    grid_warmup: int = 100
+    """occupancy: steps before the first grid update; meanwhile `warmup_samples` stratified
+    samples per ray are all evaluated."""
+    warmup_samples: int = 48
     grid_dilate: int = 1
     """Cells of dilation so that small deformations never leave the occupied region."""
 
@@ -145,7 +148,7 @@ def _fast() -> Config:
     cfg.model.warp = WarpConfig(code_dim=16, width=64, depth=4, skips=(), num_freqs=6,
                                 anneal_steps=800)
     cfg.model.field = FieldConfig(kind="hash", appearance_dim=8, dir_freqs=4)
-    cfg.model.sampler = SamplerConfig(kind="occupancy", num_steps=192, grid_res=96)
+    cfg.model.sampler = SamplerConfig(kind="occupancy", num_steps=192, grid_res=64)
     cfg.train = TrainConfig(steps=2000, batch_rays=4096, lr=1e-2, lr_final=1e-3,
                             lr_warmup=50, checkpoint_every=500, image_every=500,
                             log_every=25)

@@ -45,3 +45,24 @@ def test_hash_grid_shapes_and_position_gradient():
     # trilinear interpolation reproduces the table at a grid vertex of the coarsest level
     v = torch.tensor([[0.25, 0.5, 0.75]])
     assert torch.isfinite(g(v)).all()
+
+
+def test_hash_grid_is_trilinear_on_a_dense_level():
+    g = HashGrid(levels=1, features=2, log2_size=10, base_res=4, max_res=4)
+    torch.nn.init.uniform_(g.table, -1, 1)
+    x = torch.tensor([[0.1, 0.55, 0.9], [0.0, 0.0, 0.0], [0.3, 0.3, 0.74]])
+    out = g(x)
+    r = 4
+    for k, p in enumerate(x):
+        pos = p * r
+        b = torch.floor(pos).long()
+        f = pos - b
+        ref = torch.zeros(2)
+        for dx in (0, 1):
+            for dy in (0, 1):
+                for dz in (0, 1):
+                    i = (b[0] + dx) + (b[1] + dy) * (r + 1) + (b[2] + dz) * (r + 1) ** 2
+                    w = ((f[0] if dx else 1 - f[0]) * (f[1] if dy else 1 - f[1])
+                         * (f[2] if dz else 1 - f[2]))
+                    ref += w * g.table[:, i]
+        assert torch.allclose(out[k], ref, atol=1e-6)

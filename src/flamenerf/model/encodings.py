@@ -58,8 +58,6 @@ class HashGrid(nn.Module):
         dense = [(r + 1) ** 3 <= self.size for r in res]
         self.register_buffer("dense", torch.tensor(dense), persistent=False)
         self.table = nn.Parameter(torch.empty(features, levels * self.size).uniform_(-1e-4, 1e-4))
-        corners = torch.tensor([[i >> 2 & 1, i >> 1 & 1, i & 1] for i in range(8)])
-        self.register_buffer("corners", corners, persistent=False)  # (8, 3)
 
     @property
     def out_dim(self) -> int:
@@ -68,18 +66,30 @@ class HashGrid(nn.Module):
     def forward(self, x: Tensor) -> Tensor:
         """x (N, 3) in [0, 1]^3 -> (N, L·F)."""
         n = x.shape[0]
-        pos = x.clamp(0, 1)[None] * self.res[:, None, None].to(x)  # (L, N, 3)
-        base = torch.floor(pos.detach()).to(torch.int64)  # (L, N, 3)
-        frac = pos - base  # (L, N, 3)
-        c = base[:, None] + self.corners[None, :, None]  # (L, 8, N, 3)
-        r1 = (self.res + 1)[:, None, None]
-        dense_idx = c[..., 0] + c[..., 1] * r1 + c[..., 2] * r1 * r1
-        hashed = (c[..., 0] * _PRIMES[0]) ^ (c[..., 1] * _PRIMES[1]) ^ (c[..., 2] * _PRIMES[2])
-        idx = torch.where(self.dense[:, None, None], dense_idx, hashed) % self.size
-        idx = idx + (torch.arange(self.levels, device=x.device) * self.size)[:, None, None]
-        feats = self.table.index_select(1, idx.reshape(-1)).view(self.features, self.levels, 8, n)
-        cw = self.corners[None, :, None].to(x)  # (1, 8, 1, 3)
-        f = frac[:, None]  # (L, 1, N, 3)
-        w = torch.where(cw > 0, f, 1 - f).prod(-1)  # (L, 8, N)
-        out = (feats * w[None]).sum(2)  # (F, L, N)
-        return out.permute(2, 1, 0).reshape(n, -1)
+        xs = x.clamp(0, 1)
+        mask = self.size - 1  # the table size is a power of two: `& mask` is `% size`
+        outs = []
+        # One level at a time, corners built from per-axis terms: every intermediate is
+        # (N,) or (8, N), which keeps memory traffic (the CPU's bottleneck) low.
+        for lv, (r, dense) in enumerate(zip(self.res.tolist(), self.dense.tolist())):
+            pos = xs * r
+            base = torch.floor(pos.detach())
+            frac = pos - base  # (N, 3)
+            b = base.to(torch.int64)
+            if dense:
+                terms = [(b[:, 0], b[:, 0] + 1),
+                         (b[:, 1] * (r + 1), (b[:, 1] + 1) * (r + 1)),
+                         (b[:, 2] * (r + 1) ** 2, (b[:, 2] + 1) * (r + 1) ** 2)]
+                combine = torch.add
+            else:
+                terms = [(b[:, i] * p, (b[:, i] + 1) * p) for i, p in enumerate(_PRIMES)]
+                combine = torch.bitwise_xor
+            xy = [combine(tx, ty) for tx in terms[0] for ty in terms[1]]  # 4 x (N,)
+            idx = torch.stack([combine(v, tz) for v in xy for tz in terms[2]])  # (8, N)
+            idx = (idx & mask) + lv * self.size
+            fx, fy, fz = frac.unbind(-1)
+            wxy = [wx * wy for wx in (1 - fx, fx) for wy in (1 - fy, fy)]
+            w = torch.stack([v * wz for v in wxy for wz in (1 - fz, fz)])  # (8, N)
+            f = self.table.index_select(1, idx.reshape(-1)).view(self.features, 8, n)
+            outs.append((f * w).sum(1))  # (F, N)
+        return torch.stack(outs, 0).permute(2, 0, 1).reshape(n, -1)

@@ -65,14 +65,17 @@ class FlameNeRF(nn.Module):
             self.field_coarse = make_field(cfg.field, field_expr)
         elif s.kind == "occupancy":
             r = s.grid_res
-            self.register_buffer("occ_value", torch.full((r, r, r), 1e3))
+            self.register_buffer("occ_value", torch.zeros(r, r, r))
             self.register_buffer("occ_mask", torch.ones(r, r, r, dtype=torch.bool))
         else:
             raise ValueError(f"unknown sampler {s.kind!r}")
+        self.grid_warming_up = False
 
     # ---------------------------------------------------------------- conditioning
     def update_to_step(self, step: int) -> None:
-        """Set step-dependent state: the c2f window α(t) = m·t/N."""
+        """Set step-dependent state: the c2f window α(t) = m·t/N, and whether the
+        occupancy grid is still warming up (then every sample is evaluated)."""
+        self.grid_warming_up = step < self.cfg.sampler.grid_warmup
         if self.warp is not None:
             w = self.cfg.warp
             self.warp.set_alpha(min(w.num_freqs * step / max(w.anneal_steps, 1), w.num_freqs))
@@ -156,19 +159,23 @@ class FlameNeRF(nn.Module):
     def _forward_occupancy(self, rays, expr, jitter, generator):
         s = self.cfg.sampler
         R = len(rays)
-        t = stratified_samples(self.near, self.far, R, s.num_steps, jitter,
+        num = s.warmup_samples if self.grid_warming_up else s.num_steps
+        t = stratified_samples(self.near, self.far, R, num, jitter,
                                rays.origins.device, generator)
         xn = self.normalize(rays.origins[:, None] + t[..., None] * rays.dirs[:, None])
-        ri, si = self._occupied(xn).nonzero(as_tuple=True)
+        if self.grid_warming_up:  # the grid knows nothing yet: evaluate every sample
+            ri, si = torch.ones_like(t, dtype=torch.bool).nonzero(as_tuple=True)
+        else:
+            ri, si = self._occupied(xn).nonzero(as_tuple=True)
         dn = F.normalize(rays.dirs, dim=-1)
         sig_p, rgb_p = self._query(
             self.field, xn[ri, si], dn[ri], rays.deform_code[ri], rays.appearance_code[ri],
             None if expr is None else expr[ri])
-        sigma = torch.zeros(R, s.num_steps, dtype=sig_p.dtype, device=t.device)
+        sigma = torch.zeros(R, num, dtype=sig_p.dtype, device=t.device)
         sigma = sigma.index_put((ri, si), sig_p)
-        rgb = torch.zeros(R, s.num_steps, 3, dtype=rgb_p.dtype, device=t.device)
+        rgb = torch.zeros(R, num, 3, dtype=rgb_p.dtype, device=t.device)
         rgb = rgb.index_put((ri, si), rgb_p)
-        step = (self.far - self.near) / s.num_steps
+        step = (self.far - self.near) / num
         deltas = torch.full_like(t, step) * (rays.dirs.norm(dim=-1, keepdim=True) / self.half_extent)
         out = composite(render_weights(sigma, deltas), rgb, t)
         out["num_samples"] = torch.tensor(int(ri.numel()))
@@ -207,7 +214,7 @@ class FlameNeRF(nn.Module):
         xn = (ijk + jit) / r * 2 - 1
         betas = [None] if self.cfg.expression_mode == "none" else [
             torch.zeros(self.expr_dim, device=dev),
-            *expressions[torch.randint(len(expressions), (2,), generator=generator)]]
+            expressions[int(torch.randint(len(expressions), (1,), generator=generator))]]
         sigma = torch.zeros(len(cells), device=dev)
         for start in range(0, len(cells), 1 << 16):
             sl = slice(start, start + (1 << 16))
@@ -218,13 +225,14 @@ class FlameNeRF(nn.Module):
         step = (self.far - self.near) / s.num_steps / float(self.half_extent)
         flat = self.occ_value.view(-1)
         flat[cells] = torch.maximum(flat[cells] * decay, sigma * step)
-        occ = (self.occ_value > s.grid_threshold).float()
+        # nerfacc's rule: a cell is occupied above the threshold or the mean, whichever is
+        # lower, so a young field whose density is still uniform keeps every cell
+        thresh = min(s.grid_threshold, float(self.occ_value.mean()))
+        occ = (self.occ_value >= thresh).float()
         if s.grid_dilate > 0:
             k = 2 * s.grid_dilate + 1
             occ = F.max_pool3d(occ[None, None], k, stride=1, padding=s.grid_dilate)[0, 0]
         self.occ_mask.copy_(occ > 0)
-        if not self.occ_mask.any():
-            self.occ_mask.fill_(True)
         return float(self.occ_mask.float().mean())
 
 

@@ -141,8 +141,9 @@ class Trainer:
         for g in self.opt.param_groups:
             g["lr"] = learning_rate(self.step, cfg)
         sc = model.cfg.sampler
-        if sc.kind == "occupancy" and self.step % sc.grid_update_every == 0:
-            frac = 1.0 if self.step < sc.grid_warmup else 0.25
+        if (sc.kind == "occupancy" and self.step >= sc.grid_warmup
+                and (self.step - sc.grid_warmup) % sc.grid_update_every == 0):
+            frac = 1.0 if self.step == sc.grid_warmup else 0.25
             model.update_occupancy(ts.expressions.to(self.device), fraction=frac,
                                    generator=self.gen)
         fi, ys, xs = ts.sample_pixels(cfg.batch_rays, self.gen)
@@ -155,24 +156,24 @@ class Trainer:
         out = model(rays, jitter=True, generator=self.gen if self.device.type == "cpu" else None)
         mse = torch.mean((out["rgb"] - target) ** 2)
         loss = mse
-        logs = {"loss/photo": float(mse)}
+        logs = {"loss/photo": mse.item()}
         if "rgb_coarse" in out:
             mse_c = torch.mean((out["rgb_coarse"] - target) ** 2)
             loss = loss + mse_c
-            logs["loss/photo_coarse"] = float(mse_c)
+            logs["loss/photo_coarse"] = mse_c.item()
         if cfg.face_reg_weight > 0 and model.warp is not None:
             pfi = torch.randint(ts.n, (cfg.face_reg_points,), generator=self.gen)
             pts = model.normalize(ts.face_points(pfi, self.gen).to(self.device))
             omega_p, _ = model.codes(ts.frame_index[pfi].to(self.device))
             reg = face_region_loss(model.warp_points(pts, omega_p), pts)
             loss = loss + cfg.face_reg_weight * reg
-            logs["loss/face_reg"] = float(reg)
+            logs["loss/face_reg"] = reg.item()
         self.opt.zero_grad(set_to_none=True)
         loss.backward()
         self.opt.step()
         self.step += 1
-        logs["loss/total"] = float(loss)
-        logs["metrics/psnr"] = psnr_from_mse(float(mse))
+        logs["loss/total"] = loss.item()
+        logs["metrics/psnr"] = psnr_from_mse(mse.item())
         logs["perf/samples"] = float(out["num_samples"])
         if model.warp is not None:
             logs["params/warp_alpha"] = float(model.warp.alpha)
