@@ -44,8 +44,8 @@ _PRIMES = (1, 2654435761, 805459861)
 class HashGrid(nn.Module):
     """Multiresolution hash encoding (Müller et al. 2022) in plain PyTorch.
 
-    The table is feature-major (F, L·T) and gathered with `index_select` over level-major
-    indices (L, 8, N): the fastest layout measured on CPU (PERF_NOTES.md).
+    Tables are feature-major (F, T_l) and gathered with `index_select`, level by level:
+    the fastest layout measured on CPU (PERF_NOTES.md).
     """
 
     def __init__(self, levels: int = 16, features: int = 2, log2_size: int = 17,
@@ -57,7 +57,13 @@ class HashGrid(nn.Module):
         self.register_buffer("res", torch.tensor(res, dtype=torch.int64), persistent=False)
         dense = [(r + 1) ** 3 <= self.size for r in res]
         self.register_buffer("dense", torch.tensor(dense), persistent=False)
-        self.table = nn.Parameter(torch.empty(features, levels * self.size).uniform_(-1e-4, 1e-4))
+        # One table per level, sized to what the level can address: the gradient of an
+        # index_select is a zero-filled tensor of the table's size, so per-level tables
+        # keep that fill small (one shared table spent 25% of a CPU step in fill_).
+        self.tables = nn.ParameterList([
+            nn.Parameter(torch.empty(features, (r + 1) ** 3 if d else self.size)
+                         .uniform_(-1e-4, 1e-4))
+            for r, d in zip(res, dense)])
 
     @property
     def out_dim(self) -> int:
@@ -86,10 +92,11 @@ class HashGrid(nn.Module):
                 combine = torch.bitwise_xor
             xy = [combine(tx, ty) for tx in terms[0] for ty in terms[1]]  # 4 x (N,)
             idx = torch.stack([combine(v, tz) for v in xy for tz in terms[2]])  # (8, N)
-            idx = (idx & mask) + lv * self.size
+            if not dense:
+                idx = idx & mask
             fx, fy, fz = frac.unbind(-1)
             wxy = [wx * wy for wx in (1 - fx, fx) for wy in (1 - fy, fy)]
             w = torch.stack([v * wz for v in wxy for wz in (1 - fz, fz)])  # (8, N)
-            f = self.table.index_select(1, idx.reshape(-1)).view(self.features, 8, n)
+            f = self.tables[lv].index_select(1, idx.reshape(-1)).view(self.features, 8, n)
             outs.append((f * w).sum(1))  # (F, N)
         return torch.stack(outs, 0).permute(2, 0, 1).reshape(n, -1)
