@@ -1,0 +1,67 @@
+"""Load a trained run directory (config.json + latest checkpoint) for eval/render/view."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from flamenerf.config import Config, from_dict
+from flamenerf.data.dataset import Dataset, Intrinsics, load_dataset
+from flamenerf.errors import UserError
+from flamenerf.model.flame_nerf import FlameNeRF
+from flamenerf.training.checkpoint import latest_checkpoint, load_checkpoint, read_json
+
+
+@dataclass
+class Run:
+    run_dir: Path
+    config: Config
+    meta: dict[str, Any]  # config.json
+    model: FlameNeRF  # in eval mode, on `device`
+    step: int
+    device: torch.device
+
+    @property
+    def expression_names(self) -> list[str]:
+        return list(self.meta["expression_names"])
+
+    def dataset(self, path: str | Path | None = None) -> Dataset:
+        """The run's training dataset (or another one with the same expression model)."""
+        p = Path(path) if path is not None else Path(self.meta["dataset"])
+        ds = load_dataset(p)
+        if ds.expression_names != self.expression_names:
+            raise UserError(f"{p}: its expression model ({ds.expression_dim} controls) is not "
+                            f"the one this run was trained with ({len(self.expression_names)})")
+        return ds
+
+    def train_intrinsics(self, ds: Dataset) -> Intrinsics:
+        return ds.intrinsics.scaled(1.0 / self.config.train.downscale)
+
+    def frame_codes(self, frame_index: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+        """ω (code_dim,), φ (appearance_dim,) of one capture frame."""
+        i = torch.tensor([frame_index], device=self.device)
+        w, a = self.model.codes(i)
+        return w[0].detach(), a[0].detach()
+
+
+def load_run(run_dir: str | Path, device: str = "auto") -> Run:
+    from flamenerf.training.trainer import pick_device
+
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        raise UserError(f"{run_dir}: run directory does not exist")
+    meta = read_json(run_dir / "config.json")
+    ck = latest_checkpoint(run_dir)
+    if ck is None:
+        raise UserError(f"{run_dir}: no checkpoint in {run_dir / 'checkpoints'} (not a trained run?)")
+    state = load_checkpoint(ck)
+    cfg = from_dict(meta["config"])
+    dev = pick_device(device)
+    model = FlameNeRF(cfg.model, **state["model_args"])
+    model.load_state_dict(state["model"])
+    model.to(dev).eval()
+    model.update_to_step(int(state["step"]))
+    return Run(run_dir, cfg, meta, model, int(state["step"]), dev)
