@@ -328,6 +328,7 @@ class DatasetWriter:
             raise DatasetError(f"{self.out}: already exists (pass --overwrite to replace it)")
         self.out.parent.mkdir(parents=True, exist_ok=True)
         self.tmp = Path(tempfile.mkdtemp(prefix=f".{self.out.name}.", dir=self.out.parent))
+        os.chmod(self.tmp, 0o755)  # mkdtemp makes 0700; a dataset is an ordinary folder
         for sub in ("images", "masks"):
             (self.tmp / sub).mkdir()
         self.intr = intrinsics

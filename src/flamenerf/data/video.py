@@ -1,0 +1,192 @@
+"""Video decoding (imageio-ffmpeg) that honours rotation metadata, and frame selection.
+
+Phones store portrait videos as landscape frames plus a display-matrix rotation; ffmpeg
+applies it while decoding (its default `autorotate`), so the frames we return, and the
+`width`/`height` we report, are as the video is meant to be seen. `rotation` records the
+angle for the report. Frame times assume a constant frame rate (`index / fps`).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import re
+import subprocess
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from flamenerf.errors import UserError
+
+
+@dataclass
+class VideoInfo:
+    path: Path
+    width: int  # after rotation
+    height: int
+    fps: float
+    num_frames: int
+    duration: float
+    rotation: int  # degrees the player rotates the stored frames (0, 90, 180, 270)
+    codec: str
+
+
+def _ffmpeg() -> str:
+    import imageio_ffmpeg
+
+    return imageio_ffmpeg.get_ffmpeg_exe()
+
+
+def _header(path: Path) -> str:
+    r = subprocess.run([_ffmpeg(), "-hide_banner", "-nostdin", "-i", str(path)],
+                       capture_output=True, text=True, errors="replace")
+    return r.stderr
+
+
+def probe_video(path: str | os.PathLike) -> VideoInfo:
+    """Read a video's header; UserError naming the file if it is missing or not a video."""
+    import imageio_ffmpeg
+
+    path = Path(path)
+    if not path.exists():
+        raise UserError(f"{path}: file does not exist")
+    if not path.is_file():
+        raise UserError(f"{path}: not a file")
+    text = _header(path)
+    vlines = [ln for ln in text.splitlines() if ln.lstrip().startswith("Stream") and
+              " Video: " in ln]
+    if not vlines:
+        last = [ln.strip() for ln in text.splitlines() if ln.strip()]
+        why = last[-1] if last else "ffmpeg cannot read it"
+        if "Invalid data" in text or "moov atom" in text:
+            why = "not a readable video file"
+        elif "Audio:" in text or "Stream" in text:
+            why = "has no video stream"
+        raise UserError(f"{path}: not a readable video ({why})")
+    line = vlines[0]
+    m = re.search(r" (\d+)x(\d+)[ ,\[]", line)
+    if not m:
+        raise UserError(f"{path}: cannot read the frame size from the video header")
+    w, h = int(m.group(1)), int(m.group(2))
+    m = re.search(r"([0-9.]+) fps", line) or re.search(r"([0-9.]+) tbr", line)
+    fps = float(m.group(1)) if m else 0.0
+    rot = 0
+    m = re.search(r"rotation of (-?[0-9.]+) degrees", text)
+    if m:
+        rot = int(round(float(m.group(1)))) % 360
+    else:
+        m = re.search(r"rotate\s*:\s*(-?\d+)", text)
+        if m:
+            rot = (-int(m.group(1))) % 360
+    if rot in (90, 270):
+        w, h = h, w
+    codec = line.split("Video: ", 1)[-1].split(" ", 1)[0].strip(",")
+    try:
+        nframes, secs = imageio_ffmpeg.count_frames_and_secs(str(path))
+    except Exception as e:  # noqa: BLE001 - ffmpeg failures come in many types
+        raise UserError(f"{path}: not a readable video ({type(e).__name__})") from None
+    if nframes <= 0:
+        raise UserError(f"{path}: video has no frames")
+    if fps <= 0:
+        fps = nframes / secs if secs > 0 else 30.0
+    return VideoInfo(path, w, h, fps, int(nframes), float(secs), rot, codec)
+
+
+def select_frames(num_frames: int, native_fps: float, fps: float | None = None,
+                  max_frames: int | None = None) -> np.ndarray:
+    """Indices of the frames to keep: subsample to `fps` (nearest source frame to each
+    tick), then, when more than `max_frames` remain, that many spread evenly over the clip."""
+    if num_frames <= 0:
+        return np.zeros(0, np.int64)
+    if fps is not None and fps <= 0:
+        raise UserError(f"--fps must be positive, got {fps}")
+    if max_frames is not None and max_frames <= 0:
+        raise UserError(f"--max-frames must be positive, got {max_frames}")
+    if fps is None or fps >= native_fps:
+        idx = np.arange(num_frames)
+    else:
+        step = native_fps / fps
+        idx = np.unique(np.round(np.arange(0, num_frames - 0.5, step)).astype(np.int64))
+        idx = idx[idx < num_frames]
+    if max_frames is not None and len(idx) > max_frames:
+        pick = np.unique(np.round(np.linspace(0, len(idx) - 1, max_frames)).astype(np.int64))
+        idx = idx[pick]
+    return idx
+
+
+def iter_frames(info: VideoInfo, indices: np.ndarray | None = None
+                ) -> Iterator[tuple[int, np.ndarray]]:
+    """Yield (source frame index, (H, W, 3) uint8 RGB) for the frames in `indices` (all if
+    None), in order, decoding the stream once."""
+    import imageio_ffmpeg
+
+    logging.getLogger("imageio_ffmpeg").setLevel(logging.ERROR)
+    want = None if indices is None else set(int(i) for i in indices)
+    last = -1 if want is None else max(want, default=-1)
+    gen = imageio_ffmpeg.read_frames(str(info.path), pix_fmt="rgb24")
+    try:
+        meta = next(gen)
+        w, h = meta["size"]
+        if (w, h) != (info.width, info.height):
+            # ffmpeg applied a different rotation than the header suggested; trust the data
+            info.width, info.height = int(w), int(h)
+        nbytes = w * h * 3
+        for i, buf in enumerate(gen):
+            if want is not None and i > last:
+                break
+            if want is not None and i not in want:
+                continue
+            if len(buf) != nbytes:
+                break
+            yield i, np.frombuffer(buf, np.uint8).reshape(h, w, 3)
+    except (RuntimeError, OSError, StopIteration) as e:
+        raise UserError(f"{info.path}: decoding failed ({e})") from None
+    finally:
+        gen.close()
+
+
+class VideoWriter:
+    """Streaming H.264 mp4 writer (yuv420p, plays everywhere); RGB uint8 frames of one size.
+
+        with VideoWriter(path, fps) as vw:
+            vw.write(frame)
+    """
+
+    def __init__(self, path: str | os.PathLike, fps: float, quality: int = 7,
+                 preset: str = "veryfast"):
+        self.path, self.fps, self.quality, self.preset = Path(path), float(fps), quality, preset
+        self._gen = None
+
+    def write(self, frame: np.ndarray) -> None:
+        import imageio_ffmpeg
+
+        if self._gen is None:
+            logging.getLogger("imageio_ffmpeg").setLevel(logging.ERROR)
+            h, w = frame.shape[:2]
+            self._gen = imageio_ffmpeg.write_frames(
+                str(self.path), (w, h), fps=self.fps, quality=self.quality,
+                macro_block_size=2, ffmpeg_log_level="error",
+                output_params=["-preset", self.preset])
+            self._gen.send(None)
+        self._gen.send(np.ascontiguousarray(frame[..., :3]))
+
+    def close(self) -> None:
+        if self._gen is not None:
+            self._gen.close()
+            self._gen = None
+
+    def __enter__(self) -> "VideoWriter":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def write_video(path: str | os.PathLike, frames: list[np.ndarray] | Iterator[np.ndarray],
+                fps: float, quality: int = 7) -> None:
+    """Write RGB uint8 frames as H.264 mp4."""
+    with VideoWriter(path, fps, quality) as vw:
+        for fr in frames:
+            vw.write(fr)

@@ -1,0 +1,124 @@
+"""Expression tracks: the JSON file `flamenerf track` writes and `flamenerf render --drive`
+reads, and expression transfer relative to each subject's neutral face.
+
+Format (docs/preprocessing.md)::
+
+    {
+      "format": "flamenerf-expressions", "version": 1,
+      "kind": "arkit",                  # or "flame": must match the dataset's expression_model
+      "names": ["_neutral", "browDownLeft", ...],   # one per channel
+      "fps": 30.0,                      # rate of the entries of "frames"
+      "frames": [[0.0, 0.01, ...], ...],            # one expression vector per entry
+      "source_frames": [0, 1, 2, ...],  # video frame index of each entry
+      "times": [0.0, 0.0333, ...],      # seconds
+      "dropped": [{"source_frame": 17, "time": 0.567, "reason": "no face detected"}],
+      "source": {"video": "...", "tool": "flamenerf track", "version": "0.1.0"},
+      "transfer": null | {"mode": "relative", "driver_neutral": [...],
+                          "subject_neutral": [...], "subject": "data/me"}
+    }
+
+Only "names" and "frames" are required when reading; "fps" defaults to 30.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from flamenerf.errors import UserError
+
+FORMAT = "flamenerf-expressions"
+VERSION = 1
+
+
+@dataclass
+class ExpressionTrack:
+    names: list[str]
+    frames: np.ndarray  # (T, D) float32
+    fps: float = 30.0
+    kind: str = "unknown"
+    source_frames: list[int] | None = None
+    times: list[float] | None = None
+    dropped: list[dict] = field(default_factory=list)
+    source: dict[str, Any] = field(default_factory=dict)
+    transfer: dict[str, Any] | None = None
+
+    def to_json(self) -> dict:
+        return {
+            "format": FORMAT, "version": VERSION, "kind": self.kind, "names": self.names,
+            "fps": self.fps,
+            "frames": [[round(float(x), 6) for x in row] for row in self.frames],
+            "source_frames": self.source_frames, "times": self.times,
+            "dropped": self.dropped, "source": self.source, "transfer": self.transfer,
+        }
+
+
+def save_expressions(path: str | os.PathLike, track: ExpressionTrack) -> Path:
+    """Write atomically (temp file + rename)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        tmp.write_text(json.dumps(track.to_json(), indent=None, separators=(",", ":")))
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return path
+
+
+def load_expressions(path: str | os.PathLike) -> ExpressionTrack:
+    """Read and validate; any problem is one UserError naming the file."""
+    path = Path(path)
+    if not path.is_file():
+        raise UserError(f"{path}: expression file does not exist")
+    try:
+        d = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise UserError(f"{path}: not valid JSON ({e})") from None
+    if not isinstance(d, dict) or "names" not in d or "frames" not in d:
+        raise UserError(f"{path}: needs an object with 'names' and 'frames'")
+    names = d["names"]
+    if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
+        raise UserError(f"{path}: 'names' must be a list of strings")
+    try:
+        frames = np.asarray(d["frames"], np.float32)
+    except (TypeError, ValueError):
+        raise UserError(f"{path}: 'frames' must be a list of equal-length number lists") \
+            from None
+    if frames.ndim != 2 or frames.shape[1] != len(names) or len(frames) == 0:
+        raise UserError(f"{path}: 'frames' must be a non-empty list of vectors of "
+                        f"{len(names)} numbers (one per name), got shape {frames.shape}")
+    if not np.all(np.isfinite(frames)):
+        raise UserError(f"{path}: 'frames' contains non-finite values")
+    fps = d.get("fps", 30.0)
+    if not isinstance(fps, (int, float)) or fps <= 0:
+        raise UserError(f"{path}: 'fps' must be a positive number")
+    return ExpressionTrack(names=names, frames=frames, fps=float(fps),
+                           kind=str(d.get("kind", "unknown")),
+                           source_frames=d.get("source_frames"), times=d.get("times"),
+                           dropped=d.get("dropped") or [], source=d.get("source") or {},
+                           transfer=d.get("transfer"))
+
+
+def estimate_neutral(expr: np.ndarray, k: int = 5) -> tuple[np.ndarray, list[int]]:
+    """A subject's neutral expression: the mean of the k frames with the smallest expression
+    norm (ARKit scores are >= 0 and FLAME's neutral is 0, so 'smallest' means 'calmest').
+    Returns the vector and the frames used."""
+    expr = np.asarray(expr, np.float64)
+    idx = np.argsort(np.linalg.norm(expr, axis=1))[: max(1, min(k, len(expr)))]
+    return expr[idx].mean(0), sorted(int(i) for i in idx)
+
+
+def transfer_relative(drive: np.ndarray, driver_neutral: np.ndarray,
+                      subject_neutral: np.ndarray, kind: str) -> np.ndarray:
+    """NerFACE-style cross-subject transfer: subject_neutral + (drive - driver_neutral).
+    ARKit scores are clipped back to [0, 1]."""
+    out = subject_neutral[None] + (np.asarray(drive) - driver_neutral[None])
+    if kind == "arkit":
+        out = np.clip(out, 0.0, 1.0)
+    return out.astype(np.float32)

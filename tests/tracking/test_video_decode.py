@@ -1,0 +1,53 @@
+"""Video decoding with rotation metadata, frame selection, and unreadable inputs."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from flamenerf.data.video import iter_frames, probe_video, select_frames
+from flamenerf.errors import UserError
+
+
+def test_probe_and_decode(astronaut_video):
+    info = probe_video(astronaut_video)
+    assert (info.width, info.height, info.num_frames) == (256, 256, 12)
+    assert info.fps == pytest.approx(10.0) and info.rotation == 0
+    frames = list(iter_frames(info, [0, 5, 11]))
+    assert [i for i, _ in frames] == [0, 5, 11]
+    assert frames[0][1].shape == (256, 256, 3) and frames[0][1].dtype == np.uint8
+
+
+def test_rotation_metadata_is_honoured(rotated_video):
+    info = probe_video(rotated_video)
+    assert info.rotation in (90, 270)
+    assert (info.width, info.height) == (160, 320)  # stored 320x160, shown portrait
+    frames = [f for _, f in iter_frames(info)]
+    assert len(frames) == 5 and frames[0].shape == (320, 160, 3)
+    # the white band of the stored frame's left edge is now along the top or bottom
+    rows = frames[0].mean(axis=(1, 2))
+    assert max(rows[:30].mean(), rows[-30:].mean()) > 200
+    assert frames[0][:, :30].mean() < 200
+
+
+def test_select_frames():
+    assert select_frames(10, 30.0).tolist() == list(range(10))
+    assert select_frames(30, 30.0, fps=10).tolist() == list(range(0, 30, 3))
+    assert select_frames(100, 30.0, max_frames=5).tolist() == [0, 25, 50, 74, 99]
+    sel = select_frames(300, 30.0, fps=15, max_frames=20)
+    assert len(sel) == 20 and sel[0] == 0 and np.all(np.diff(sel) > 0)
+    with pytest.raises(UserError, match="--fps"):
+        select_frames(10, 30.0, fps=0)
+
+
+def test_unreadable_inputs(tmp_path):
+    with pytest.raises(UserError, match="does not exist"):
+        probe_video(tmp_path / "nope.mp4")
+    txt = tmp_path / "notes.mp4"
+    txt.write_text("hello, this is not a video\n" * 10)
+    with pytest.raises(UserError, match="notes.mp4: not a readable video"):
+        probe_video(txt)
+    junk = tmp_path / "junk.mov"
+    junk.write_bytes(bytes(range(256)) * 50)
+    with pytest.raises(UserError, match="junk.mov"):
+        probe_video(junk)
