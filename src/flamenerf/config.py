@@ -60,13 +60,22 @@ class FieldConfig:
 
 @dataclass
 class SamplerConfig:
-    kind: Literal["hierarchical", "occupancy"] = "hierarchical"
-    """`hierarchical`: coarse + fine networks (NeRF); `occupancy`: one network, uniform
-    samples thinned by an occupancy grid (empty space skipped, as instant-ngp/nerfacc)."""
+    kind: Literal["hierarchical", "proposal", "occupancy"] = "hierarchical"
+    """`hierarchical`: coarse + fine networks (NeRF); `proposal`: a tiny density-only hash
+    field proposes where the main field samples (mip-NeRF 360); `occupancy`: uniform
+    samples thinned by an occupancy grid (instant-ngp/nerfacc)."""
     num_coarse: int = 64
     num_fine: int = 64
     fine_reuses_coarse: bool = True
     """The fine network also re-evaluates the coarse samples (NeRF's 64+64=128)."""
+    num_proposal: int = 64
+    """proposal: uniform samples of the proposal field per ray."""
+    num_main: int = 24
+    """proposal: samples of the main field per ray, drawn from the proposal's weights."""
+    proposal_levels: int = 6
+    proposal_log2_size: int = 15
+    proposal_max_res: int = 256
+    proposal_width: int = 16
     num_steps: int = 256
     """occupancy: uniform positions per ray before skipping empty ones."""
     grid_res: int = 64
@@ -103,7 +112,8 @@ class TrainConfig:
     face_reg_weight: float = 1.0
     """Weight of ‖D(x_3DMM; ω_i) − x_3DMM‖ (paper's runs: 0.1 to 10)."""
     face_reg_points: int = 1024
-    distortion_weight: float = 0.0
+    interlevel_weight: float = 1.0
+    """Weight of the proposal sampler's interlevel loss."""
     checkpoint_every: int = 5000
     keep_checkpoints: int = 2
     log_every: int = 50
@@ -148,7 +158,7 @@ def _fast() -> Config:
     cfg.model.warp = WarpConfig(code_dim=16, width=64, depth=4, skips=(), num_freqs=6,
                                 anneal_steps=800)
     cfg.model.field = FieldConfig(kind="hash", appearance_dim=8, dir_freqs=4)
-    cfg.model.sampler = SamplerConfig(kind="occupancy", num_steps=192, grid_res=64)
+    cfg.model.sampler = SamplerConfig(kind="proposal", num_proposal=64, num_main=24)
     cfg.train = TrainConfig(steps=2000, batch_rays=4096, lr=1e-2, lr_final=1e-3,
                             lr_warmup=50, checkpoint_every=500, image_every=500,
                             log_every=25)

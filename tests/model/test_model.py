@@ -18,7 +18,7 @@ def tiny(name: str, kind: str = "mlp") -> FlameNeRF:
     else:
         cfg.field.kind, cfg.field.hash_levels, cfg.field.hash_log2_size = "hash", 4, 10
         cfg.field.hash_max_res, cfg.field.head_width = 64, 16
-        cfg.sampler.kind, cfg.sampler.num_steps, cfg.sampler.grid_res = "occupancy", 16, 8
+        cfg.sampler.kind, cfg.sampler.num_proposal, cfg.sampler.num_main = "proposal", 16, 8
     torch.manual_seed(0)
     m = FlameNeRF(cfg, num_codes=3, expr_dim=E, near=0.5, far=1.5,
                   box_min=[-1, -1, -1], box_max=[1, 1, 1])

@@ -29,3 +29,14 @@ def test_sample_pdf_concentrates_on_heavy_bin():
     w[0, 3] = 1.0
     s = sample_pdf(bins, w, 64, jitter=False)
     assert ((s >= 0.3) & (s <= 0.4)).float().mean() > 0.9
+
+
+def test_interlevel_loss_zero_when_proposal_bounds_main():
+    from flamenerf.model.render import interlevel_loss
+
+    edges = torch.linspace(0, 1, 9)[None]
+    w = torch.tensor([[0.0, 0.1, 0.5, 0.2, 0.0, 0.0, 0.0, 0.0]])  # all inside [0, 0.5]
+    assert interlevel_loss(edges, w, edges, w).item() < 1e-9
+    coarse = torch.linspace(0, 1, 3)[None]  # two proposal intervals
+    assert interlevel_loss(edges, w, coarse, torch.tensor([[0.9, 0.0]])).item() < 1e-9
+    assert interlevel_loss(edges, w, coarse, torch.tensor([[0.0, 0.9]])).item() > 0.1

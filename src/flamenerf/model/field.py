@@ -79,5 +79,22 @@ class HashField(nn.Module):
         return sigma, torch.sigmoid(c)
 
 
+class ProposalField(nn.Module):
+    """Density only, from a small hash grid of observation-space x and 𝕀β: cheap enough to
+    evaluate densely along every ray, so that the main field is evaluated where it matters."""
+
+    def __init__(self, levels: int, log2_size: int, max_res: int, width: int, expr_dim: int):
+        super().__init__()
+        self.expr_dim = expr_dim
+        self.grid = HashGrid(levels, 2, log2_size, 16, max_res)
+        self.head = MLP(self.grid.out_dim + expr_dim, width, 1, (), out_dim=1)
+
+    def density(self, x: Tensor, expr: Tensor | None) -> Tensor:
+        h = self.grid((x + 1) * 0.5)
+        if self.expr_dim:
+            h = torch.cat([h, expr], -1)
+        return trunc_exp(self.head(h)[..., 0])
+
+
 def make_field(cfg: FieldConfig, expr_dim: int) -> nn.Module:
     return {"mlp": NeRFField, "hash": HashField}[cfg.kind](cfg, expr_dim)

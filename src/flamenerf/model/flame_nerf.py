@@ -13,8 +13,9 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from flamenerf.config import ModelConfig
-from flamenerf.model.field import make_field
-from flamenerf.model.render import composite, render_weights, sample_pdf, stratified_samples
+from flamenerf.model.field import ProposalField, make_field
+from flamenerf.model.render import (composite, interlevel_loss, render_weights, sample_pdf,
+                                    stratified_samples)
 from flamenerf.model.warp import SE3Field
 
 
@@ -63,6 +64,9 @@ class FlameNeRF(nn.Module):
         s = cfg.sampler
         if s.kind == "hierarchical":
             self.field_coarse = make_field(cfg.field, field_expr)
+        elif s.kind == "proposal":
+            self.proposal = ProposalField(s.proposal_levels, s.proposal_log2_size,
+                                          s.proposal_max_res, s.proposal_width, field_expr)
         elif s.kind == "occupancy":
             r = s.grid_res
             self.register_buffer("occ_value", torch.zeros(r, r, r))
@@ -131,8 +135,11 @@ class FlameNeRF(nn.Module):
         """-> rgb (R, 3), depth (R,), acc (R,), plus `rgb_coarse` for the hierarchical
         sampler and `num_samples` (network evaluations, for throughput figures)."""
         expr = self.masked_expression(rays.expression, rays.face_ray)
-        if self.cfg.sampler.kind == "hierarchical":
+        kind = self.cfg.sampler.kind
+        if kind == "hierarchical":
             return self._forward_hierarchical(rays, expr, jitter, generator)
+        if kind == "proposal":
+            return self._forward_proposal(rays, expr, jitter, generator)
         return self._forward_occupancy(rays, expr, jitter, generator)
 
     def _forward_hierarchical(self, rays, expr, jitter, generator):
@@ -154,6 +161,26 @@ class FlameNeRF(nn.Module):
         out = composite(w_f, rgb_f, t_f)
         out["rgb_coarse"] = out_c["rgb"]
         out["num_samples"] = torch.tensor(t_c.numel() + t_f.numel())
+        return out
+
+    def _forward_proposal(self, rays, expr, jitter, generator):
+        s = self.cfg.sampler
+        R, P, dev = len(rays), s.num_proposal, rays.origins.device
+        edges_p = torch.linspace(self.near, self.far, P + 1, device=dev).expand(R, P + 1)
+        t_p = stratified_samples(self.near, self.far, R, P, jitter, dev, generator)
+        xn = self.normalize(rays.origins[:, None] + t_p[..., None] * rays.dirs[:, None])
+        e = None if expr is None else expr[:, None].expand(R, P, expr.shape[-1]).reshape(R * P, -1)
+        sig_p = self.proposal.density(xn.reshape(-1, 3), e).view(R, P)
+        scale = rays.dirs.norm(dim=-1, keepdim=True) / self.half_extent
+        w_p = render_weights(sig_p, (edges_p[:, 1:] - edges_p[:, :-1]) * scale)
+        edges_m, _ = torch.sort(sample_pdf(edges_p, w_p, s.num_main + 1, jitter, generator), -1)
+        t_m = 0.5 * (edges_m[:, 1:] + edges_m[:, :-1])
+        sig_m, rgb_m = self._query_rays(self.field, rays, t_m, expr)
+        w_m = render_weights(sig_m, (edges_m[:, 1:] - edges_m[:, :-1]) * scale)
+        out = composite(w_m, rgb_m, t_m)
+        if self.training:
+            out["interlevel"] = interlevel_loss(edges_m, w_m, edges_p, w_p)
+        out["num_samples"] = torch.tensor(R * s.num_main)
         return out
 
     def _forward_occupancy(self, rays, expr, jitter, generator):

@@ -54,3 +54,21 @@ def composite(weights: Tensor, rgb: Tensor, t: Tensor, background: float = 0.0) 
     out_rgb = (weights[..., None] * rgb).sum(-2) + background * (1 - acc[..., None])
     depth = (weights * t).sum(-1) / acc.clamp_min(1e-6)
     return {"rgb": out_rgb, "depth": depth, "acc": acc}
+
+
+def interlevel_loss(edges_main: Tensor, w_main: Tensor, edges_prop: Tensor,
+                    w_prop: Tensor) -> Tensor:
+    """mip-NeRF 360's proposal loss: the proposal's weights, summed over the proposal
+    intervals that overlap each main interval, must bound the (detached) main weights.
+
+    edges_main (R, M+1), w_main (R, M), edges_prop (R, P+1), w_prop (R, P) -> scalar.
+    """
+    cw = torch.cat([torch.zeros_like(w_prop[:, :1]), torch.cumsum(w_prop, -1)], -1)
+    p = w_prop.shape[-1]
+    lo = (torch.searchsorted(edges_prop.contiguous(), edges_main[:, :-1].contiguous(),
+                             right=True) - 1).clamp(0, p)
+    hi = torch.searchsorted(edges_prop.contiguous(), edges_main[:, 1:].contiguous(),
+                            right=False).clamp(0, p)
+    bound = cw.gather(-1, hi) - cw.gather(-1, lo)
+    w = w_main.detach()
+    return (torch.clamp(w - bound, min=0) ** 2 / (w + 1e-7)).sum(-1).mean()

@@ -161,6 +161,9 @@ class Trainer:
             mse_c = torch.mean((out["rgb_coarse"] - target) ** 2)
             loss = loss + mse_c
             logs["loss/photo_coarse"] = mse_c.item()
+        if "interlevel" in out:
+            loss = loss + cfg.interlevel_weight * out["interlevel"]
+            logs["loss/interlevel"] = out["interlevel"].item()
         if cfg.face_reg_weight > 0 and model.warp is not None:
             pfi = torch.randint(ts.n, (cfg.face_reg_points,), generator=self.gen)
             pts = model.normalize(ts.face_points(pfi, self.gen).to(self.device))

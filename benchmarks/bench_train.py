@@ -1,0 +1,175 @@
+"""Training benchmark (issue 3): quality-vs-time of the `fast` preset, and the throughput and
+render time of every preset, on the machine at hand. Prints figures and writes JSON.
+
+    python benchmarks/bench_train.py --scene scenes/bench --size 128 --budget 600 \
+        --json docs/bench/train.json
+
+Quality: `fast` trains for `--budget` seconds of wall time (evaluation pauses excluded).
+Every `--eval-every` seconds it is evaluated with the paper's held-out protocol on a subset
+of `val` frames (ω fitted, everything else frozen); at the end on every `val` frame.
+Time-to-25/28/30 dB are read off those evaluations.
+
+Throughput: each preset trains a few steps at its own batch size (rays/s, after one warm-up
+step) and renders one 256x256 frame (`--render-fraction` < 1 renders that fraction of the
+rays and scales the time up linearly; the JSON says which).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import shutil
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+
+def heldout_psnr(model, ds, intr, frames, fit_steps, batch_rays):
+    from flamenerf.data.scene import FrameSet
+    from flamenerf.evaluation.heldout import fit_deformation_codes
+    from flamenerf.evaluation.metrics import mse
+    from flamenerf.model.render_image import render_image
+
+    fs = FrameSet(ds, frames, intr)
+    omega, phi = fit_deformation_codes(model, fs, steps=fit_steps, batch_rays=batch_rays,
+                                       quiet=True)
+    errs = []
+    for i in range(fs.n):
+        out = render_image(model, intr, fs.c2w[i], omega[i], phi[i], fs.expressions[i],
+                           fs.masks[i])
+        errs.append(mse(out["rgb"].numpy(), fs.images[i].numpy()))
+    m = float(np.mean(errs))
+    return m, -10 * np.log10(m)
+
+
+def quality_run(args, scene: Path, log) -> dict:
+    from flamenerf.config import preset
+    from flamenerf.training.trainer import Trainer
+
+    cfg = preset("fast")
+    run_dir = Path(tempfile.mkdtemp(prefix="bench_fast_"))
+    ds_w = __import__("flamenerf.data.dataset", fromlist=["x"]).load_dataset(scene).intrinsics.w
+    cfg.train.downscale = ds_w / args.size
+    cfg.train.image_every = 0
+    t = Trainer(cfg, scene, run_dir / "run", quiet=True)
+    val = t.ds.split("val")
+    sub = val[:: max(1, len(val) // args.eval_frames)][: args.eval_frames]
+    curve, train_s, next_eval = [], 0.0, args.eval_every
+    log(f"fast @ {args.size}px: budget {args.budget:.0f} s, preset steps {cfg.train.steps}")
+    while train_s < args.budget and t.step < cfg.train.steps:
+        t0 = time.perf_counter()
+        t.train_step()
+        train_s += time.perf_counter() - t0
+        if train_s >= next_eval or train_s >= args.budget or t.step >= cfg.train.steps:
+            next_eval += args.eval_every
+            m, p = heldout_psnr(t.model, t.ds, t.intr, sub, args.eval_fit_steps, 2048)
+            curve.append({"train_seconds": round(train_s, 1), "step": t.step, "psnr": p})
+            log(f"  {train_s:6.0f} s  step {t.step:5d}  held-out PSNR ({len(sub)} val frames) "
+                f"{p:.2f} dB")
+    m, p = heldout_psnr(t.model, t.ds, t.intr, val, args.final_fit_steps, 4096)
+    log(f"final: step {t.step}, {train_s:.0f} s, held-out PSNR on all {len(val)} val frames "
+        f"{p:.2f} dB (MSE {m:.3e})")
+
+    def first(th):
+        return next((c["train_seconds"] for c in curve if c["psnr"] >= th), None)
+
+    shutil.rmtree(run_dir, ignore_errors=True)
+    return {"size": args.size, "budget_seconds": args.budget, "steps": t.step,
+            "train_seconds": round(train_s, 1), "final_heldout_psnr": p, "final_heldout_mse": m,
+            "val_frames": len(val), "final_fit_steps": args.final_fit_steps,
+            "curve": curve, "curve_val_frames": len(sub), "curve_fit_steps": args.eval_fit_steps,
+            "time_to_db": {str(th): first(th) for th in (25, 28, 30)}}
+
+
+def throughput(args, scene: Path, log) -> dict:
+    from flamenerf.config import PRESETS, preset
+    from flamenerf.data.dataset import Intrinsics
+    from flamenerf.data.rays import camera_rays
+    from flamenerf.model.flame_nerf import RayBatch
+    from flamenerf.training.trainer import Trainer
+
+    res = {}
+    for name in PRESETS:
+        cfg = preset(name)
+        cfg.train.image_every = 0
+        run_dir = Path(tempfile.mkdtemp(prefix=f"bench_{name}_"))
+        t = Trainer(cfg, scene, run_dir / "run", quiet=True)
+        t.train_step()  # warm-up
+        n = args.paper_steps if cfg.model.field.kind == "mlp" else args.fast_steps
+        t0 = time.perf_counter()
+        for _ in range(n):
+            t.train_step()
+        dt = (time.perf_counter() - t0) / n
+        # render one 256x256 frame (or a fraction of its rays) with frame 0's codes
+        intr = t.ds.intrinsics.scaled(256 / t.ds.intrinsics.w)
+        fr = t.ds.split("train")[0]
+        o, d = camera_rays(intr, fr.c2w)
+        o, d = o.reshape(-1, 3), d.reshape(-1, 3)
+        k = int(len(o) * args.render_fraction)
+        w, a = t.model.codes(torch.zeros(1, dtype=torch.long))
+        t.model.eval()
+        e = torch.from_numpy(fr.expression)
+        t0 = time.perf_counter()
+        with torch.no_grad():
+            for s in range(0, k, 8192):
+                m = min(8192, k - s)
+                t.model(RayBatch(o[s:s + m], d[s:s + m], w.expand(m, -1), a.expand(m, -1),
+                                 e.expand(m, -1), torch.ones(m, dtype=torch.bool)))
+        rt = (time.perf_counter() - t0) / args.render_fraction
+        res[name] = {"batch_rays": cfg.train.batch_rays, "seconds_per_step": dt,
+                     "rays_per_second": cfg.train.batch_rays / dt,
+                     "render_256_seconds": rt, "render_fraction": args.render_fraction,
+                     "steps_timed": n}
+        log(f"{name:14s} {cfg.train.batch_rays / dt:9,.0f} rays/s  {dt:6.2f} s/step "
+            f"(batch {cfg.train.batch_rays})  render 256x256: {rt:7.1f} s")
+        shutil.rmtree(run_dir, ignore_errors=True)
+    return res
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scene", type=Path, default=Path("scenes/bench"))
+    ap.add_argument("--size", type=int, default=128)
+    ap.add_argument("--budget", type=float, default=600.0)
+    ap.add_argument("--eval-every", type=float, default=60.0)
+    ap.add_argument("--eval-frames", type=int, default=6)
+    ap.add_argument("--eval-fit-steps", type=int, default=60)
+    ap.add_argument("--final-fit-steps", type=int, default=200)
+    ap.add_argument("--fast-steps", type=int, default=10)
+    ap.add_argument("--paper-steps", type=int, default=2)
+    ap.add_argument("--render-fraction", type=float, default=0.25)
+    ap.add_argument("--skip-quality", action="store_true")
+    ap.add_argument("--skip-throughput", action="store_true")
+    ap.add_argument("--json", type=Path, default=Path("docs/bench/train.json"))
+    args = ap.parse_args()
+
+    if not (args.scene / "transforms.json").exists():
+        from flamenerf.synthetic.scene import make_scene
+
+        print(f"making the built-in scene in {args.scene} (256x256, 300 frames)")
+        make_scene(args.scene, size=256, frames=300)
+    out = {"machine": {"platform": platform.platform(), "cpus": os.cpu_count(),
+                       "torch": torch.__version__, "threads": torch.get_num_threads(),
+                       "cuda": torch.cuda.get_device_name(0) if torch.cuda.is_available()
+                       else None, "python": sys.version.split()[0]},
+           "scene": str(args.scene)}
+    if not args.skip_throughput:
+        out["throughput"] = throughput(args, args.scene, print)
+    if not args.skip_quality:
+        out["quality_fast"] = quality_run(args, args.scene, print)
+    args.json.parent.mkdir(parents=True, exist_ok=True)
+    tmp = args.json.with_suffix(".tmp")
+    tmp.write_text(json.dumps(out, indent=1))
+    os.replace(tmp, args.json)
+    print(f"wrote {args.json}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
