@@ -33,3 +33,105 @@ def colorize_depth(depth: np.ndarray, lo: float | None = None, hi: float | None 
     hi = np.percentile(d, 99) if hi is None else hi
     x = 1.0 - np.clip((d - lo) / max(hi - lo, 1e-9), 0, 1)
     return matplotlib.colormaps[cmap](x)[..., :3].astype(np.float32)
+
+
+# --------------------------------------------------------------------------- panels
+# (added for eval/render/bench figures)
+
+
+def abs_diff(a: np.ndarray, b: np.ndarray, gain: float = 1.0) -> np.ndarray:
+    """|a - b| per pixel, averaged over channels, times `gain`, as a grey (H, W, 3) image."""
+    d = np.abs(np.asarray(a, np.float32) - np.asarray(b, np.float32))
+    if d.ndim == 3:
+        d = d.mean(-1)
+    return np.repeat(np.clip(d * gain, 0, 1)[..., None], 3, -1)
+
+
+def hstack(panels: list[np.ndarray], gap: int = 0) -> np.ndarray:
+    """Panels of one height side by side (float [0, 1] or uint8; returns float)."""
+    panels = [_as_float_rgb(p) for p in panels]
+    h = panels[0].shape[0]
+    out = []
+    for i, p in enumerate(panels):
+        if p.shape[0] != h:
+            raise ValueError("hstack: panels must have one height")
+        if i and gap:
+            out.append(np.ones((h, gap, 3), np.float32))
+        out.append(p)
+    return np.concatenate(out, 1)
+
+
+def vstack(rows: list[np.ndarray], gap: int = 0) -> np.ndarray:
+    rows = [_as_float_rgb(r) for r in rows]
+    w = max(r.shape[1] for r in rows)
+    out = []
+    for i, r in enumerate(rows):
+        if r.shape[1] < w:
+            r = np.concatenate([r, np.ones((r.shape[0], w - r.shape[1], 3), np.float32)], 1)
+        if i and gap:
+            out.append(np.ones((gap, w, 3), np.float32))
+        out.append(r)
+    return np.concatenate(out, 0)
+
+
+def _as_float_rgb(img: np.ndarray) -> np.ndarray:
+    img = np.asarray(img)
+    if img.dtype == np.uint8:
+        img = img.astype(np.float32) / 255
+    if img.ndim == 2:
+        img = np.repeat(img[..., None], 3, -1)
+    return img[..., :3].astype(np.float32)
+
+
+def resize_to_height(img: np.ndarray, h: int) -> np.ndarray:
+    """Nearest/area resize of an image to height `h`, keeping its aspect ratio."""
+    from flamenerf.data.scene import resize_image
+
+    img = _as_float_rgb(img)
+    if img.shape[0] == h:
+        return img
+    w = max(1, round(img.shape[1] * h / img.shape[0]))
+    if h > img.shape[0]:  # enlarge with nearest neighbour so pixels stay crisp
+        ys = np.minimum((np.arange(h) * img.shape[0]) // h, img.shape[0] - 1)
+        xs = np.minimum((np.arange(w) * img.shape[1]) // w, img.shape[1] - 1)
+        return img[ys][:, xs]
+    return resize_image(img, w, h)
+
+
+def text_strip(text: str, width: int, height: int = 14, align: str = "center") -> np.ndarray:
+    """A white strip with black text (PIL's default bitmap font), (height, width, 3)."""
+    from PIL import Image, ImageDraw
+
+    im = Image.new("RGB", (max(1, width), height), (255, 255, 255))
+    dr = ImageDraw.Draw(im)
+    tw = dr.textlength(text)
+    x = max(1, (width - tw) / 2) if align == "center" else 2
+    dr.text((x, max(0, (height - 11) // 2)), text, fill=(0, 0, 0))
+    return np.asarray(im, np.float32) / 255
+
+
+def expression_panel(expr: np.ndarray, names: list[str], h: int, w: int,
+                     max_rows: int = 8) -> np.ndarray:
+    """Horizontal bars of the largest |values| of an expression vector (values in [0, 1]
+    fill the bar; negative ones are drawn in red), as an (h, w, 3) float image."""
+    from PIL import Image, ImageDraw
+
+    expr = np.asarray(expr, np.float64)
+    order = np.argsort(-np.abs(expr), kind="stable")[:max_rows]
+    order = sorted(order)  # keep the model's control order
+    rows = max(len(order), 1)
+    # draw on a canvas tall enough for the text, then shrink to (h, w)
+    H = max(h, 16 * rows)
+    W = max(w, round(w * H / h))
+    im = Image.new("RGB", (W, H), (255, 255, 255))
+    dr = ImageDraw.Draw(im)
+    rh = H / rows
+    for r, j in enumerate(order):
+        y0 = r * rh
+        v = float(expr[j])
+        bw = int(np.clip(abs(v), 0, 1) * (W - 4))
+        col = (70, 130, 220) if v >= 0 else (220, 80, 70)
+        dr.rectangle([2, y0 + rh * 0.15, 2 + bw, y0 + rh * 0.85], fill=col)
+        dr.text((4, y0 + max(0, rh / 2 - 6)), f"{names[j]} {v:.2f}", fill=(0, 0, 0))
+    im = im.resize((w, h), Image.LANCZOS)
+    return np.asarray(im, np.float32) / 255

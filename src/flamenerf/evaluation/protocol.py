@@ -1,0 +1,330 @@
+"""The evaluation protocol behind `flamenerf eval` (docs/evaluation.md).
+
+Everything is measured at the run's training resolution (ground truth area-resized).
+
+held-out (`val`)  the paper's protocol: freeze the model, fit only each frame's deformation
+                  code ω (from ω_0, with φ_0; `fit_deformation_codes`), render, compare:
+                  MSE, PSNR, SSIM, and PSNR inside / outside the face mask.
+reanimate         the built-in scene only: frame 0's codes, the split's expressions, novel
+                  cameras and masks, compared with the rendered ground truth.
+leakage           the built-in scene only: frame 0's camera and codes while the expression
+                  sweeps one control at a time. Leakage = mean absolute per-pixel change
+                  (0-255) outside the dilated union of the sweep's face masks, relative to
+                  the sweep's first (neutral) frame, averaged over the other frames.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from flamenerf.data.dataset import Dataset
+from flamenerf.data.scene import FrameSet
+from flamenerf.evaluation import metrics as M
+from flamenerf.model.flame_nerf import FlameNeRF
+from flamenerf.model.render_image import render_image
+
+FORMAT = "flamenerf-eval"
+VERSION = 1
+
+METHOD_NAMES = {"masked": "FLAME-in-NeRF", "none": "Nerfies", "everywhere": "No prior"}
+"""Method label of a run, from its model's `expression_mode`."""
+
+DIFF_GAIN = 4.0
+"""|diff| images are amplified this much."""
+
+
+@dataclass
+class EvalOptions:
+    split: str = "val"
+    fit_steps: int = 300
+    fit_batch_rays: int = 1024
+    fit_lr: float = 1e-2
+    seed: int = 0
+    leakage_dilate_px: int = 3
+    """Pixels (at the evaluation resolution) by which the union of the sweep's face masks is
+    grown before measuring change outside it."""
+    num_images: int = 3
+    """Held-out and re-animation frames saved as GT | render | |diff| PNGs."""
+    chunk: int = 16384
+
+
+# ------------------------------------------------------------------------- per image
+
+
+def image_metrics(pred: np.ndarray, gt: np.ndarray, face: np.ndarray) -> dict[str, float]:
+    """pred, gt (H, W, 3) in [0, 1]; face (H, W) bool."""
+    m = M.mse(pred, gt)
+    return {"mse": m, "psnr": M.psnr(pred, gt), "ssim": M.ssim(pred, gt),
+            "psnr_face": M.psnr(pred, gt, face), "psnr_background": M.psnr(pred, gt, ~face)}
+
+
+def summarize(per_frame: list[dict[str, Any]], keys=("mse", "psnr", "ssim", "psnr_face",
+                                                     "psnr_background")) -> dict[str, Any]:
+    """Means over frames (frames where a value is NaN, e.g. no face pixels, are skipped)."""
+    out: dict[str, Any] = {"num_frames": len(per_frame)}
+    for k in keys:
+        v = np.array([f[k] for f in per_frame], np.float64)
+        v = v[np.isfinite(v)]
+        out[k] = float(v.mean()) if v.size else float("nan")
+    return out
+
+
+def render_frames(model: FlameNeRF, fs: FrameSet, omega: torch.Tensor, phi: torch.Tensor,
+                  chunk: int = 16384) -> list[np.ndarray]:
+    """Render every frame of `fs` (its cameras, expressions and masks) with per-frame codes
+    omega (N, D), phi (N, A). -> list of (H, W, 3) float32."""
+    out = []
+    for i in range(fs.n):
+        r = render_image(model, fs.intr, fs.c2w[i], omega[i], phi[i], fs.expressions[i],
+                         fs.masks[i], chunk=chunk)
+        out.append(r["rgb"].numpy())
+    return out
+
+
+def _compare(fs: FrameSet, preds: list[np.ndarray]) -> list[dict[str, Any]]:
+    rows = []
+    for i, pred in enumerate(preds):
+        fr = fs.frames[i]
+        row = {"position": fr.position, "frame_index": fr.frame_index}
+        row.update(image_metrics(pred, fs.images[i].numpy(), fs.masks[i].numpy()))
+        rows.append(row)
+    return rows
+
+
+# ------------------------------------------------------------------------- sections
+
+
+def heldout(model: FlameNeRF, fs: FrameSet, opts: EvalOptions, quiet: bool = True
+            ) -> tuple[dict[str, Any], list[np.ndarray]]:
+    """The paper's protocol on frames `fs` -> (summary with per-frame rows, renders)."""
+    from flamenerf.evaluation.heldout import fit_deformation_codes
+
+    t0 = time.perf_counter()
+    omega, phi = fit_deformation_codes(model, fs, steps=opts.fit_steps,
+                                       batch_rays=opts.fit_batch_rays, lr=opts.fit_lr,
+                                       seed=opts.seed, quiet=quiet)
+    t1 = time.perf_counter()
+    preds = render_frames(model, fs, omega, phi, opts.chunk)
+    rows = _compare(fs, preds)
+    res = summarize(rows)
+    res.update(fit_seconds=t1 - t0, render_seconds=time.perf_counter() - t1, frames=rows)
+    return res, preds
+
+
+def reanimation(model: FlameNeRF, fs: FrameSet, omega0: torch.Tensor, phi0: torch.Tensor,
+                chunk: int = 16384) -> tuple[dict[str, Any], list[np.ndarray]]:
+    """Frame 0's codes with each frame's expression, camera and mask, against ground truth."""
+    t0 = time.perf_counter()
+    preds = render_frames(model, fs, omega0.expand(fs.n, -1), phi0.expand(fs.n, -1), chunk)
+    rows = _compare(fs, preds)
+    res = summarize(rows)
+    res.update(render_seconds=time.perf_counter() - t0, frames=rows)
+    return res, preds
+
+
+def leakage_region(masks: np.ndarray, dilate_px: int) -> np.ndarray:
+    """Pixels where leakage is measured: outside the union of the masks (N, H, W), grown
+    by `dilate_px`. -> (H, W) bool."""
+    from scipy import ndimage
+
+    union = np.asarray(masks, bool).any(0)
+    if dilate_px > 0:
+        union = ndimage.binary_dilation(union, iterations=int(dilate_px))
+    return ~union
+
+
+def leakage(model: FlameNeRF, fs: FrameSet, omega0: torch.Tensor, phi0: torch.Tensor,
+            dilate_px: int = 3, chunk: int = 16384
+            ) -> tuple[dict[str, Any], list[np.ndarray]]:
+    """Background change across an expression sweep at a fixed camera (see module doc).
+    Frame 0 of `fs` is the reference (neutral) frame. -> (summary, renders)."""
+    t0 = time.perf_counter()
+    preds = render_frames(model, fs, omega0.expand(fs.n, -1), phi0.expand(fs.n, -1), chunk)
+    masks = fs.masks.numpy()
+    outside = leakage_region(masks, dilate_px)
+    inside = masks.any(0)
+    gt = fs.images.numpy()
+    rows = []
+    for i in range(1, fs.n):
+        fr = fs.frames[i]
+        rows.append({
+            "position": fr.position,
+            "control": fr.extra.get("leakage_control"),
+            "value": fr.extra.get("leakage_value"),
+            "background_change": M.mean_abs_change(preds[i], preds[0], outside),
+            "face_change": M.mean_abs_change(preds[i], preds[0], inside),
+            "gt_background_change": M.mean_abs_change(gt[i], gt[0], outside),
+        })
+
+    def mean(key, sel=rows):
+        v = np.array([r[key] for r in sel], np.float64)
+        v = v[np.isfinite(v)]
+        return float(v.mean()) if v.size else float("nan")
+
+    per_control: dict[str, float] = {}
+    for r in rows:
+        if r["control"] is not None:
+            per_control.setdefault(r["control"], [])
+            per_control[r["control"]].append(r["background_change"])
+    res = {
+        "num_frames": fs.n,
+        "reference_position": fs.frames[0].position,
+        "dilate_px": int(dilate_px),
+        "background_fraction": float(outside.mean()),
+        "mean": mean("background_change"),
+        "max": float(max((r["background_change"] for r in rows), default=float("nan"))),
+        "face_change": mean("face_change"),
+        "gt_mean": mean("gt_background_change"),
+        "per_control": {k: float(np.mean(v)) for k, v in per_control.items()},
+        "render_seconds": time.perf_counter() - t0,
+        "frames": rows,
+    }
+    return res, preds
+
+
+# ------------------------------------------------------------------------- the whole run
+
+
+def method_name(expression_mode: str) -> str:
+    return METHOD_NAMES.get(expression_mode, expression_mode)
+
+
+def evaluate_run(run, ds: Dataset, opts: EvalOptions, out_dir: Path | None = None,
+                 quiet: bool = False, log=print) -> dict[str, Any]:
+    """Every section that `ds` supports; writes metrics.json, metrics.md and PNGs to
+    `out_dir` (atomic writes) when given. -> the results dict (the JSON's content)."""
+    import flamenerf
+    from flamenerf.errors import UserError
+
+    model = run.model
+    intr = run.train_intrinsics(ds)
+    t_start = time.perf_counter()
+    res: dict[str, Any] = {
+        "format": FORMAT, "version": VERSION,
+        "flamenerf_version": flamenerf.__version__,
+        "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+        "run": str(Path(run.run_dir).resolve()),
+        "method": method_name(run.config.model.expression_mode),
+        "preset": run.config.preset,
+        "expression_mode": run.config.model.expression_mode,
+        "step": run.step,
+        "dataset": str(Path(ds.root).resolve()),
+        "resolution": [intr.w, intr.h],
+        "device": str(run.device),
+        "protocol": asdict(opts),
+        "heldout": None, "reanimate": None, "leakage": None,
+    }
+    images: dict[str, np.ndarray] = {}
+    frames = ds.split(opts.split)
+    if not frames:
+        raise UserError(f"{ds.root / 'transforms.json'}: split {opts.split!r} is empty")
+    if any(f.frame_index is None for f in frames):
+        raise UserError(f"--split {opts.split}: its frames have no codes of their own (use a "
+                        "capture split such as val)")
+    if max(f.frame_index for f in frames) >= model.deform_codes.num_embeddings:
+        raise UserError(f"{ds.root}: frame indices exceed this run's code table "
+                        "(a different capture than the run was trained on?)")
+    torch.manual_seed(opts.seed)
+    log(f"held-out: fitting ω of {len(frames)} {opts.split} frames "
+        f"({opts.fit_steps} steps x {opts.fit_batch_rays} rays) at {intr.w}x{intr.h}")
+    fs = FrameSet(ds, frames, intr)
+    res["heldout"], preds = heldout(model, fs, opts, quiet=quiet)
+    res["heldout"]["split"] = opts.split
+    for k in range(min(opts.num_images, fs.n)):
+        images[f"{opts.split}_{k:02d}.png"] = _triptych(fs, k, preds[k])
+    omega0, phi0 = run.frame_codes(0)
+    if ds.splits.get("reanimate"):
+        fs = FrameSet(ds, ds.split("reanimate"), intr)
+        log(f"re-animation: {fs.n} frames (novel expressions and cameras)")
+        res["reanimate"], preds = reanimation(model, fs, omega0, phi0, opts.chunk)
+        for k in range(min(opts.num_images, fs.n)):
+            images[f"reanimate_{k:02d}.png"] = _triptych(fs, k, preds[k])
+    if ds.splits.get("leakage") and len(ds.splits["leakage"]) >= 2:
+        fs = FrameSet(ds, ds.split("leakage"), intr)
+        log(f"leakage: {fs.n} frames (expression sweep, fixed camera)")
+        res["leakage"], preds = leakage(model, fs, omega0, phi0, opts.leakage_dilate_px,
+                                        opts.chunk)
+        images["leakage.png"] = _sweep_figure(fs, preds, opts.leakage_dilate_px)
+    res["seconds"] = time.perf_counter() - t_start
+    if out_dir is not None:
+        write_results(Path(out_dir), res, images)
+    return res
+
+
+def _triptych(fs: FrameSet, k: int, pred: np.ndarray) -> np.ndarray:
+    from flamenerf.evaluation.images import abs_diff, hstack, resize_to_height
+
+    gt = fs.images[k].numpy()
+    img = hstack([gt, pred, abs_diff(pred, gt, DIFF_GAIN)], gap=2)
+    return resize_to_height(img, max(img.shape[0], 128))
+
+
+SHOWCASE = ("jawOpen", "mouthSmileLeft", "browInnerUp", "eyeBlinkLeft", "mouthPucker",
+            "cheekPuff", "mouthFrownRight", "eyeWideRight")
+"""Controls shown first in sweep figures (visibly different parts of the face)."""
+
+
+def pick_sweep_frames(fs: FrameSet, limit: int = 8) -> list[int]:
+    """Frames of a leakage sweep to show: the reference, then controls at their largest
+    value, `SHOWCASE` ones first (at most `limit` frames in all)."""
+    best: dict[str, tuple[float, int]] = {}
+    for i, fr in enumerate(fs.frames[1:], start=1):
+        c, v = fr.extra.get("leakage_control"), fr.extra.get("leakage_value")
+        if c is None or v is None:
+            continue
+        if c not in best or v > best[c][0]:
+            best[c] = (v, i)
+    order = [c for c in SHOWCASE if c in best] + [c for c in best if c not in SHOWCASE]
+    picks = [best[c][1] for c in order] or list(range(1, fs.n))
+    return [0] + picks[: limit - 1]
+
+
+def _sweep_figure(fs: FrameSet, preds: list[np.ndarray], dilate_px: int) -> np.ndarray:
+    """Row 1: renders across the sweep; row 2: |render - reference| x gain, with the region
+    where leakage is not measured tinted blue."""
+    from flamenerf.evaluation.images import abs_diff, hstack, resize_to_height, vstack
+
+    idx = pick_sweep_frames(fs)
+    outside = leakage_region(fs.masks.numpy(), dilate_px)
+    diffs = []
+    for i in idx:
+        d = abs_diff(preds[i], preds[idx[0]], DIFF_GAIN)
+        d[~outside] = d[~outside] * 0.5 + np.array([0.0, 0.0, 0.5])
+        diffs.append(d)
+    fig = vstack([hstack([preds[i] for i in idx], gap=2), hstack(diffs, gap=2)], gap=2)
+    return resize_to_height(fig, max(fig.shape[0], 256))
+
+
+def jsonable(x: Any) -> Any:
+    """NaN/inf -> None, numpy scalars -> Python (strict JSON)."""
+    if isinstance(x, dict):
+        return {k: jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [jsonable(v) for v in x]
+    if isinstance(x, np.generic):
+        x = x.item()
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    return x
+
+
+def write_results(out_dir: Path, res: dict[str, Any], images: dict[str, np.ndarray]) -> None:
+    import json
+
+    from flamenerf.evaluation.images import save_png
+    from flamenerf.evaluation.report import eval_markdown
+    from flamenerf.training.checkpoint import atomic_write_text
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    for name, img in images.items():
+        save_png(out_dir / "images" / name, img)
+    res["images"] = sorted(f"images/{n}" for n in images)
+    atomic_write_text(out_dir / "metrics.json", json.dumps(jsonable(res), indent=1))
+    atomic_write_text(out_dir / "metrics.md", eval_markdown(res))

@@ -1,0 +1,168 @@
+"""Markdown (and LaTeX) tables of evaluation results: one run, and runs side by side in
+the layout of the paper's Table 1 (Method, MSE, PSNR) plus our extra columns."""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+from flamenerf.errors import UserError
+
+
+def fmt_mse(x: float | None) -> str:
+    """The paper's style: 2.045e-3."""
+    if x is None or not math.isfinite(x):
+        return "–"
+    if x == 0:
+        return "0"
+    m, e = f"{x:.3e}".split("e")
+    return f"{m}e{int(e)}"
+
+
+def fmt(x: float | None, digits: int = 2) -> str:
+    return "–" if x is None or not math.isfinite(x) else f"{x:.{digits}f}"
+
+
+def _get(res: dict, *path: str) -> float | None:
+    cur: Any = res
+    for p in path:
+        if not isinstance(cur, dict) or cur.get(p) is None:
+            return None
+        cur = cur[p]
+    return float(cur) if isinstance(cur, (int, float)) else None
+
+
+@dataclass
+class Column:
+    title: str
+    path: tuple[str, ...]
+    format: Callable[[float | None], str]
+    higher_is_better: bool
+
+
+COLUMNS = [
+    Column("MSE ↓", ("heldout", "mse"), fmt_mse, False),
+    Column("PSNR ↑", ("heldout", "psnr"), fmt, True),
+    Column("SSIM ↑", ("heldout", "ssim"), lambda x: fmt(x, 3), True),
+    Column("PSNR face ↑", ("heldout", "psnr_face"), fmt, True),
+    Column("PSNR bg ↑", ("heldout", "psnr_background"), fmt, True),
+    Column("Re-anim. PSNR ↑", ("reanimate", "psnr"), fmt, True),
+    Column("Re-anim. SSIM ↑", ("reanimate", "ssim"), lambda x: fmt(x, 3), True),
+    Column("Re-anim. PSNR face ↑", ("reanimate", "psnr_face"), fmt, True),
+    Column("Leakage ↓", ("leakage", "mean"), fmt, False),
+]
+"""Table columns: the paper's two first (held-out MSE and PSNR), then ours. Leakage is
+the mean absolute background change on the 0-255 scale."""
+
+
+def _best(values: list[float | None], higher: bool) -> float | None:
+    vals = [v for v in values if v is not None and math.isfinite(v)]
+    if len(vals) < 2:
+        return None
+    return max(vals) if higher else min(vals)
+
+
+def compare_markdown(results: list[dict[str, Any]], labels: list[str] | None = None) -> str:
+    """A Markdown table of several runs' eval results, best value per column in bold.
+    Columns no run has are left out."""
+    labels = labels or [r.get("method", "?") for r in results]
+    cols = [c for c in COLUMNS if any(_get(r, *c.path) is not None for r in results)]
+    head = ["Method", "Preset", "Steps", *[c.title for c in cols]]
+    rule = "|" + "|".join(["---"] * 3 + ["--:"] * len(cols)) + "|"
+    lines = ["| " + " | ".join(head) + " |", rule]
+    bests = [_best([_get(r, *c.path) for r in results], c.higher_is_better) for c in cols]
+    for lab, r in zip(labels, results):
+        cells = [lab, str(r.get("preset", "")), str(r.get("step", ""))]
+        for c, b in zip(cols, bests):
+            v = _get(r, *c.path)
+            s = c.format(v)
+            if b is not None and v is not None and c.format(v) == c.format(b):
+                s = f"**{s}**"
+            cells.append(s)
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def compare_latex(results: list[dict[str, Any]], labels: list[str] | None = None) -> str:
+    """The same table as LaTeX (booktabs), best values in bold."""
+    labels = labels or [r.get("method", "?") for r in results]
+    cols = [c for c in COLUMNS if any(_get(r, *c.path) is not None for r in results)]
+    bests = [_best([_get(r, *c.path) for r in results], c.higher_is_better) for c in cols]
+
+    def tex(s: str) -> str:
+        return s.replace("↓", r"(\(\downarrow\))").replace("↑", r"(\(\uparrow\))")
+
+    out = [r"\begin{tabular}{@{}l" + "l" * len(cols) + "@{}}", r"\toprule",
+           " & ".join(["Method"] + [tex(c.title) for c in cols]) + r" \\ \midrule"]
+    for lab, r in zip(labels, results):
+        cells = [lab]
+        for c, b in zip(cols, bests):
+            v = _get(r, *c.path)
+            s = c.format(v).replace("–", "--")
+            if b is not None and v is not None and c.format(v) == c.format(b):
+                s = rf"\textbf{{{s}}}"
+            cells.append(s)
+        out.append(" & ".join(cells) + r" \\")
+    out += [r"\bottomrule", r"\end{tabular}"]
+    return "\n".join(out) + "\n"
+
+
+def load_eval(path: str | Path) -> dict[str, Any]:
+    """A run's eval results: RUN/eval/metrics.json, or a metrics.json path."""
+    p = Path(path)
+    if not p.exists():
+        raise UserError(f"{p}: no such run directory or metrics.json")
+    if p.is_dir():
+        cand = p / "eval" / "metrics.json"
+        p = cand if cand.exists() or not (p / "metrics.json").exists() else p / "metrics.json"
+    if not p.exists():
+        hint = f" (run `flamenerf eval {path}` first)" if Path(path).is_dir() else ""
+        raise UserError(f"{p}: file is missing{hint}")
+    try:
+        d = json.loads(p.read_text())
+    except json.JSONDecodeError as e:
+        raise UserError(f"{p}: invalid JSON at line {e.lineno} ({e.msg})") from None
+    if not isinstance(d, dict) or d.get("format") != "flamenerf-eval":
+        raise UserError(f"{p}: not a flamenerf eval result (no \"format\": \"flamenerf-eval\")")
+    return d
+
+
+def eval_markdown(res: dict[str, Any]) -> str:
+    """metrics.md of one run."""
+    p = res.get("protocol", {})
+    L = [f"# Evaluation: {res.get('method')} ({res.get('preset')}, step {res.get('step')})", "",
+         f"- run: `{res.get('run')}`",
+         f"- dataset: `{res.get('dataset')}`, evaluated at {res['resolution'][0]}x"
+         f"{res['resolution'][1]} (the training resolution), device {res.get('device')}",
+         f"- held-out protocol: only ω fitted per `{p.get('split')}` frame, from ω_0 with φ_0, "
+         f"{p.get('fit_steps')} steps x {p.get('fit_batch_rays')} rays, lr {p.get('fit_lr')}",
+         "",
+         "| split | frames | MSE ↓ | PSNR ↑ | SSIM ↑ | PSNR face ↑ | PSNR background ↑ |",
+         "|---|--:|--:|--:|--:|--:|--:|"]
+    for key, title in (("heldout", f"{p.get('split', 'val')} (held-out, ω fitted)"),
+                       ("reanimate", "reanimate (ω_0, φ_0; novel expressions and cameras)")):
+        s = res.get(key)
+        if s:
+            L.append(f"| {title} | {s['num_frames']} | {fmt_mse(s.get('mse'))} | "
+                     f"{fmt(s.get('psnr'))} | {fmt(s.get('ssim'), 3)} | "
+                     f"{fmt(s.get('psnr_face'))} | {fmt(s.get('psnr_background'))} |")
+    lk = res.get("leakage")
+    if lk:
+        L += ["", f"**Background leakage** ({lk['num_frames']} frames, fixed camera, expression "
+              f"sweep): mean |Δ| outside the face masks dilated by {lk['dilate_px']} px "
+              f"({100 * lk['background_fraction']:.0f} % of the image) = "
+              f"**{fmt(lk.get('mean'))}** / 255 (max {fmt(lk.get('max'))}); inside the masks "
+              f"{fmt(lk.get('face_change'))}; ground truth {fmt(lk.get('gt_mean'))}.", ""]
+        if lk.get("per_control"):
+            L += ["| control | " + " | ".join(lk["per_control"]) + " |",
+                  "|---|" + "--:|" * len(lk["per_control"]),
+                  "| leakage | " + " | ".join(fmt(v) for v in lk["per_control"].values())
+                  + " |"]
+    if res.get("images"):
+        L += ["", "Images (`images/`): GT | render | |diff| x4 per frame; `leakage.png`: the "
+              "sweep's renders and |render - neutral| x4 (blue: the face region, not counted)."]
+    L += ["", f"Total time {fmt(res.get('seconds'), 0)} s."]
+    return "\n".join(L) + "\n"

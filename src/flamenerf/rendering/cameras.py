@@ -1,0 +1,202 @@
+"""Camera paths for re-animation videos, built around the capture's cameras.
+
+Conventions (the dataset's): camera-to-world 4x4 matrices with OpenGL camera axes (x right,
+y up, the camera looks down -z).
+
+Every path starts from the reference camera (the camera of frame 0, whose codes ω_0, φ_0
+re-animation uses) and looks at the head: the centroid of frame 0's face mesh. Its scale
+comes from the capture: the radius is the mean distance of the training cameras from the
+head, the default swing is the half-range of their azimuths about the capture's mean up
+vector (at least 10 deg), so a path stays where the model has seen the scene.
+
+Kinds:
+  static  the reference camera itself, every frame;
+  orbit   an arc around the head at the reference camera's distance, swinging
+          +-amplitude deg in azimuth (one back-and-forth over the video);
+  spiral  an LLFF/Nerfies-style spiral: the camera circles the reference position in the
+          image plane (radius = tan(amplitude/2) x distance) while moving 10 % in and out;
+  dolly   along the line to the head, in to (1 - amplitude) times the reference distance
+          and back (default amplitude 0.2); never further than the reference camera, whose
+          view the far plane was set for;
+  FILE    a JSON file of poses: a list of 4x4 matrices, {"poses": [...]}, {"c2w": [...]} or a
+          transforms.json-style {"frames": [{"transform_matrix": ...}, ...]}.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from flamenerf.data.dataset import Dataset
+from flamenerf.errors import UserError
+
+PATH_KINDS = ("static", "orbit", "spiral", "dolly")
+
+
+def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarray:
+    """Camera-to-world (OpenGL axes) at `eye` looking at `target`, with `up` roughly up."""
+    eye, target, up = (np.asarray(v, np.float64) for v in (eye, target, up))
+    back = eye - target
+    back = back / np.linalg.norm(back)
+    right = np.cross(up, back)
+    if np.linalg.norm(right) < 1e-9:  # looking along `up`: any perpendicular will do
+        right = np.cross([1.0, 0.0, 0.0] if abs(back[0]) < 0.9 else [0.0, 1.0, 0.0], back)
+    right = right / np.linalg.norm(right)
+    cam_up = np.cross(back, right)
+    c2w = np.eye(4)
+    c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = right, cam_up, back, eye
+    return c2w
+
+
+def rotate_about(points: np.ndarray, axis: np.ndarray, angle: float, center: np.ndarray
+                 ) -> np.ndarray:
+    """Rotate points (..., 3) by `angle` radians about the line through `center` along
+    `axis` (Rodrigues)."""
+    k = np.asarray(axis, np.float64) / np.linalg.norm(axis)
+    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    R = np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
+    return (np.asarray(points, np.float64) - center) @ R.T + center
+
+
+@dataclass
+class CameraRig:
+    """Where the capture looked from: what every path is built around."""
+
+    center: np.ndarray  # (3,) the head: centroid of frame 0's face mesh
+    up: np.ndarray  # (3,) unit, mean camera up vector of the training cameras
+    reference: np.ndarray  # (4, 4) frame 0's camera
+    radius: float  # mean distance of the training cameras from `center`
+    swing_deg: float  # half-range of the training cameras' azimuths about `up`
+    min_distance: float = 0.0  # closer to `center` than this, the face crosses the near plane
+
+    def clamp(self, eye: np.ndarray) -> np.ndarray:
+        """Push an eye position out to `min_distance` from the head if it is closer."""
+        v = eye - self.center
+        d = np.linalg.norm(v)
+        return eye if d >= self.min_distance else self.center + v * (self.min_distance / d)
+
+    @property
+    def eye(self) -> np.ndarray:
+        return self.reference[:3, 3].copy()
+
+
+def reference_position(ds: Dataset) -> int:
+    """Position (in ds.frames) of frame 0: the frame whose codes re-animation uses."""
+    for f in ds.frames:
+        if f.frame_index == 0:
+            return f.position
+    return ds.splits["train"][0]
+
+
+def rig_from_dataset(ds: Dataset) -> CameraRig:
+    ref = reference_position(ds)
+    center = ds.face_vertices[ref].astype(np.float64).mean(0)
+    train = ds.split("train")
+    c2ws = np.stack([f.c2w for f in train])
+    up = c2ws[:, :3, 1].mean(0)
+    up = up / max(np.linalg.norm(up), 1e-12)
+    eyes = c2ws[:, :3, 3]
+    radius = float(np.linalg.norm(eyes - center, axis=1).mean())
+    # azimuths about `up`, measured from the reference camera's direction
+    ref_c2w = ds.frames[ref].c2w.astype(np.float64)
+    e0 = ref_c2w[:3, 3] - center
+    e0 = e0 - up * (e0 @ up)
+    e0 /= max(np.linalg.norm(e0), 1e-12)
+    e1 = np.cross(up, e0)
+    v = eyes - center
+    az = np.degrees(np.arctan2(v @ e1, v @ e0))
+    swing = max(10.0, float(az.max() - az.min()) / 2)
+    # how far the face reaches out towards the reference camera, plus 10 % of near
+    verts = ds.face_vertices[ref].astype(np.float64) - center
+    to_cam = (ref_c2w[:3, 3] - center) / max(np.linalg.norm(ref_c2w[:3, 3] - center), 1e-12)
+    reach = max(0.0, float((verts @ to_cam).max()))
+    return CameraRig(center, up, ref_c2w, radius, swing, 1.1 * ds.near + reach)
+
+
+def camera_path(kind: str, num: int, rig: CameraRig, amplitude: float | None = None
+                ) -> np.ndarray:
+    """`num` camera-to-world matrices (num, 4, 4) of a named path (see the module doc);
+    `amplitude`: degrees for orbit/spiral, a fraction of the distance for dolly."""
+    if num < 1:
+        raise UserError(f"a camera path needs at least 1 frame, got {num}")
+    s = np.arange(num) / num  # one period over the video, so it loops seamlessly
+    if kind == "static":
+        return np.repeat(rig.reference[None], num, axis=0)
+    target = rig.center
+    eye0 = rig.eye
+    if kind == "orbit":
+        amp = np.radians(rig.swing_deg if amplitude is None else amplitude)
+        return np.stack([look_at(rotate_about(eye0, rig.up, amp * np.sin(2 * np.pi * t),
+                                              target), target, rig.up) for t in s])
+    if kind == "spiral":
+        amp = np.radians(rig.swing_deg if amplitude is None else amplitude)
+        base = look_at(eye0, target, rig.up)
+        right, up, back = base[:3, 0], base[:3, 1], base[:3, 2]
+        dist = np.linalg.norm(eye0 - target)
+        r = np.tan(amp / 2) * dist
+        out = []
+        for t in s:
+            a = 2 * np.pi * t
+            eye = (eye0 + r * (np.cos(a) - 1) * right + r * np.sin(a) * up
+                   + 0.1 * dist * np.sin(2 * a) * back)
+            out.append(look_at(rig.clamp(eye), target, rig.up))
+        return np.stack(out)
+    if kind == "dolly":
+        amp = 0.2 if amplitude is None else float(amplitude)
+        if not 0 <= amp < 1:
+            raise UserError(f"--amplitude {amp}: a dolly's amplitude is a fraction in [0, 1)")
+        d = eye0 - target
+        return np.stack([look_at(rig.clamp(target + d * (1 - amp * (1 - np.cos(2 * np.pi * t))
+                                                        / 2)), target, rig.up) for t in s])
+    raise UserError(f"unknown camera path {kind!r} (choose from {', '.join(PATH_KINDS)}, or "
+                    "give a JSON file of poses)")
+
+
+def load_poses(path: str | Path) -> np.ndarray:
+    """Camera-to-world matrices (N, 4, 4) from a JSON file (see the module doc)."""
+    path = Path(path)
+    if not path.is_file():
+        raise UserError(f"{path}: camera path file does not exist")
+    try:
+        d = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise UserError(f"{path}: not valid JSON ({e})") from None
+    if isinstance(d, dict):
+        if "frames" in d and isinstance(d["frames"], list):
+            try:
+                d = [f["transform_matrix"] for f in d["frames"]]
+            except (TypeError, KeyError):
+                raise UserError(f"{path}: every entry of 'frames' needs a 'transform_matrix'") \
+                    from None
+        elif "poses" in d:
+            d = d["poses"]
+        elif "c2w" in d:
+            d = d["c2w"]
+        else:
+            raise UserError(f"{path}: expected a list of 4x4 matrices, or an object with "
+                            "'poses', 'c2w' or 'frames'")
+    try:
+        poses = np.asarray(d, np.float64)
+    except (TypeError, ValueError):
+        raise UserError(f"{path}: poses must be 4x4 (or 3x4) number matrices") from None
+    if poses.ndim == 2:
+        poses = poses[None]
+    if poses.ndim != 3 or poses.shape[1:] not in ((4, 4), (3, 4)) or len(poses) == 0:
+        raise UserError(f"{path}: poses must be a non-empty list of 4x4 (or 3x4) matrices, "
+                        f"got shape {poses.shape}")
+    if not np.all(np.isfinite(poses)):
+        raise UserError(f"{path}: poses contain non-finite values")
+    if poses.shape[1] == 3:
+        poses = np.concatenate([poses, np.tile([[[0, 0, 0, 1.0]]], (len(poses), 1, 1))], 1)
+    return poses
+
+
+def resample(poses: np.ndarray, num: int) -> np.ndarray:
+    """Nearest-neighbour resampling of a pose sequence to `num` frames."""
+    if len(poses) == num:
+        return poses
+    idx = np.minimum((np.arange(num) * len(poses)) // max(num, 1), len(poses) - 1)
+    return poses[idx]

@@ -1,0 +1,299 @@
+"""Expression sources for re-animation: files, named controls, dataset splits, videos.
+
+Every source becomes an `ExpressionSequence` whose vectors are in the run's control order
+(`Run.expression_names`). Sources that name their controls (a `flamenerf track` JSON, a CSV
+with a header, `name=value` keyframes) are mapped by name: controls the source lacks are 0,
+controls the run lacks are dropped (with a note) for tracks and CSV files, and are an error
+where a person typed them (keyframes, JSON objects of name: value).
+
+Accepted `--expressions` values:
+  FILE.json   a `flamenerf track` file {"names": [...], "frames": [[...], ...], "fps": f}; a
+              list of vectors; an object {name: value} (one expression); a list of such
+              objects (one per frame).
+  FILE.npy    an array (T, E) or (E,) in the run's control order.
+  FILE.csv    one vector per row; an optional header row of control names.
+  KEYFRAMES   one or more items `name=value[,name=value...]`: the video eases from the base
+              expression (frame 0's by default) to each keyframe in turn and back; controls
+              a keyframe does not name keep the base's value.
+"""
+
+from __future__ import annotations
+
+import difflib
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from flamenerf.errors import UserError
+
+FILE_SUFFIXES = (".json", ".npy", ".csv")
+
+
+@dataclass
+class ExpressionSequence:
+    values: np.ndarray  # (T, E) float32 in the run's control order
+    label: str  # what it came from, for logs and file names
+    fps: float | None = None  # the source's frame rate, if it has one
+    cameras: np.ndarray | None = None  # (T, 4, 4) the source's own cameras (a split)
+    vertices: np.ndarray | None = None  # (T, V, 3) per-frame face mesh (a split)
+    driving: Callable[[int], np.ndarray] | None = None  # frame i's driving image, uint8
+    resizable: bool = False  # keyframes: the sequence adapts to any number of frames
+    notes: tuple[str, ...] = ()
+
+    def __len__(self) -> int:
+        return len(self.values)
+
+
+def _suggest(name: str, names: list[str]) -> str:
+    close = difflib.get_close_matches(name, names, n=1)
+    return f"; did you mean {close[0]!r}?" if close else ""
+
+
+def map_by_name(values: np.ndarray, src_names: list[str], names: list[str], where: str,
+                strict: bool) -> tuple[np.ndarray, list[str]]:
+    """Columns of `values` (T, len(src_names)) onto `names`; missing controls are 0.
+    -> (T, len(names)), the source's names the run lacks (an error when `strict`)."""
+    values = np.asarray(values, np.float32)
+    index = {n: i for i, n in enumerate(names)}
+    unknown = [n for n in src_names if n not in index]
+    if strict and unknown:
+        raise UserError(f"{where}: unknown control {unknown[0]!r}{_suggest(unknown[0], names)} "
+                        f"(this run's controls: {', '.join(names)})")
+    if len(unknown) == len(src_names):
+        raise UserError(f"{where}: none of its controls ({', '.join(src_names[:6])}"
+                        f"{', ...' if len(src_names) > 6 else ''}) is one of this run's "
+                        f"({', '.join(names)})")
+    out = np.zeros((len(values), len(names)), np.float32)
+    for j, n in enumerate(src_names):
+        if n in index:
+            out[:, index[n]] = values[:, j]
+    return out, unknown
+
+
+def parse_keyframe(item: str, names: list[str], base: np.ndarray) -> np.ndarray:
+    """`name=value[,name=value...]` -> the base expression with those controls set."""
+    vec = np.array(base, np.float32, copy=True)
+    index = {n: i for i, n in enumerate(names)}
+    for part in item.split(","):
+        part = part.strip()
+        if not part:
+            continue
+        if "=" not in part:
+            raise UserError(f"--expressions {item!r}: expected name=value, got {part!r} (or "
+                            f"a .json/.npy/.csv file)")
+        name, val = (s.strip() for s in part.split("=", 1))
+        if name not in index:
+            raise UserError(f"--expressions {item!r}: unknown control {name!r}"
+                            f"{_suggest(name, names)} (this run's controls: "
+                            f"{', '.join(names)})")
+        try:
+            v = float(val)
+        except ValueError:
+            raise UserError(f"--expressions {item!r}: {val!r} is not a number") from None
+        if not np.isfinite(v):
+            raise UserError(f"--expressions {item!r}: {name} must be finite")
+        vec[index[name]] = v
+    return vec
+
+
+def keyframe_sequence(keys: np.ndarray, base: np.ndarray, num: int) -> np.ndarray:
+    """Ease (cosine) base -> keys[0] -> ... -> keys[-1] -> base over `num` frames."""
+    pts = np.concatenate([base[None], np.asarray(keys, np.float32), base[None]])
+    if num == 1:
+        return pts[1:2].copy()
+    u = np.arange(num) / (num - 1) * (len(pts) - 1)
+    seg = np.minimum(np.floor(u).astype(int), len(pts) - 2)
+    w = (1 - np.cos(np.pi * (u - seg))) / 2
+    return (pts[seg] * (1 - w[:, None]) + pts[seg + 1] * w[:, None]).astype(np.float32)
+
+
+def is_file_arg(items: list[str]) -> bool:
+    return len(items) == 1 and (Path(items[0]).suffix.lower() in FILE_SUFFIXES
+                                or Path(items[0]).is_file())
+
+
+def from_items(items: list[str], names: list[str], base: np.ndarray, num: int
+               ) -> ExpressionSequence:
+    """`--expressions` values: one file, or keyframes."""
+    if not items:
+        raise UserError("--expressions: give a file or name=value keyframes")
+    if is_file_arg(items):
+        return load_file(Path(items[0]), names)
+    keys = np.stack([parse_keyframe(it, names, base) for it in items])
+    return ExpressionSequence(keyframe_sequence(keys, base, num), label="keyframes",
+                              resizable=True)
+
+
+def _vectors(arr, where: str, names: list[str]) -> np.ndarray:
+    try:
+        a = np.asarray(arr, np.float32)
+    except (TypeError, ValueError):
+        raise UserError(f"{where}: expected equal-length lists of numbers") from None
+    if a.ndim == 1:
+        a = a[None]
+    if a.ndim != 2 or len(a) == 0:
+        raise UserError(f"{where}: expected a non-empty list of vectors, got shape {a.shape}")
+    if a.shape[1] != len(names):
+        raise UserError(f"{where}: has {a.shape[1]} values per frame, this run has "
+                        f"{len(names)} controls ({', '.join(names)}); name the controls "
+                        "(a CSV header, or name: value objects) to map them by name")
+    if not np.all(np.isfinite(a)):
+        raise UserError(f"{where}: contains non-finite values")
+    return a
+
+
+def load_file(path: Path, names: list[str]) -> ExpressionSequence:
+    """One expression file (see the module doc) -> a sequence in the run's control order."""
+    if not path.is_file():
+        raise UserError(f"{path}: expression file does not exist")
+    suffix = path.suffix.lower()
+    notes: list[str] = []
+    fps = None
+    if suffix == ".npy":
+        try:
+            arr = np.load(path, allow_pickle=False)
+        except Exception as e:  # noqa: BLE001 - any parse failure is the file's fault
+            raise UserError(f"{path}: not a readable .npy array ({type(e).__name__})") from None
+        values = _vectors(arr, str(path), names)
+    elif suffix == ".csv":
+        values, notes = _load_csv(path, names)
+    else:
+        try:
+            d = json.loads(path.read_text())
+        except (json.JSONDecodeError, UnicodeDecodeError) as e:
+            raise UserError(f"{path}: not valid JSON ({e})") from None
+        if isinstance(d, dict) and "frames" in d and "names" in d:
+            from flamenerf.tracking.expressions import load_expressions
+
+            tr = load_expressions(path)
+            values, unknown = map_by_name(tr.frames, tr.names, names, str(path), strict=False)
+            if unknown:
+                notes.append(f"{path}: ignored {len(unknown)} controls this run lacks "
+                             f"({', '.join(unknown[:5])}{', ...' if len(unknown) > 5 else ''})")
+            fps = tr.fps
+        elif isinstance(d, dict):
+            values = _named_rows([d], names, str(path))
+        elif isinstance(d, list) and d and all(isinstance(r, dict) for r in d):
+            values = _named_rows(d, names, str(path))
+        else:
+            values = _vectors(d, str(path), names)
+    return ExpressionSequence(values.astype(np.float32), label=path.stem, fps=fps,
+                              notes=tuple(notes))
+
+
+def _named_rows(rows: list[dict], names: list[str], where: str) -> np.ndarray:
+    out = np.zeros((len(rows), len(names)), np.float32)
+    index = {n: i for i, n in enumerate(names)}
+    for t, row in enumerate(rows):
+        for k, v in row.items():
+            if k not in index:
+                raise UserError(f"{where}: unknown control {k!r}{_suggest(k, names)} (this "
+                                f"run's controls: {', '.join(names)})")
+            if not isinstance(v, (int, float)) or isinstance(v, bool) or not np.isfinite(v):
+                raise UserError(f"{where}: {k} must be a finite number, got {v!r}")
+            out[t, index[k]] = v
+    return out
+
+
+def _load_csv(path: Path, names: list[str]) -> tuple[np.ndarray, list[str]]:
+    import csv
+
+    with open(path, newline="") as f:
+        rows = [r for r in csv.reader(f) if r and any(c.strip() for c in r)]
+    if not rows:
+        raise UserError(f"{path}: empty CSV file")
+
+    def numeric(r):
+        try:
+            [float(c) for c in r]
+            return True
+        except ValueError:
+            return False
+
+    header = None if numeric(rows[0]) else [c.strip() for c in rows[0]]
+    body = rows[1:] if header is not None else rows
+    if not body:
+        raise UserError(f"{path}: no data rows")
+    for i, r in enumerate(body):
+        if not numeric(r):
+            raise UserError(f"{path}: row {i + 1 + (header is not None)} is not all numbers")
+    try:
+        arr = np.asarray([[float(c) for c in r] for r in body], np.float32)
+    except ValueError:
+        raise UserError(f"{path}: rows must have equal lengths") from None
+    if header is None:
+        return _vectors(arr, str(path), names), []
+    if arr.ndim != 2 or arr.shape[1] != len(header):
+        raise UserError(f"{path}: rows must have {len(header)} values, one per header name")
+    values, unknown = map_by_name(arr, header, names, str(path), strict=False)
+    notes = [f"{path}: ignored columns this run lacks ({', '.join(unknown)})"] if unknown else []
+    return values, notes
+
+
+def from_split(ds, split: str, panel_hw: tuple[int, int] | None = None) -> ExpressionSequence:
+    """A dataset split's expressions, cameras, per-frame face meshes and images."""
+    from flamenerf.data.scene import resize_image
+
+    frames = ds.split(split)
+    if not frames:
+        raise UserError(f"{ds.root / 'transforms.json'}: split {split!r} is empty")
+
+    def driving(i: int) -> np.ndarray:
+        img = ds.load_image(frames[i])
+        if panel_hw is not None:
+            h = panel_hw[0]
+            img = resize_image(img, max(1, round(img.shape[1] * h / img.shape[0])), h)
+        return (np.clip(img, 0, 1) * 255 + 0.5).astype(np.uint8)
+
+    return ExpressionSequence(
+        ds.expression_matrix(frames), label=split,
+        cameras=np.stack([f.c2w for f in frames]),
+        vertices=ds.face_vertices[[f.position for f in frames]], driving=driving)
+
+
+def from_video(video: Path, ds, names: list[str], relative: bool = True,
+               fps: float | None = None, max_frames: int | None = None,
+               panel_height: int | None = None, landmarker: Path | None = None
+               ) -> ExpressionSequence:
+    """Track a driving video (`flamenerf track`'s pipeline) -> its expressions, mapped by
+    control name onto the run's, and its frames (for side-by-side videos).
+
+    With `relative` and a dataset of the same expression model, expressions are transferred
+    relative to each subject's neutral face (as `flamenerf track --relative-to`)."""
+    from flamenerf.data.scene import resize_image
+    from flamenerf.data.video import iter_frames, probe_video
+    from flamenerf.tracking.expressions import estimate_neutral, transfer_relative
+    from flamenerf.tracking.pipeline import track_expressions
+
+    tr = track_expressions(video, fps=fps, max_frames=max_frames, landmarker=landmarker)
+    notes = []
+    frames = tr.frames
+    if relative and tr.names == ds.expression_names and tr.kind == ds.expression_kind:
+        capture = [f for f in ds.frames if f.frame_index is not None]
+        s_neutral, _ = estimate_neutral(ds.expression_matrix(capture))
+        d_neutral, _ = estimate_neutral(tr.frames)
+        frames = transfer_relative(tr.frames, d_neutral, s_neutral, tr.kind)
+        notes.append("expressions transferred relative to each subject's neutral face")
+    values, unknown = map_by_name(frames, tr.names, names, str(video), strict=False)
+    if unknown:
+        notes.append(f"{video}: {len(unknown)} tracked controls are not in this run's "
+                     "expression model and are ignored")
+    info = probe_video(video)
+    images: dict[int, np.ndarray] = {}
+    want = list(tr.source_frames or range(len(values)))
+    for idx, img in iter_frames(info, np.asarray(want)):
+        if panel_height is not None:
+            w = max(1, round(img.shape[1] * panel_height / img.shape[0]))
+            img = resize_image(img.astype(np.float32) / 255, w, panel_height)
+            img = (np.clip(img, 0, 1) * 255 + 0.5).astype(np.uint8)
+        images[idx] = img
+    blank = next(iter(images.values())) * 0 if images else None
+
+    def driving(i: int) -> np.ndarray:
+        return images.get(want[i], blank)
+
+    return ExpressionSequence(values, label=Path(video).stem, fps=tr.fps, driving=driving,
+                              notes=tuple(notes))

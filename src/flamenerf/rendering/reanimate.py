@@ -1,0 +1,56 @@
+"""Render a re-animation: frame 0's codes (ω_0, φ_0), a sequence of expressions β_t and
+cameras, the prior's mask from the face mesh for each camera. Frames are produced one at a
+time (each in chunks of rays, `render_image`), so memory does not grow with the length."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from flamenerf.data.dataset import Dataset, Intrinsics
+from flamenerf.model.flame_nerf import FlameNeRF
+from flamenerf.model.render_image import render_image
+from flamenerf.rendering.prior import prior_mask
+
+
+@dataclass
+class RenderedFrame:
+    rgb: np.ndarray  # (H, W, 3) float32 in [0, 1]
+    depth: np.ndarray  # (H, W) float32 z-depth
+    acc: np.ndarray  # (H, W) float32 opacity
+    mask: np.ndarray  # (H, W) bool, the prior's mask used
+
+
+def render_sequence(model: FlameNeRF, ds: Dataset, intr: Intrinsics, cameras: np.ndarray,
+                    expressions: np.ndarray, vertices: np.ndarray, omega: torch.Tensor,
+                    phi: torch.Tensor, dilate_px: int, chunk: int = 16384
+                    ) -> Iterator[RenderedFrame]:
+    """cameras (T, 4, 4); expressions (T, E); vertices (T, V, 3), or (V, 3) for one mesh
+    for every frame (frame 0's); ω (code_dim,), φ (appearance_dim,)."""
+    T = len(cameras)
+    for i in range(T):
+        verts = vertices[i] if vertices.ndim == 3 else vertices
+        mask = prior_mask(ds, verts, cameras[i], intr, dilate_px)
+        beta = torch.as_tensor(np.asarray(expressions[i], np.float32))
+        out = render_image(model, intr, cameras[i], omega, phi, beta, mask, chunk=chunk)
+        yield RenderedFrame(out["rgb"].numpy(), out["depth"].numpy(), out["acc"].numpy(), mask)
+
+
+def depth_range(frame: RenderedFrame, near: float, far: float) -> tuple[float, float]:
+    """A fixed colour-map range for a depth video: 1st-99th percentile of the first frame's
+    opaque pixels (near..far if none)."""
+    d = frame.depth[frame.acc > 0.5]
+    if d.size < 10:
+        return near, far
+    lo, hi = np.percentile(d, [1, 99])
+    return float(lo), float(max(hi, lo + 1e-3))
+
+
+def depth_image(frame: RenderedFrame, lo: float, hi: float) -> np.ndarray:
+    """Colour-mapped depth, faded to black where the ray hit nothing."""
+    from flamenerf.evaluation.images import colorize_depth
+
+    return colorize_depth(frame.depth, lo, hi) * np.clip(frame.acc, 0, 1)[..., None]

@@ -1,0 +1,75 @@
+"""`flamenerf eval` and `flamenerf compare` end to end on a toy run."""
+
+from __future__ import annotations
+
+import json
+
+import imageio.v3 as iio
+import numpy as np
+import pytest
+
+from flamenerf.commands.compare import compare
+from flamenerf.commands.eval import eval as eval_cmd
+from flamenerf.errors import UserError
+
+
+def _strict(path):
+    def no_constants(name):
+        raise ValueError(f"non-standard JSON constant {name}")
+
+    return json.loads(path.read_text(), parse_constant=no_constants)
+
+
+@pytest.fixture(scope="module")
+def evaluated(toy_run, tmp_path_factory):
+    out = tmp_path_factory.mktemp("eval") / "eval"
+    eval_cmd(toy_run, fit_steps=3, fit_batch_rays=64, out=out, device="cpu", images=1)
+    return out
+
+
+def test_eval_writes_the_documented_schema(evaluated):
+    res = _strict(evaluated / "metrics.json")
+    assert res["format"] == "flamenerf-eval" and res["version"] == 1
+    assert res["method"] == "FLAME-in-NeRF" and res["expression_mode"] == "masked"
+    assert res["resolution"] == [16, 16]
+    assert res["protocol"]["fit_steps"] == 3 and res["protocol"]["split"] == "val"
+    h = res["heldout"]
+    for k in ("mse", "psnr", "ssim", "psnr_face", "psnr_background", "fit_seconds"):
+        assert isinstance(h[k], float), k
+    assert h["num_frames"] == len(h["frames"]) == 2
+    assert h["psnr"] == pytest.approx(np.mean([f["psnr"] for f in h["frames"]]))
+    assert {f["frame_index"] for f in h["frames"]} == {4, 5}
+    assert res["reanimate"]["num_frames"] == 2
+    lk = res["leakage"]
+    assert lk["num_frames"] == 3 and len(lk["frames"]) == 2
+    assert lk["mean"] == 0.0  # the spatial prior
+    assert (evaluated / "metrics.md").read_text().startswith("# Evaluation")
+    for rel in res["images"]:
+        img = iio.imread(evaluated / rel)
+        assert img.ndim == 3 and img.shape[0] >= 128
+    assert sorted(res["images"]) == ["images/leakage.png", "images/reanimate_00.png",
+                                     "images/val_00.png"]
+
+
+def test_compare_prints_a_table(evaluated, tmp_path, capsys):
+    out = tmp_path / "table.md"
+    compare([evaluated / "metrics.json", evaluated / "metrics.json"], labels=["A", "B"],
+            out=out)
+    text = capsys.readouterr().out
+    lines = [ln for ln in text.splitlines() if ln.startswith("|")]
+    assert lines[0].startswith("| Method | Preset | Steps | MSE ↓ | PSNR ↑ |")
+    assert len(lines) == 4 and lines[2].startswith("| A |") and lines[3].startswith("| B |")
+    assert "Leakage ↓" in lines[0]
+    assert out.read_text() == text.split("wrote")[0]
+    compare([evaluated / "metrics.json"], latex=True)
+    assert r"\toprule" in capsys.readouterr().out
+
+
+def test_compare_names_a_missing_eval(tmp_path):
+    with pytest.raises(UserError, match="metrics.json: file is missing.*flamenerf eval"):
+        compare([tmp_path])
+
+
+def test_eval_of_a_missing_run_names_it(tmp_path):
+    with pytest.raises(UserError, match="nope: run directory does not exist"):
+        eval_cmd(tmp_path / "nope")

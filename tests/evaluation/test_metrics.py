@@ -1,0 +1,74 @@
+"""Image metrics against hand-computed values."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from flamenerf.evaluation.metrics import mean_abs_change, mse, psnr, ssim
+from flamenerf.evaluation.protocol import leakage_region, summarize
+
+
+def test_psnr_of_a_constant_error_is_closed_form():
+    a = np.zeros((8, 8, 3))
+    assert mse(a, a + 0.1) == pytest.approx(0.01)
+    assert psnr(a, a + 0.1) == pytest.approx(20.0)
+    assert psnr(a, a + 0.01) == pytest.approx(40.0)
+
+
+def test_masked_psnr_uses_only_the_masked_pixels():
+    a = np.zeros((4, 4, 3))
+    b = np.full((4, 4, 3), 0.01)
+    face = np.zeros((4, 4), bool)
+    face[1:3, 1:3] = True
+    b[face] = 0.1
+    assert psnr(a, b, face) == pytest.approx(20.0)
+    assert psnr(a, b, ~face) == pytest.approx(40.0)
+    assert math.isnan(psnr(a, b, np.zeros((4, 4), bool)))
+
+
+def test_ssim_known_values():
+    rng = np.random.default_rng(0)
+    x = rng.uniform(size=(24, 24, 3))
+    assert ssim(x, x) == pytest.approx(1.0)
+    # constant images: only the luminance term remains, (2ab + C1) / (a² + b² + C1)
+    c1 = (0.01 * 1.0) ** 2
+    want = (2 * 0.5 * 0.6 + c1) / (0.5**2 + 0.6**2 + c1)
+    assert ssim(np.full((16, 16, 3), 0.5), np.full((16, 16, 3), 0.6)) == pytest.approx(want)
+    assert ssim(x, 1 - x) < 0
+
+
+def test_mean_abs_change_is_on_the_0_255_scale():
+    a = np.zeros((4, 4, 3))
+    b = a.copy()
+    region = np.zeros((4, 4), bool)
+    region[0] = True
+    b[0] = 0.5
+    b[1] = 1.0  # outside the region: not counted
+    assert mean_abs_change(a, b, region) == pytest.approx(127.5)
+    assert mean_abs_change(a, b) == pytest.approx((4 * 127.5 + 4 * 255) / 16)
+
+
+def test_leakage_region_is_outside_the_dilated_union():
+    m = np.zeros((2, 9, 9), bool)
+    m[0, 4, 4] = True
+    m[1, 4, 5] = True
+    out0 = leakage_region(m, 0)
+    assert out0.sum() == 81 - 2
+    out1 = leakage_region(m, 1)  # each pixel grows to a cross (scipy's default structure)
+    assert out1.sum() == 81 - 8
+    assert not out1[4, 3] and not out1[3, 5] and out1[3, 3]
+
+
+def test_summarize_skips_nan_frames():
+    rows = [{"mse": 0.01, "psnr": 20.0, "ssim": 0.5, "psnr_face": float("nan"),
+             "psnr_background": 20.0},
+            {"mse": 0.03, "psnr": 30.0, "ssim": 0.7, "psnr_face": 25.0,
+             "psnr_background": 30.0}]
+    s = summarize(rows)
+    assert s["num_frames"] == 2
+    assert s["mse"] == pytest.approx(0.02)
+    assert s["psnr"] == pytest.approx(25.0)
+    assert s["psnr_face"] == pytest.approx(25.0)

@@ -1,0 +1,81 @@
+"""Camera paths: conventions, shapes, and the constraints the module doc promises."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from flamenerf.data.dataset import load_dataset
+from flamenerf.errors import UserError
+from flamenerf.rendering import cameras as C
+
+
+def test_look_at_uses_opengl_axes():
+    c2w = C.look_at(np.array([0, 0, 2.0]), np.zeros(3), np.array([0, 1.0, 0]))
+    np.testing.assert_allclose(c2w[:3, :3], np.eye(3), atol=1e-12)  # looks down -z
+    c2w = C.look_at(np.array([2.0, 0, 0]), np.zeros(3), np.array([0, 1.0, 0]))
+    np.testing.assert_allclose(-c2w[:3, 2], [-1, 0, 0], atol=1e-12)
+    np.testing.assert_allclose(c2w[:3, 1], [0, 1, 0], atol=1e-12)
+
+
+@pytest.fixture(scope="module")
+def rig(toy_dataset):
+    return C.rig_from_dataset(load_dataset(toy_dataset))
+
+
+def test_rig_from_the_capture(rig):
+    np.testing.assert_allclose(rig.center, 0, atol=1e-6)  # the toy face's centroid
+    assert rig.radius == pytest.approx(1.0, abs=0.01)
+    assert rig.swing_deg >= 10.0
+    assert 0.5 < rig.min_distance < 1.0
+
+
+@pytest.mark.parametrize("kind", C.PATH_KINDS)
+def test_paths_look_at_the_head(rig, kind):
+    P = C.camera_path(kind, 12, rig)
+    assert P.shape == (12, 4, 4)
+    np.testing.assert_allclose(P[:, 3], np.tile([0, 0, 0, 1.0], (12, 1)))
+    for c2w in P:
+        R = c2w[:3, :3]
+        np.testing.assert_allclose(R.T @ R, np.eye(3), atol=1e-9)
+        assert np.linalg.det(R) == pytest.approx(1.0)
+        if kind != "static":
+            to_head = rig.center - c2w[:3, 3]
+            cos = (-R[:, 2]) @ to_head / np.linalg.norm(to_head)
+            assert cos == pytest.approx(1.0, abs=1e-9)
+        assert np.linalg.norm(c2w[:3, 3] - rig.center) >= rig.min_distance - 1e-9
+
+
+def test_path_shapes_and_amplitudes(rig):
+    np.testing.assert_array_equal(C.camera_path("static", 3, rig)[1], rig.reference)
+    orbit = C.camera_path("orbit", 20, rig, amplitude=20)
+    d = np.linalg.norm(orbit[:, :3, 3] - rig.center, axis=1)
+    np.testing.assert_allclose(d, d[0])
+    np.testing.assert_allclose(orbit[0, :3, 3], rig.eye, atol=1e-12)
+    v0, v5 = orbit[0, :3, 3] - rig.center, orbit[5, :3, 3] - rig.center  # a quarter period
+    ang = np.degrees(np.arccos(v0 @ v5 / (np.linalg.norm(v0) * np.linalg.norm(v5))))
+    assert ang == pytest.approx(20, abs=0.5)
+    dolly = C.camera_path("dolly", 20, rig, amplitude=0.2)
+    dd = np.linalg.norm(dolly[:, :3, 3] - rig.center, axis=1)
+    assert dd.max() <= np.linalg.norm(rig.eye - rig.center) + 1e-9
+    assert dd.min() < dd.max()
+    with pytest.raises(UserError, match="unknown camera path 'circle'"):
+        C.camera_path("circle", 3, rig)
+
+
+def test_load_poses_formats_and_errors(tmp_path):
+    eye = np.eye(4)
+    (tmp_path / "a.json").write_text(json.dumps([eye.tolist(), eye.tolist()]))
+    (tmp_path / "b.json").write_text(json.dumps({"frames": [{"transform_matrix": eye.tolist()}]}))
+    (tmp_path / "c.json").write_text(json.dumps({"poses": [eye[:3].tolist()]}))
+    assert C.load_poses(tmp_path / "a.json").shape == (2, 4, 4)
+    assert C.load_poses(tmp_path / "b.json").shape == (1, 4, 4)
+    np.testing.assert_array_equal(C.load_poses(tmp_path / "c.json")[0], eye)
+    (tmp_path / "bad.json").write_text(json.dumps([[1, 2, 3]]))
+    with pytest.raises(UserError, match="bad.json: poses must be"):
+        C.load_poses(tmp_path / "bad.json")
+    with pytest.raises(UserError, match="missing.json: camera path file does not exist"):
+        C.load_poses(tmp_path / "missing.json")
+    assert len(C.resample(np.zeros((3, 4, 4)), 7)) == 7

@@ -1,0 +1,74 @@
+"""Expression sources: keyframes, files, mapping by control name, and their errors."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from flamenerf.errors import UserError
+from flamenerf.rendering import expressions as X
+
+NAMES = ["jawOpen", "mouthSmileLeft", "browInnerUp"]
+BASE = np.array([0.1, 0.2, 0.3], np.float32)
+
+
+def test_keyframes_override_named_controls_only():
+    v = X.parse_keyframe("jawOpen=0.8, browInnerUp=1", NAMES, BASE)
+    np.testing.assert_allclose(v, [0.8, 0.2, 1.0])
+
+
+def test_unknown_control_names_the_problem():
+    with pytest.raises(UserError, match="unknown control 'jawOpn'; did you mean 'jawOpen'"):
+        X.from_items(["jawOpn=1"], NAMES, BASE, 10)
+    with pytest.raises(UserError, match="'lots' is not a number"):
+        X.from_items(["jawOpen=lots"], NAMES, BASE, 10)
+    with pytest.raises(UserError, match="expected name=value"):
+        X.from_items(["smile"], NAMES, BASE, 10)
+
+
+def test_keyframe_sequence_eases_from_and_back_to_the_base():
+    seq = X.from_items(["jawOpen=1"], NAMES, BASE, 9)
+    assert len(seq) == 9 and seq.resizable
+    np.testing.assert_allclose(seq.values[0], BASE)
+    np.testing.assert_allclose(seq.values[-1], BASE)
+    np.testing.assert_allclose(seq.values[4], [1.0, 0.2, 0.3])
+    assert np.all(np.diff(seq.values[:5, 0]) >= 0)
+    two = X.keyframe_sequence(np.stack([np.ones(3), np.zeros(3)]), BASE, 7)
+    np.testing.assert_allclose(two[2], 1.0)
+    np.testing.assert_allclose(two[4], 0.0)
+
+
+def test_track_json_is_mapped_by_name(tmp_path):
+    p = tmp_path / "drive.json"
+    p.write_text(json.dumps({"names": ["_neutral", "browInnerUp", "jawOpen"], "fps": 25,
+                             "frames": [[0.5, 0.1, 0.9], [0.5, 0.2, 0.8]]}))
+    seq = X.load_file(p, NAMES)
+    np.testing.assert_allclose(seq.values, [[0.9, 0, 0.1], [0.8, 0, 0.2]])  # missing = 0
+    assert seq.fps == 25 and "_neutral" in seq.notes[0]
+    p.write_text(json.dumps({"names": ["eyeBlinkLeft"], "frames": [[1.0]]}))
+    with pytest.raises(UserError, match="none of its controls"):
+        X.load_file(p, NAMES)
+
+
+def test_vector_and_named_files(tmp_path):
+    np.save(tmp_path / "e.npy", np.arange(12, dtype=np.float32).reshape(4, 3))
+    assert X.load_file(tmp_path / "e.npy", NAMES).values.shape == (4, 3)
+    np.save(tmp_path / "w.npy", np.zeros((4, 5)))
+    with pytest.raises(UserError, match="w.npy: has 5 values per frame, this run has 3"):
+        X.load_file(tmp_path / "w.npy", NAMES)
+    (tmp_path / "h.csv").write_text("jawOpen,cheekPuff\n0.5,1\n0.25,0\n")
+    seq = X.load_file(tmp_path / "h.csv", NAMES)
+    np.testing.assert_allclose(seq.values, [[0.5, 0, 0], [0.25, 0, 0]])
+    assert "cheekPuff" in seq.notes[0]
+    (tmp_path / "n.csv").write_text("1,2,3\n4,5,6\n")
+    assert X.load_file(tmp_path / "n.csv", NAMES).values.tolist() == [[1, 2, 3], [4, 5, 6]]
+    (tmp_path / "d.json").write_text(json.dumps([{"jawOpen": 1}, {"browInnerUp": 0.5}]))
+    np.testing.assert_allclose(X.load_file(tmp_path / "d.json", NAMES).values,
+                               [[1, 0, 0], [0, 0, 0.5]])
+    (tmp_path / "u.json").write_text(json.dumps({"jawOpen": 1, "smirk": 1}))
+    with pytest.raises(UserError, match="u.json: unknown control 'smirk'"):
+        X.load_file(tmp_path / "u.json", NAMES)
+    with pytest.raises(UserError, match="nothere.json: expression file does not exist"):
+        X.from_items([str(tmp_path / "nothere.json")], NAMES, BASE, 5)
