@@ -11,12 +11,11 @@ def demo(
     frames: int = 150,
     steps: int = 800,
     train_size: int = 96,
-    video_frames: int = 48,
     seed: int = 0,
 ) -> None:
     """The main job end to end on the built-in scene: synthesize it, train the `fast`
-    preset, then render a re-animation video (the scene's `reanimate` expressions along an
-    orbiting camera) with its depth video and a side-by-side. A few minutes on a laptop CPU.
+    preset, then render a re-animation video (the expressions of the scene's `reanimate`
+    split, one video frame each, along an orbiting camera) with its depth video and a side-by-side. A few minutes on a laptop CPU.
 
     Writes OUT/scene (dataset), OUT/run (trained run), OUT/reanimation.mp4,
     OUT/reanimation_depth.mp4 and OUT/reanimation_sbs.mp4. Re-running reuses what exists.
@@ -29,7 +28,6 @@ def demo(
         frames: Capture frames of the synthesized scene.
         steps: Training steps of the `fast` preset.
         train_size: Training resolution.
-        video_frames: Frames of the re-animation video.
         seed: Scene seed.
     """
     from flamenerf.commands.render import render
@@ -50,7 +48,7 @@ def demo(
     print(f"[2/3] training the fast preset for {steps} steps into {run}")
     train(scene, run, cfg, resume=ck is not None, steps=steps)
     print("[3/3] rendering the re-animation video")
-    render(run, out=out / "reanimation.mp4", split="reanimate", camera="orbit",
-           frames=video_frames, depth=True, side_by_side=True, overwrite=True)
+    render(run, out=out / "reanimation.mp4", split="reanimate", camera="orbit", depth=True,
+           side_by_side=True, overwrite=True)
     print(f"done: {out / 'reanimation.mp4'} (+ _depth, _sbs); "
           f"`flamenerf view {run}` to play with it")
