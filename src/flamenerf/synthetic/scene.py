@@ -1,0 +1,200 @@
+"""`make_scene`: write the built-in synthetic portrait scene as a flamenerf dataset.
+
+Splits (positions in the one frame list, in this order):
+  train, val   the capture: frame t (t = 0 .. frames-1) has frame_index t; val is every
+               10th frame (t % 10 == 5; with 2-5 frames, the last one), so frame 0, the
+               reference frame, is trained on;
+  reanimate    novel expressions (an independent trajectory) seen from cameras off the
+               capture path, with frame 0's body pose; frame_index null;
+  leakage      frame 0's camera and body pose; neutral, then each control alone at
+               1/steps .. 1; frame_index null; each frame records `leakage_control` and
+               `leakage_value`.
+Every frame records its world-from-body pose (`body_pose`), so `scene_from_dataset(ds)`
+can re-render ground truth for any frame, camera or expression.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Iterator
+
+import numpy as np
+
+from flamenerf.synthetic.cameras import capture_path, novel_path
+from flamenerf.synthetic.expressions import leakage_sweep, speech_trajectory
+from flamenerf.synthetic.head import CONTROLS
+
+SOURCE_NAME = "flamenerf synth"
+
+
+@dataclass
+class FrameSpec:
+    """What to render for one dataset frame."""
+
+    split: str
+    frame_index: int | None
+    c2w: np.ndarray  # (4, 4)
+    expression: np.ndarray  # (num_controls,)
+    body_pose: np.ndarray  # (4, 4) world-from-body
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+def capture_split(t: int, frames: int) -> str:
+    """'val' for every 10th capture frame (t % 10 == 5; the last frame when there are 2 to 5
+    frames), else 'train'. Frame 0 is always trained on."""
+    if t % 10 == 5 or (2 <= frames < 6 and t == frames - 1):
+        return "val"
+    return "train"
+
+
+def default_reanimate(frames: int) -> int:
+    """Number of re-animation frames: 30 for the default 300-frame capture."""
+    return max(3, round(frames / 10))
+
+
+def frame_specs(seed: int, frames: int, sway: float, reanimate: int | None = None,
+                leakage_steps: int = 3) -> list[FrameSpec]:
+    """Every frame of the scene, in dataset order (train/val, reanimate, leakage)."""
+    from flamenerf.synthetic.background import sway_pose
+
+    specs: list[FrameSpec] = []
+    c2ws, angles = capture_path(frames, seed)
+    exprs = speech_trajectory(frames, seed, stream=0)
+    for t in range(frames):
+        pose = sway_pose(t, sway, seed)
+        specs.append(FrameSpec(capture_split(t, frames), t, c2ws[t], exprs[t], pose,
+                               {"body_pose": pose.tolist()}))
+    pose0 = sway_pose(0, sway, seed)
+    n_re = default_reanimate(frames) if reanimate is None else reanimate
+    if n_re > 0:
+        cams = novel_path(n_re, seed)
+        # an independent trajectory, sampled every 3rd frame so that it covers more
+        ex = speech_trajectory(3 * n_re, seed, stream=1)[::3]
+        for i in range(n_re):
+            specs.append(FrameSpec("reanimate", None, cams[i], ex[i], pose0,
+                                   {"body_pose": pose0.tolist()}))
+    if leakage_steps > 0:
+        sweep, labels = leakage_sweep(leakage_steps)
+        for x, (name, value) in zip(sweep, labels):
+            specs.append(FrameSpec("leakage", None, c2ws[0], x, pose0,
+                                   {"body_pose": pose0.tolist(), "leakage_control": name,
+                                    "leakage_value": float(value)}))
+    return specs
+
+
+# ----------------------------------------------------------------------------- rendering workers
+
+_WORKER_SCENE = None
+
+
+def _init_worker(seed: int, size: int, sway: float) -> None:
+    import torch
+
+    from flamenerf.synthetic.render import SyntheticScene
+
+    global _WORKER_SCENE
+    torch.set_num_threads(1)
+    _WORKER_SCENE = SyntheticScene(seed, size, sway)
+
+
+def _render_spec(spec: FrameSpec):
+    v = _WORKER_SCENE.render(spec.c2w, spec.expression, spec.body_pose)
+    rgb = (np.clip(v.rgb, 0, 1) * 255 + 0.5).astype(np.uint8)
+    return rgb, v.depth, v.mask, v.face_vertices
+
+
+def render_frames(seed: int, size: int, sway: float, specs: list[FrameSpec],
+                  workers: int = 0) -> Iterator[tuple]:
+    """Render specs in order -> (rgb uint8, depth, mask, face vertices) per frame.
+
+    Frames are independent, so `workers` processes (0: one per CPU core, at most 4) render
+    them in parallel with one torch thread each; the bytes do not depend on `workers`."""
+    import torch
+
+    if workers <= 0:
+        workers = max(1, min(4, os.cpu_count() or 1))
+    workers = min(workers, max(1, len(specs)))
+    if workers == 1:
+        threads = torch.get_num_threads()
+        try:
+            _init_worker(seed, size, sway)
+            for s in specs:
+                yield _render_spec(s)
+        finally:
+            torch.set_num_threads(threads)
+        return
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor
+
+    ctx = mp.get_context("spawn")
+    with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_worker,
+                             initargs=(seed, size, sway)) as pool:
+        yield from pool.map(_render_spec, specs, chunksize=2)
+
+
+# ----------------------------------------------------------------------------- the dataset
+
+
+def make_scene(out: str | os.PathLike, seed: int = 0, size: int = 256, frames: int = 300,
+               sway: float = 1.0, reanimate: int | None = None, leakage_steps: int = 3,
+               overwrite: bool = False, workers: int = 0,
+               progress: Callable[[int], None] | None = None) -> Path:
+    """Render the synthetic portrait scene into a dataset directory `out`.
+
+    seed: appearance, camera path, sway and expressions; size: image width = height;
+    frames: capture length; sway: body sway amplitude (0 = static scene); reanimate:
+    re-animation frames (default frames / 10); leakage_steps: values per control in the
+    leakage sweep; workers: render processes (0 = auto); progress(n): called after each
+    frame is written. Returns the dataset path."""
+    from flamenerf import __version__
+    from flamenerf.data.dataset import DatasetError, DatasetWriter
+    from flamenerf.synthetic.cameras import intrinsics
+    from flamenerf.synthetic.render import SyntheticScene
+
+    if size < 16:
+        raise DatasetError(f"{out}: size must be at least 16 pixels, got {size}")
+    if frames < 1:
+        raise DatasetError(f"{out}: frames must be at least 1, got {frames}")
+    specs = frame_specs(seed, frames, sway, reanimate, leakage_steps)
+    intr = intrinsics(size)
+    source = {"name": SOURCE_NAME, "version": __version__, "seed": int(seed), "size": int(size),
+              "frames": int(frames), "sway": float(sway),
+              "reanimate": sum(s.split == "reanimate" for s in specs),
+              "leakage_steps": int(leakage_steps)}
+    info = {"description": "synthetic face rig; controls named after ARKit blendshapes, "
+                           "each in [0, 1] ('Left' = the subject's left, +x)"}
+    writer = DatasetWriter(out, intr, 0.1, 10.0, list(CONTROLS), "synthetic",
+                           expression_info=info, source=source, overwrite=overwrite)
+    try:
+        lo, hi = np.inf, 0.0
+        for i, (spec, (rgb, depth, mask, verts)) in enumerate(
+                zip(specs, render_frames(seed, size, sway, specs, workers))):
+            fin = depth[np.isfinite(depth)]
+            if fin.size != depth.size:
+                raise RuntimeError(f"frame {i}: some rays see nothing (infinite depth)")
+            lo, hi = min(lo, float(fin.min())), max(hi, float(fin.max()))
+            writer.add_frame(rgb, mask, spec.c2w, spec.expression, spec.frame_index, spec.split,
+                             verts=verts, depth=depth, extra=spec.extra)
+            if progress is not None:
+                progress(i + 1)
+        writer.set_faces(SyntheticScene.mesh_faces())
+        writer.set_meta("near", round(0.9 * lo, 4))
+        writer.set_meta("far", round(1.05 * hi, 4))
+        return writer.close()
+    except BaseException:
+        writer.abort()
+        raise
+
+
+def scene_from_dataset(ds) -> "SyntheticScene":  # noqa: F821
+    """The SyntheticScene that made dataset `ds` (a loaded Dataset), to render ground truth
+    for any camera/expression: `scene.render(c2w, expr, frame.extra["body_pose"])`."""
+    from flamenerf.data.dataset import DatasetError
+    from flamenerf.synthetic.render import SyntheticScene
+
+    src = ds.source or {}
+    if src.get("name") != SOURCE_NAME:
+        raise DatasetError(f"{ds.root / 'transforms.json'}: not made by `flamenerf synth`")
+    return SyntheticScene(int(src["seed"]), int(src["size"]), float(src.get("sway", 1.0)))
