@@ -157,8 +157,10 @@ def _fast() -> Config:
     cfg = Config(preset="fast")
     cfg.model.warp = WarpConfig(code_dim=16, width=64, depth=4, skips=(), num_freqs=6,
                                 anneal_steps=800)
-    cfg.model.field = FieldConfig(kind="hash", appearance_dim=8, dir_freqs=4)
-    cfg.model.sampler = SamplerConfig(kind="proposal", num_proposal=64, num_main=24)
+    cfg.model.field = FieldConfig(kind="hash", appearance_dim=8, dir_freqs=4, hash_levels=12,
+                                  hash_log2_size=16, hash_max_res=512)
+    cfg.model.sampler = SamplerConfig(kind="proposal", num_proposal=48, num_main=24,
+                                      proposal_levels=5, proposal_max_res=128)
     cfg.train = TrainConfig(steps=2000, batch_rays=4096, lr=1e-2, lr_final=1e-3,
                             lr_warmup=50, checkpoint_every=500, image_every=500,
                             log_every=25)
