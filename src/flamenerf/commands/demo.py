@@ -7,10 +7,11 @@ from pathlib import Path
 
 def demo(
     out: Path = Path("demo"),
-    size: int = 128,
-    frames: int = 150,
-    steps: int = 800,
-    train_size: int = 96,
+    size: int = 96,
+    frames: int = 100,
+    steps: int = 300,
+    train_size: int = 64,
+    batch_rays: int = 2048,
     seed: int = 0,
 ) -> None:
     """The main job end to end on the built-in scene: synthesize it, train the `fast`
@@ -28,6 +29,7 @@ def demo(
         frames: Capture frames of the synthesized scene.
         steps: Training steps of the `fast` preset.
         train_size: Training resolution.
+        batch_rays: Rays per training step.
         seed: Scene seed.
     """
     from flamenerf.commands.render import render
@@ -44,6 +46,8 @@ def demo(
         print(f"[1/3] reusing {scene}")
     cfg = preset("fast")
     cfg.train.downscale = size / train_size
+    cfg.train.batch_rays = batch_rays
+    cfg.model.warp.anneal_steps = max(1, int(steps * 0.4))  # c2f over the first 40%
     ck = latest_checkpoint(run)
     print(f"[2/3] training the fast preset for {steps} steps into {run}")
     train(scene, run, cfg, resume=ck is not None, steps=steps)
