@@ -33,7 +33,7 @@ AMBIENT, KEY, SKY = 0.30, 0.72, 0.10
 # sub-pixel sample positions (x, y) from the pixel's top-left corner; the first is the centre
 OFFSETS = ((0.5, 0.5), (0.25, 0.25), (0.75, 0.25), (0.25, 0.75), (0.75, 0.75))
 MARCH_STEPS, BISECT = 40, 7  # full march: samples through the head's shell, bisections
-BISECT_SUB = 4  # bisections for sub-pixel rays (their depth is not output)
+BISECT_SUB = 3  # bisections for sub-pixel rays (their depth is not output)
 # guided rays: brackets around the interpolated depth (metres), tried in turn
 TIGHT_BRACKET = (-0.0012, 0.0012)
 WIDE_BRACKET = (-0.003, -0.001, 0.001, 0.003, 0.005)
@@ -232,11 +232,11 @@ class SyntheticScene:
         (bilinear weights wx, wy); rays none of whose surrounding rays hit are misses (the
         head has no feature thinner than the spacing of those rays)."""
         guess = (1 - wy) * ((1 - wx) * cs[0] + wx * cs[1]) + wy * ((1 - wx) * cs[2] + wx * cs[3])
-        fin = torch.isfinite(cs)
-        lo_cs = torch.where(fin, cs, torch.full_like(cs, INF)).amin(0)
-        hi_cs = torch.where(fin, cs, torch.full_like(cs, -INF)).amax(0)
-        near = ok & fin.any(0)
-        use = near & fin.all(0) & (hi_cs - lo_cs < GUESS_SPREAD)
+        # misses are +inf: min over all = min over hits; max over hits via inf -> -1
+        lo_cs = cs.amin(0)
+        hi_cs = cs.nan_to_num(posinf=-1.0).amax(0)
+        near = ok & (lo_cs < INF)
+        use = near & torch.isfinite(guess) & (hi_cs - lo_cs < GUESS_SPREAD)
         return self._solve(st, o, d, t0, t1, guess, lo_cs, hi_cs, near, use, bisect)
 
     def _march_head(self, st: HeadState, o, d: torch.Tensor, intr: Intrinsics) -> torch.Tensor:
@@ -379,5 +379,6 @@ def _shell(o, d: torch.Tensor):
     t0 = ((-b - sq_o) / a).clamp(min=0)
     t_exit = (-b + sq_o) / a
     t_in = (-b - sq_i) / a
-    t1 = torch.where((disc_i > 0) & (t_in > 0), t_in, t_exit)
+    inner = ((disc_i > 0) & (t_in > 0)).to(torch.float32)
+    t1 = torch.lerp(t_exit, t_in, inner)
     return t0, t1, (disc_o > 0) & (t_exit > 0)

@@ -128,10 +128,14 @@ def render_frames(seed: int, size: int, sway: float, specs: list[FrameSpec],
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor
 
-    ctx = mp.get_context("spawn")
-    with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_worker,
-                             initargs=(seed, size, sway)) as pool:
+    pool = ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"),
+                               initializer=_init_worker, initargs=(seed, size, sway))
+    try:
         yield from pool.map(_render_spec, specs, chunksize=2)
+    except BaseException:  # an error, Ctrl-C or the consumer stopping: drop pending frames
+        pool.shutdown(wait=False, cancel_futures=True)
+        raise
+    pool.shutdown()
 
 
 # ----------------------------------------------------------------------------- the dataset
@@ -146,8 +150,9 @@ def make_scene(out: str | os.PathLike, seed: int = 0, size: int = 256, frames: i
     seed: appearance, camera path, sway and expressions; size: image width = height;
     frames: capture length; sway: body sway amplitude (0 = static scene); reanimate:
     re-animation frames (default frames / 10); leakage_steps: values per control in the
-    leakage sweep; workers: render processes (0 = auto); progress(n): called after each
-    frame is written. Returns the dataset path."""
+    leakage sweep; workers: render processes (0 = auto; they are spawned, so a script
+    calling this with workers != 1 needs the usual `if __name__ == "__main__":` guard);
+    progress(n): called after each frame is written. Returns the dataset path."""
     from flamenerf import __version__
     from flamenerf.data.dataset import DatasetError, DatasetWriter
     from flamenerf.synthetic.cameras import intrinsics
