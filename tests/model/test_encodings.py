@@ -68,3 +68,9 @@ def test_hash_grid_is_trilinear_on_a_dense_level():
                          * (f[2] if dz else 1 - f[2]))
                     ref += w * g.tables[0][:, i]
         assert torch.allclose(out[k], ref, atol=1e-6)
+
+
+def test_hash_grid_accepts_the_box_faces():
+    g = HashGrid(levels=3, features=2, log2_size=10, base_res=4, max_res=64)
+    x = torch.tensor([[1.0, 1.0, 1.0], [0.0, 1.0, 0.5], [1.5, -0.2, 1.0]])
+    assert torch.isfinite(g(x)).all()

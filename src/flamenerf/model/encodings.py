@@ -79,7 +79,8 @@ class HashGrid(nn.Module):
         # (N,) or (8, N), which keeps memory traffic (the CPU's bottleneck) low.
         for lv, (r, dense) in enumerate(zip(self.res.tolist(), self.dense.tolist())):
             pos = xs * r
-            base = torch.floor(pos.detach())
+            # x = 1 lies on the top face: keep its cell inside the grid (frac becomes 1)
+            base = torch.floor(pos.detach()).clamp(max=r - 1)
             frac = pos - base  # (N, 3)
             b = base.to(torch.int64)
             if dense:

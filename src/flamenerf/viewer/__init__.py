@@ -1,0 +1,1 @@
+"""`flamenerf view`: the browser viewer (viser) of a trained run; see docs/viewer.md."""

@@ -1,0 +1,383 @@
+"""The browser viewer (viser): a free camera, expression sliders, track playback, RGB /
+depth, progressive quality. Rendering runs in `RenderWorker`'s thread; each finished image
+becomes the browser's scene background."""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import io
+import socket
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from flamenerf.errors import UserError
+from flamenerf.viewer.camera import c2w_from_viser, home_camera
+from flamenerf.viewer.mask import FaceMasker
+from flamenerf.viewer.renderer import Frame, RenderWorker
+from flamenerf.viewer.tracks import Track, dataset_tracks, load_track_file, slider_range
+
+STATUS_PREFIX = "Render"
+
+
+@dataclass
+class ViewerOptions:
+    host: str = "127.0.0.1"
+    port: int = 8080
+    height: int = 0  # refined image height in pixels; 0 = the run's training height
+    max_height: int = 1024
+    progressive: bool = True
+    tracks: tuple[Path, ...] = ()
+    dataset: Path | None = None
+    settle_s: float = 0.25
+    verbose: bool = True
+
+
+def check_port_free(host: str, port: int) -> None:
+    """A clear error now instead of viser silently moving to the next free port."""
+    if not 0 < port < 65536:
+        raise UserError(f"--port {port}: must be in 1..65535")
+    try:
+        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
+    except socket.gaierror as e:
+        raise UserError(f"--host {host}: cannot resolve it ({e.strerror})") from None
+    family, _, _, _, addr = infos[0]
+    s = socket.socket(family, socket.SOCK_STREAM)
+    try:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as asyncio's server does
+        s.bind(addr)
+    except OSError as e:
+        if e.errno == errno.EADDRINUSE:
+            raise UserError(f"port {port} on {host} is already in use "
+                            f"(another viewer? pick a free one with --port)") from None
+        if e.errno == errno.EADDRNOTAVAIL:
+            raise UserError(f"--host {host}: not an address of this machine") from None
+        if e.errno == errno.EACCES:
+            raise UserError(f"port {port}: permission denied (use a port above 1023)") from None
+        raise UserError(f"cannot listen on {host}:{port} ({e.strerror})") from None
+    finally:
+        s.close()
+
+
+class Viewer:
+    """`Viewer(run, opts).start()`; then `url`, `stop()`. Used by `flamenerf view`."""
+
+    def __init__(self, run, opts: ViewerOptions):
+        self.run = run
+        self.opts = opts
+        self.ds = run.dataset(opts.dataset)
+        self.names = run.expression_names
+        self.home = home_camera(self.ds)
+        self.masker = FaceMasker(self.ds, self.home.frame_position)
+        self.lo, self.hi = slider_range(self.ds)
+        fi = self.ds.frames[self.home.frame_position]
+        self.frame0_expression = np.clip(fi.expression, self.lo, self.hi).astype(np.float32)
+        self.neutral = np.clip(np.zeros(len(self.names), np.float32), self.lo, self.hi)
+        self.tracks: list[Track] = [load_track_file(p, self.names) for p in opts.tracks]
+        self.tracks += dataset_tracks(self.ds)
+        h = opts.height or run.train_intrinsics(self.ds).h
+        self.height = int(min(max(8, round(h / 8) * 8), opts.max_height))
+        omega, phi = run.frame_codes(0)
+        self.worker = RenderWorker(run.model, omega, phi, self.masker, self.neutral,
+                                   self._display, height=self.height, settle_s=opts.settle_s,
+                                   on_error=self._render_failed)
+        self.server = None
+        self._clients: dict[int, object] = {}
+        self._status: dict[int, object] = {}
+        self._synced_after: dict[int, float] = {}
+        self.sync_s = 10.0
+        self._play = threading.Event()
+        self._play_lock = threading.Lock()
+        self._play_thread: threading.Thread | None = None
+        self._play_t0 = 0.0
+        self._play_frame0 = 0
+        self._closing = False
+
+    # ------------------------------------------------------------------ lifecycle
+
+    @property
+    def url(self) -> str:
+        host = self.opts.host
+        shown = socket.gethostname() if host in ("0.0.0.0", "::", "") else host
+        if ":" in shown:
+            shown = f"[{shown}]"
+        return f"http://{shown}:{self.port}"
+
+    @property
+    def port(self) -> int:
+        return self.server.get_port() if self.server is not None else self.opts.port
+
+    def start(self) -> "Viewer":
+        import viser
+
+        check_port_free(self.opts.host, self.opts.port)
+        with contextlib.redirect_stdout(io.StringIO()) as banner:  # we print our own URL
+            server = viser.ViserServer(host=self.opts.host, port=self.opts.port,
+                                       label="flamenerf view", verbose=self.opts.verbose)
+        if self.opts.verbose:
+            print(banner.getvalue(), end="")
+        if server.get_port() != self.opts.port:  # lost a race for the port
+            server.stop()
+            raise UserError(f"port {self.opts.port} on {self.opts.host} is already in use "
+                            f"(pick a free one with --port)")
+        self.server = server
+        server.scene.set_up_direction(tuple(float(x) for x in self.home.up))
+        server.scene.world_axes.visible = False
+        cam = server.initial_camera
+        cam.fov = self.home.fov_y
+        cam.position = tuple(float(x) for x in self.home.position)
+        cam.look_at = tuple(float(x) for x in self.home.look_at)
+        cam.up = tuple(float(x) for x in self.home.up)
+        self._build_gui()
+        server.on_client_connect(self._on_connect)
+        server.on_client_disconnect(self._on_disconnect)
+        self.worker.start()
+        self._play_thread = threading.Thread(target=self._player, name="flamenerf-play",
+                                             daemon=True)
+        self._play_thread.start()
+        return self
+
+    def stop(self) -> None:
+        self._closing = True
+        self._play.set()
+        self.worker.stop()
+        if self.server is not None:
+            self.server.stop()
+
+    # ------------------------------------------------------------------ GUI
+
+    def _build_gui(self) -> None:
+        gui = self.server.gui
+        self.view_folder = gui.add_folder("View")
+        with self.view_folder:
+            self.g_mode = gui.add_dropdown("Show", ["RGB", "Depth"], initial_value="RGB",
+                                           hint="Colour, or the expected depth (near = warm).")
+            self.g_height = gui.add_slider(
+                "Resolution", min=8, max=self.opts.max_height, step=8,
+                initial_value=self.height,
+                hint="Height in pixels of the refined image (the window's aspect ratio "
+                     "sets the width).")
+            self.g_prog = gui.add_checkbox(
+                "Progressive", self.opts.progressive,
+                hint="Render at 1/4 resolution while the camera or expression changes, "
+                     "then refine to 1/2 and full once it is still.")
+            self.g_reset_cam = gui.add_button("Reset camera", hint="Back to frame 0's camera.")
+        self.expr_folder = gui.add_folder("Expression")
+        with self.expr_folder:
+            self.g_neutral = gui.add_button(
+                "Reset to neutral", hint="Every control to 0 (no expression).")
+            self.g_frame0 = gui.add_button(
+                "Frame 0 expression", hint="The expression of the capture's first frame.")
+            self.g_sliders = []
+            step = 0.01 if self.hi - self.lo <= 2 else 0.05
+            for j, name in enumerate(self.names):
+                s = gui.add_slider(name, min=self.lo, max=self.hi, step=step,
+                                   initial_value=float(self.neutral[j]))
+                s.on_update(self._slider_cb(j))
+                self.g_sliders.append(s)
+        self.track_folder = gui.add_folder("Track")
+        with self.track_folder:
+            names = [t.name for t in self.tracks] or ["(none)"]
+            self.g_track = gui.add_dropdown("Track", names, initial_value=names[0])
+            self.g_play = gui.add_button("Play", disabled=not self.tracks)
+            n = self.tracks[0].num_frames if self.tracks else 1
+            self.g_frame = gui.add_slider("Frame", min=0, max=max(n - 1, 1), step=1,
+                                          initial_value=0, disabled=not self.tracks)
+            self.g_loop = gui.add_checkbox("Loop", True)
+
+        self.g_mode.on_update(lambda e: self.worker.set_mode(e.target.value))
+        self.g_height.on_update(lambda e: self.worker.set_quality(height=e.target.value))
+        self.g_prog.on_update(lambda e: self.worker.set_quality(progressive=e.target.value))
+        self.g_reset_cam.on_click(lambda e: e.client is not None and self.reset_camera(e.client))
+        self.g_neutral.on_click(lambda e: self.set_expression(self.neutral))
+        self.g_frame0.on_click(lambda e: self.set_expression(self.frame0_expression))
+        self.g_track.on_update(self._on_track_change)
+        self.g_play.on_click(lambda e: self.toggle_play())
+        self.g_frame.on_update(self._on_frame_slider)
+
+    def _slider_cb(self, j: int):
+        def cb(event) -> None:
+            if event.client is None:  # our own update (reset, playback)
+                return
+            self.pause()
+            self.worker.set_expression_value(j, float(event.target.value))
+        return cb
+
+    def set_expression(self, values: np.ndarray, pause: bool = True) -> None:
+        """Show this expression and move the sliders to it."""
+        if pause:
+            self.pause()
+        v = np.clip(np.asarray(values, np.float32), self.lo, self.hi)
+        self.worker.set_expression(v)
+        self._sync_sliders(v)
+
+    def _sync_sliders(self, v: np.ndarray) -> None:
+        if self.server is None:
+            return
+        with self.server.atomic():
+            for s, x in zip(self.g_sliders, v):
+                s.value = float(round(float(x), 4))
+
+    def reset_camera(self, client) -> None:
+        cam = client.camera
+        with client.atomic():
+            cam.fov = self.home.fov_y
+            cam.up_direction = tuple(float(x) for x in self.home.up)
+            cam.position = tuple(float(x) for x in self.home.position)
+            cam.look_at = tuple(float(x) for x in self.home.look_at)
+
+    # ------------------------------------------------------------------ playback
+
+    def current_track(self) -> Track | None:
+        for t in self.tracks:
+            if t.name == self.g_track.value:
+                return t
+        return None
+
+    def _on_track_change(self, event) -> None:
+        self.pause()
+        t = self.current_track()
+        if t is None:
+            return
+        self.g_frame.max = max(t.num_frames - 1, 1)
+        self.g_frame.value = 0
+        self.set_expression(t.frames[0], pause=False)
+
+    def _on_frame_slider(self, event) -> None:
+        if event.client is None:
+            return
+        self.pause()
+        t = self.current_track()
+        if t is not None:
+            k = int(min(max(event.target.value, 0), t.num_frames - 1))
+            self.set_expression(t.frames[k], pause=False)
+
+    def toggle_play(self) -> None:
+        if self._play.is_set():
+            self.pause()
+        else:
+            self.play()
+
+    def play(self) -> None:
+        t = self.current_track()
+        if t is None:
+            return
+        with self._play_lock:
+            start = int(self.g_frame.value)
+            if start >= t.num_frames - 1:
+                start = 0
+            self._play_frame0 = start
+            self._play_t0 = time.monotonic()
+            self._play.set()
+            self.g_play.label = "Pause"
+
+    def pause(self) -> None:
+        with self._play_lock:
+            if self._play.is_set() and not self._closing:
+                self._play.clear()
+                self.g_play.label = "Play"
+
+    @property
+    def playing(self) -> bool:
+        return self._play.is_set()
+
+    def _player(self) -> None:
+        last_sync = 0.0
+        while not self._closing:
+            if not self._play.wait(timeout=0.5) or self._closing:
+                continue
+            t = self.current_track()
+            if t is None:
+                self.pause()
+                continue
+            with self._play_lock:
+                k = self._play_frame0 + int((time.monotonic() - self._play_t0) * t.fps)
+            if k >= t.num_frames:
+                if self.g_loop.value:
+                    k %= t.num_frames
+                else:
+                    k = t.num_frames - 1
+                    self.pause()
+            v = np.clip(t.frames[k], self.lo, self.hi)
+            self.worker.set_expression(v)
+            now = time.monotonic()
+            # the 52 sliders follow at a few Hz; the image follows every frame
+            if now - last_sync > 0.2 or not self._play.is_set():
+                self._sync_sliders(v)
+                self.g_frame.value = int(k)
+                last_sync = now
+            time.sleep(max(0.005, 1.0 / min(t.fps, 60.0)))
+
+    # ------------------------------------------------------------------ clients
+
+    def _on_connect(self, client) -> None:
+        self._clients[client.client_id] = client
+        with self.view_folder:
+            status = client.gui.add_markdown(f"{STATUS_PREFIX}: waiting for the first image",
+                                             order=-1.0)
+        self._status[client.client_id] = status
+        # A new page reports three.js's default camera before the initial one applies:
+        # put it at frame 0's camera, render that view right away, and ignore the page's
+        # camera until it reports that pose (or for at most `sync_s`).
+        self._synced_after[client.client_id] = time.monotonic() + self.sync_s
+
+        def on_camera(cam) -> None:
+            self._camera_changed(client)
+
+        client.camera.on_update(on_camera)
+        self.reset_camera(client)
+        try:
+            aspect = float(client.camera.aspect)
+        except (AssertionError, ZeroDivisionError):
+            aspect = self.ds.intrinsics.w / self.ds.intrinsics.h
+        self.worker.set_camera(client.client_id, self.home.c2w, self.home.fov_y, aspect)
+
+    def _camera_changed(self, client) -> None:
+        cam = client.camera
+        try:
+            aspect = float(cam.aspect)
+            if not np.isfinite(aspect) or aspect <= 0:
+                return
+            c2w = c2w_from_viser(cam.wxyz, cam.position)
+            fov = float(cam.fov)
+        except (AssertionError, ZeroDivisionError):  # no camera message yet
+            return
+        until = self._synced_after.get(client.client_id)
+        if until is not None:
+            at_home = (np.allclose(c2w, self.home.c2w, atol=1e-4)
+                       and abs(fov - self.home.fov_y) < 1e-4)
+            if not at_home and time.monotonic() < until:
+                return  # still the page's default camera
+            self._synced_after.pop(client.client_id, None)
+        self.worker.set_camera(client.client_id, c2w, fov, aspect)
+
+    def _on_disconnect(self, client) -> None:
+        self._clients.pop(client.client_id, None)
+        self._status.pop(client.client_id, None)
+        self._synced_after.pop(client.client_id, None)
+        self.worker.remove_view(client.client_id)
+
+    def _render_failed(self, key, err: BaseException) -> None:
+        status = self._status.get(key)
+        if status is not None:
+            msg = str(err).splitlines()[0][:160] if str(err) else type(err).__name__
+            status.content = (f"{STATUS_PREFIX}: failed ({type(err).__name__}: {msg}); "
+                              f"see the terminal")
+
+    def _display(self, key, frame: Frame) -> None:
+        client = self._clients.get(key)
+        if client is None:
+            return
+        fmt = "png" if frame.final else "jpeg"
+        client.scene.set_background_image(frame.image, format=fmt, jpeg_quality=90)
+        status = self._status.get(key)
+        if status is not None:
+            state = "final" if frame.final else f"preview {frame.level + 1}"
+            status.content = (f"{STATUS_PREFIX}: {frame.seconds * 1000:.0f} ms · "
+                              f"{frame.intr.w}×{frame.intr.h} px · {state} · "
+                              f"#{frame.count}")
+        self.last_frame = frame

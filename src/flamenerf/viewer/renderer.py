@@ -1,0 +1,320 @@
+"""Progressive rendering in a background thread.
+
+Every browser (view) has a camera; all views share the expression, the display mode and
+the quality. Whenever any of these changes the view's *key* changes and the worker renders
+it again, coarse to fine: first at 1/4 of the chosen height (fast, so dragging the camera
+or a slider stays interactive), then - once nothing has changed for `settle_s` - at 1/2
+and at the full height. A refinement is rendered in bands of rows and abandoned as soon
+as the key changes again, so the worker never sits on a stale image.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+import torch
+
+from flamenerf.data.dataset import Intrinsics
+from flamenerf.model.render_image import render_image
+from flamenerf.viewer.camera import view_intrinsics
+
+
+@dataclass
+class Shared:
+    """State common to every view. Mutate only through RenderWorker's setters."""
+
+    expression: np.ndarray
+    mode: str = "RGB"  # or "Depth"
+    height: int = 128  # pixels of the refined image
+    progressive: bool = True
+    version: int = 0
+    changed_at: float = 0.0
+
+
+@dataclass
+class View:
+    """One browser's camera and what has been shown in it."""
+
+    c2w: np.ndarray
+    fov_y: float
+    aspect: float
+    version: int = 0
+    changed_at: float = 0.0
+    shown_key: tuple | None = None
+    shown_level: int = -1
+    depth_range: tuple[float, float] | None = None
+    renders: int = 0
+
+
+@dataclass
+class Frame:
+    """A finished image, handed to the display callback."""
+
+    image: np.ndarray  # (H, W, 3) uint8
+    intr: Intrinsics
+    seconds: float
+    level: int  # 0 = coarsest
+    final: bool  # the full-quality image of the current state
+    count: int  # images finished for this view so far
+    mode: str
+    extras: dict = field(default_factory=dict)
+
+
+DisplayFn = Callable[[object, Frame], None]
+
+
+class _Stale(Exception):
+    pass
+
+
+class RenderWorker:
+    def __init__(self, model, deform_code: torch.Tensor, appearance_code: torch.Tensor,
+                 masker, expression: np.ndarray, display: DisplayFn, height: int = 128,
+                 settle_s: float = 0.25, band_rays: int = 4096,
+                 on_error: Callable[[object, BaseException], None] | None = None):
+        self.model = model
+        self.omega, self.phi = deform_code, appearance_code
+        self.masker = masker
+        self.display = display
+        self.on_error = on_error
+        self.settle_s = settle_s
+        self.band_rays = band_rays
+        self.shared = Shared(expression=np.asarray(expression, np.float32).copy(),
+                             height=int(height))
+        self.views: dict[object, View] = {}
+        self._cv = threading.Condition()
+        self._stop = False
+        self._thread = threading.Thread(target=self._loop, name="flamenerf-render", daemon=True)
+        self.errors: list[BaseException] = []
+        self.error_views: list[dict] = []  # the view each error happened in
+
+    # ------------------------------------------------------------------ state changes
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def stop(self, timeout: float = 10.0) -> None:
+        with self._cv:
+            self._stop = True
+            self._cv.notify_all()
+        if self._thread.is_alive() and threading.current_thread() is not self._thread:
+            self._thread.join(timeout)
+
+    def _touch_shared(self) -> None:
+        self.shared.version += 1
+        self.shared.changed_at = time.monotonic()
+        self._cv.notify_all()
+
+    def set_expression(self, values: np.ndarray) -> None:
+        v = np.asarray(values, np.float32)
+        with self._cv:
+            if np.array_equal(v, self.shared.expression):
+                return
+            self.shared.expression = v.copy()
+            self._touch_shared()
+
+    def set_expression_value(self, index: int, value: float) -> None:
+        with self._cv:
+            if float(self.shared.expression[index]) == float(value):
+                return
+            self.shared.expression = self.shared.expression.copy()
+            self.shared.expression[index] = value
+            self._touch_shared()
+
+    def expression(self) -> np.ndarray:
+        with self._cv:
+            return self.shared.expression.copy()
+
+    def set_mode(self, mode: str) -> None:
+        with self._cv:
+            if mode != self.shared.mode:
+                self.shared.mode = mode
+                for v in self.views.values():
+                    v.depth_range = None
+                self._touch_shared()
+
+    def set_quality(self, height: int | None = None, progressive: bool | None = None) -> None:
+        with self._cv:
+            if height is not None and int(height) != self.shared.height:
+                self.shared.height = max(1, int(height))
+                self._touch_shared()
+            if progressive is not None and bool(progressive) != self.shared.progressive:
+                self.shared.progressive = bool(progressive)
+                self._touch_shared()
+
+    def set_camera(self, key: object, c2w: np.ndarray, fov_y: float, aspect: float) -> None:
+        c2w = np.asarray(c2w, np.float64)
+        with self._cv:
+            v = self.views.get(key)
+            if v is None:
+                self.views[key] = View(c2w, float(fov_y), float(aspect), 1, time.monotonic())
+            elif (np.allclose(v.c2w, c2w, rtol=0, atol=1e-6) and abs(v.fov_y - fov_y) < 1e-6
+                  and abs(v.aspect - aspect) < 1e-6):
+                return
+            else:
+                v.c2w, v.fov_y, v.aspect = c2w, float(fov_y), float(aspect)
+                v.version += 1
+                v.changed_at = time.monotonic()
+            self._cv.notify_all()
+
+    def refresh(self, key: object) -> None:
+        """Show `key`'s current state again from the coarsest level."""
+        with self._cv:
+            v = self.views.get(key)
+            if v is not None:
+                v.version += 1
+                v.changed_at = time.monotonic()
+                self._cv.notify_all()
+
+    def remove_view(self, key: object) -> None:
+        with self._cv:
+            self.views.pop(key, None)
+
+    # ------------------------------------------------------------------ the worker
+
+    def levels(self, height: int, progressive: bool) -> list[int]:
+        if not progressive:
+            return [height]
+        hs = [max(8, height // 4), max(8, height // 2), height]
+        out: list[int] = []
+        for h in hs:
+            if h <= height and (not out or h > out[-1]):
+                out.append(h)
+        return out
+
+    def _next_job(self):
+        """-> (key, level, heights, snapshot) or (None, wait_seconds)."""
+        now = time.monotonic()
+        s = self.shared
+        heights = self.levels(s.height, s.progressive)
+        wait = None
+        # views whose state changed first, then refinements
+        best = None
+        for key, v in self.views.items():
+            state = (v.version, s.version)
+            if v.shown_key != state:
+                cand = (0, -v.changed_at, key, 0)
+            elif v.shown_level < len(heights) - 1:
+                idle = now - max(v.changed_at, s.changed_at)
+                if idle < self.settle_s:
+                    w = self.settle_s - idle
+                    wait = w if wait is None else min(wait, w)
+                    continue
+                cand = (1, v.shown_level, key, v.shown_level + 1)
+            else:
+                continue
+            if best is None or cand[:2] < best[:2]:
+                best = cand
+        if best is None:
+            return None, wait
+        key, level = best[2], best[3]
+        v = self.views[key]
+        snap = dict(key=key, state=(v.version, s.version), c2w=v.c2w.copy(), fov_y=v.fov_y,
+                    aspect=v.aspect, expression=s.expression.copy(), mode=s.mode,
+                    height=heights[level], final=level == len(heights) - 1,
+                    depth_range=v.depth_range)
+        return (key, level, heights, snap), None
+
+    def _loop(self) -> None:
+        while True:
+            with self._cv:
+                while True:
+                    if self._stop:
+                        return
+                    job, wait = self._next_job()
+                    if job is not None:
+                        break
+                    self._cv.wait(timeout=wait if wait is not None else 1.0)
+            key, level, heights, snap = job
+            try:
+                frame = self._render(snap, level, cancellable=level > 0)
+            except _Stale:
+                continue
+            except Exception as e:  # noqa: BLE001 - keep serving this state no more
+                if not self.errors or repr(self.errors[-1]) != repr(e):
+                    import traceback
+
+                    traceback.print_exc()
+                self.errors.append(e)
+                del self.errors[:-10]
+                self.error_views.append({k: snap[k] for k in ("c2w", "fov_y", "aspect",
+                                                              "height", "mode")})
+                del self.error_views[:-10]
+                with self._cv:
+                    v = self.views.get(key)
+                    if v is not None:
+                        v.shown_key, v.shown_level = snap["state"], len(heights) - 1
+                if self.on_error is not None:
+                    try:
+                        self.on_error(key, e)
+                    except Exception:  # noqa: BLE001
+                        pass
+                continue
+            with self._cv:
+                v = self.views.get(key)
+                if v is None:
+                    continue
+                if (v.version, self.shared.version) != snap["state"] and level > 0:
+                    continue
+                v.shown_key, v.shown_level = snap["state"], level
+                v.renders += 1
+                frame.count = v.renders
+                if snap["mode"] == "Depth" and v.depth_range is None:
+                    v.depth_range = frame.extras["depth_range"]
+            try:
+                self.display(key, frame)
+            except Exception:  # noqa: BLE001 - a client that went away
+                pass
+
+    def _stale(self, snap) -> bool:
+        v = self.views.get(snap["key"])
+        return v is None or (v.version, self.shared.version) != snap["state"] or self._stop
+
+    def _render(self, snap, level: int, cancellable: bool) -> Frame:
+        from flamenerf.evaluation.images import colorize_depth, to_uint8
+
+        t0 = time.perf_counter()
+        intr = view_intrinsics(snap["fov_y"], snap["aspect"], snap["height"])
+        c2w = snap["c2w"]
+        mask = self.masker(intr, c2w)
+        expr = torch.from_numpy(snap["expression"])
+        rows = max(1, self.band_rays // intr.w)
+        rgb = np.zeros((intr.h, intr.w, 3), np.float32)
+        depth = np.zeros((intr.h, intr.w), np.float32)
+        for y0 in range(0, intr.h, rows):
+            if cancellable and self._stale(snap):
+                raise _Stale
+            r = min(rows, intr.h - y0)
+            band = Intrinsics(intr.w, r, intr.fx, intr.fy, intr.cx, intr.cy - y0)
+            out = render_image(self.model, band, c2w, self.omega, self.phi, expr,
+                               mask[y0:y0 + r])
+            rgb[y0:y0 + r] = out["rgb"].numpy()
+            depth[y0:y0 + r] = out["depth"].numpy()
+        extras: dict = {"mask": mask}
+        if snap["mode"] == "Depth":
+            rng = snap["depth_range"]
+            if rng is None:
+                rng = (float(np.percentile(depth, 1)), float(np.percentile(depth, 99)))
+            extras["depth_range"] = rng
+            img = colorize_depth(depth, rng[0], rng[1])
+        else:
+            img = rgb
+        return Frame(to_uint8(img), intr, time.perf_counter() - t0, level, snap["final"], 0,
+                     snap["mode"], extras)
+
+    def wait_idle(self, timeout: float = 30.0) -> bool:
+        """Block until every view shows its final image of the current state (tests)."""
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            with self._cv:
+                s = self.shared
+                top = len(self.levels(s.height, s.progressive)) - 1
+                if self.views and all(v.shown_key == (v.version, s.version)
+                                      and v.shown_level == top for v in self.views.values()):
+                    return True
+            time.sleep(0.02)
+        return False

@@ -1,0 +1,87 @@
+"""Expression tracks the viewer can play: the dataset's own sequences and `flamenerf track`
+output files, each mapped onto the run's expression controls."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from flamenerf.data.dataset import Dataset, Frame
+from flamenerf.errors import UserError
+
+
+@dataclass
+class Track:
+    name: str
+    frames: np.ndarray  # (T, E) float32, in the run's expression order
+    fps: float
+
+    @property
+    def num_frames(self) -> int:
+        return int(self.frames.shape[0])
+
+    def duration(self) -> float:
+        return self.num_frames / self.fps
+
+
+def _capture_fps(frames: list[Frame], default: float = 30.0) -> float:
+    times = [f.extra.get("time") for f in frames]
+    if len(times) > 1 and all(isinstance(t, (int, float)) for t in times):
+        dt = np.diff(np.asarray(times, np.float64))
+        dt = dt[dt > 0]
+        if dt.size:
+            return float(1.0 / np.median(dt))
+    return default
+
+
+def dataset_tracks(ds: Dataset) -> list[Track]:
+    """`capture`: every frame of the video in order (train + val); then each split."""
+    out: list[Track] = []
+    capture = sorted((f for f in ds.frames if f.frame_index is not None),
+                     key=lambda f: f.frame_index)
+    fps = _capture_fps(capture)
+    if capture:
+        out.append(Track(f"capture ({len(capture)} frames)", ds.expression_matrix(capture), fps))
+    for name in sorted(ds.splits, key=lambda s: (s not in ("train", "val"), s)):
+        frames = ds.split(name)
+        if frames:
+            out.append(Track(f"split {name} ({len(frames)} frames)",
+                             ds.expression_matrix(frames), fps))
+    return out
+
+
+def load_track_file(path: str | Path, names: list[str]) -> Track:
+    """A `flamenerf track` JSON file, with its channels matched to `names` by name
+    (channels the run lacks are dropped, controls the file lacks stay 0)."""
+    from flamenerf.tracking.expressions import load_expressions
+
+    tr = load_expressions(path)
+    if tr.names == names:
+        mat = np.asarray(tr.frames, np.float32)
+    else:
+        col = {n: i for i, n in enumerate(tr.names)}
+        shared = [n for n in names if n in col]
+        if not shared:
+            raise UserError(
+                f"{path}: none of its {len(tr.names)} expression channels "
+                f"({', '.join(tr.names[:3])}, ...) is a control of this run "
+                f"({', '.join(names[:3])}, ...); track with the run's --face-model")
+        mat = np.zeros((len(tr.frames), len(names)), np.float32)
+        for j, n in enumerate(names):
+            if n in col:
+                mat[:, j] = tr.frames[:, col[n]]
+    return Track(f"file {Path(path).name} ({len(mat)} frames)", mat, float(tr.fps))
+
+
+def slider_range(ds: Dataset) -> tuple[float, float]:
+    """Range of the expression sliders: [0, 1] for blendshape-style scores (ARKit, the
+    synthetic rig), else the data's range with a margin, rounded outwards."""
+    x = ds.expression_matrix(ds.frames)
+    lo, hi = float(x.min()), float(x.max())
+    if lo >= -1e-6 and hi <= 1 + 1e-6:
+        return 0.0, 1.0
+    m = 0.25 * (hi - lo)
+    return float(np.floor(min(lo - m, 0.0))), float(np.ceil(max(hi + m, 0.0)))
+

@@ -1,0 +1,26 @@
+"""A tiny trained run for the viewer tests."""
+
+from __future__ import annotations
+
+import pytest
+
+
+@pytest.fixture(scope="session")
+def tiny_run(tiny_scene, tmp_path_factory):
+    """Two training steps of a shrunk `fast` preset: a model whose face pixels depend on
+    the expression (only through the face mask: the spatial prior)."""
+    from flamenerf.config import preset
+    from flamenerf.training.trainer import Trainer
+
+    cfg = preset("fast")
+    cfg.train.steps, cfg.train.batch_rays, cfg.train.face_reg_points = 2, 256, 64
+    cfg.train.checkpoint_every, cfg.train.image_every, cfg.train.log_every = 1000, 0, 1
+    cfg.model.expression_scale = 50.0  # an untrained model barely reacts to β otherwise
+    f, w, s = cfg.model.field, cfg.model.warp, cfg.model.sampler
+    w.code_dim, w.width, w.depth, w.skips = 8, 32, 3, (2,)
+    f.hash_levels, f.hash_log2_size, f.hash_max_res = 8, 14, 128
+    if hasattr(s, "num_proposal"):
+        s.num_proposal, s.num_main = 32, 12
+    out = tmp_path_factory.mktemp("viewer") / "run"
+    Trainer(cfg, tiny_scene, out, quiet=True, device="cpu").fit()
+    return out

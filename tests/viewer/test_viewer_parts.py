@@ -1,0 +1,163 @@
+"""The viewer's parts without a browser: tracks, cameras, the progressive render worker."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from flamenerf.data.dataset import load_dataset
+from flamenerf.errors import UserError
+from flamenerf.viewer.camera import c2w_from_viser, home_camera, view_intrinsics
+from flamenerf.viewer.mask import FaceMasker, estimate_dilation
+from flamenerf.viewer.renderer import RenderWorker
+from flamenerf.viewer.tracks import dataset_tracks, load_track_file, slider_range
+
+
+def test_camera_conversion():
+    # viser: OpenCV axes. A camera at +z looking at the origin with +y up (OpenGL c2w
+    # rotation = I) has OpenCV rotation diag(1, -1, -1) = quaternion (w, x, y, z) = (0, 1, 0, 0).
+    c2w = c2w_from_viser(np.array([0.0, 1.0, 0.0, 0.0]), np.array([0.0, 0.0, 2.0]))
+    assert np.allclose(c2w[:3, :3], np.eye(3)) and np.allclose(c2w[:3, 3], [0, 0, 2])
+    intr = view_intrinsics(np.deg2rad(90), 2.0, 100)
+    assert (intr.w, intr.h) == (200, 100) and np.isclose(intr.fy, 50) and intr.cx == 100
+
+
+def test_home_camera_is_frame_0(tiny_scene):
+    ds = load_dataset(tiny_scene)
+    h = home_camera(ds)
+    f0 = ds.frames[h.frame_position]
+    assert f0.frame_index == 0 and np.allclose(h.c2w, f0.c2w)
+    fwd = (h.look_at - h.position) / np.linalg.norm(h.look_at - h.position)
+    assert np.allclose(fwd, -f0.c2w[:3, 2], atol=1e-9)  # looks along frame 0's axis
+    assert np.isclose(np.tan(h.fov_y / 2) * ds.intrinsics.fy * 2, ds.intrinsics.h)
+    # the mask the viewer rasterises at the dataset's camera is the dataset's mask
+    m = FaceMasker(ds, h.frame_position)(ds.intrinsics, f0.c2w)
+    stored = ds.load_mask(f0)
+    assert np.mean(m != stored) < 0.01 and estimate_dilation(ds, h.frame_position) >= 0
+
+
+def test_tracks(tiny_scene, tmp_path):
+    ds = load_dataset(tiny_scene)
+    tracks = dataset_tracks(ds)
+    cap = tracks[0]
+    assert cap.name.startswith("capture") and cap.frames.shape[1] == ds.expression_dim
+    assert cap.num_frames == sum(f.frame_index is not None for f in ds.frames)
+    assert any(t.name.startswith("split reanimate") for t in tracks)
+    assert slider_range(ds) == (0.0, 1.0)
+
+    names = ds.expression_names
+    p = tmp_path / "drive.json"
+    # other order, one unknown channel, one missing control
+    file_names = ["somethingElse"] + names[::-1][:-1]
+    rows = [[0.5] + [float(i) / 10 for i in range(len(names) - 1)]]
+    p.write_text(json.dumps({"names": file_names, "fps": 25, "frames": rows}))
+    t = load_track_file(p, names)
+    assert t.fps == 25 and t.frames.shape == (1, len(names))
+    for k, n in enumerate(file_names[1:]):
+        assert t.frames[0, names.index(n)] == pytest.approx(rows[0][k + 1])
+    assert t.frames[0, names.index(names[0])] == 0  # not in the file
+    p.write_text(json.dumps({"names": ["a", "b"], "frames": [[0, 1]]}))
+    with pytest.raises(UserError, match="none of its 2 expression channels"):
+        load_track_file(p, names)
+
+
+def test_worker_renders_coarse_to_fine_and_follows_changes(tiny_run):
+    from flamenerf.training.run import load_run
+
+    run = load_run(tiny_run, device="cpu")
+    ds = run.dataset()
+    h = home_camera(ds)
+    frames = []
+    w, a = run.frame_codes(0)
+    wk = RenderWorker(run.model, w, a, FaceMasker(ds, h.frame_position),
+                      np.zeros(len(run.expression_names)), lambda k, f: frames.append(f),
+                      height=16, settle_s=0.05)
+    wk.start()
+    try:
+        wk.set_camera("a", h.c2w, h.fov_y, 1.5)
+        assert wk.wait_idle(30)
+        assert [f.intr.h for f in frames] == [8, 16] and frames[-1].final
+        assert [f.count for f in frames] == [1, 2] and frames[-1].intr.w == 24
+        n = len(frames)
+        wk.set_camera("a", h.c2w, h.fov_y, 1.5)  # unchanged: nothing to do
+        e = wk.expression()
+        e[0] = 1.0
+        wk.set_expression(e)
+        assert wk.wait_idle(30)
+        new = frames[n:]
+        assert [f.intr.h for f in new] == [8, 16]
+        diff = np.abs(new[-1].image.astype(int) - frames[n - 1].image.astype(int)).max(-1)
+        mask = new[-1].extras["mask"]
+        assert diff[~mask].max() <= 1 and diff[mask].max() > 3
+        wk.set_mode("Depth")
+        wk.set_quality(progressive=False)
+        assert wk.wait_idle(30)
+        assert frames[-1].mode == "Depth" and frames[-1].level == 0 and frames[-1].final
+        assert frames[-1].image.shape == (16, 24, 3) and "depth_range" in frames[-1].extras
+        assert not wk.errors
+    finally:
+        wk.stop()
+
+
+def test_zoomed_out_view_renders(tiny_run):
+    """Scrolling out in the viewer puts samples far outside the training cameras' box."""
+    import torch
+
+    from flamenerf.model.render_image import render_image
+    from flamenerf.training.run import load_run
+
+    run = load_run(tiny_run, device="cpu")
+    ds = run.dataset()
+    h = home_camera(ds)
+    c2w = h.c2w.copy()
+    c2w[:3, 3] = h.look_at + 3.0 * (h.position - h.look_at)
+    intr = view_intrinsics(h.fov_y, 1.0, 16)
+    w, a = run.frame_codes(0)
+    mask = FaceMasker(ds, h.frame_position)(intr, c2w)
+    out = render_image(run.model, intr, c2w, w, a, torch.zeros(ds.expression_dim), mask)
+    assert torch.isfinite(out["rgb"]).all()
+
+
+def test_viewer_controls_without_a_browser(tiny_run, tmp_path):
+    """Track selection, playback, pause, neutral and frame-0 buttons drive the shared
+    expression (no page connected, so nothing renders)."""
+    import socket
+    import time
+
+    from flamenerf.training.run import load_run
+    from flamenerf.viewer.app import Viewer, ViewerOptions
+
+    run = load_run(tiny_run, device="cpu")
+    names = run.expression_names
+    drive = tmp_path / "drive.json"
+    rows = [[(k + 1) / 10 if j == 0 else 0.0 for j in range(len(names))] for k in range(5)]
+    drive.write_text(json.dumps({"names": names, "fps": 20, "frames": rows}))
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    v = Viewer(run, ViewerOptions(port=port, height=16, tracks=(drive,), verbose=False))
+    v.start()
+    try:
+        assert v.tracks[0].name.startswith("file drive.json")
+        assert v.g_track.value == v.tracks[0].name
+        assert [s.label for s in v.g_sliders] == names
+        v.play()
+        time.sleep(0.6)
+        assert v.playing
+        v.pause()
+        e = v.worker.expression()
+        assert not v.playing and any(np.allclose(e, r) for r in np.asarray(rows, np.float32))
+        time.sleep(0.3)
+        assert np.array_equal(v.worker.expression(), e)  # paused: stays
+        v.g_track.value = v.tracks[1].name  # the capture
+        assert v.g_frame.max == v.tracks[1].num_frames - 1
+        assert np.allclose(v.worker.expression(), v.tracks[1].frames[0])
+        v.set_expression(v.neutral)
+        assert np.all(v.worker.expression() == 0)
+        assert [s.value for s in v.g_sliders] == [0.0] * len(names)
+        v.set_expression(v.frame0_expression)
+        assert np.allclose([s.value for s in v.g_sliders], v.frame0_expression, atol=1e-4)
+    finally:
+        v.stop()
