@@ -64,8 +64,8 @@ def test_fast_preset_overfits_tiny_scene(tiny_scene, tmp_path):
 def test_resume_reproduces_uninterrupted_run(tiny_scene, tmp_path):
     a = Trainer(small(preset("fast"), 6), tiny_scene, tmp_path / "a", quiet=True)
     a.fit()
-    b = Trainer(small(preset("fast"), 3), tiny_scene, tmp_path / "b", quiet=True)
-    b.fit()
+    b = Trainer(small(preset("fast"), 6), tiny_scene, tmp_path / "b", quiet=True)
+    b.fit(steps=3)  # stop half-way through the same 6-step schedule
     b2 = Trainer(small(preset("fast"), 6), tiny_scene, tmp_path / "b", resume=True, quiet=True,
                  steps=6)
     assert b2.step == 3
