@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from flamenerf.data.dataset import Dataset, Intrinsics
+from flamenerf.rendering.cameras import reference_position
 
 _CV_TO_GL = np.diag([1.0, -1.0, -1.0])
 
@@ -56,16 +57,10 @@ class HomeCamera:
     frame_position: int  # index into ds.frames of the frame with code 0
 
 
-def code0_frame_position(ds: Dataset) -> int:
-    """Position (into ds.frames) of the frame whose codes are frame 0's."""
-    for f in ds.frames:
-        if f.frame_index == 0:
-            return f.position
-    return ds.splits["train"][0]
 
 
 def home_camera(ds: Dataset) -> HomeCamera:
-    pos = code0_frame_position(ds)
+    pos = reference_position(ds)  # frame 0: the frame whose codes the viewer renders
     c2w = np.asarray(ds.frames[pos].c2w, np.float64)
     eye = c2w[:3, 3]
     forward = -c2w[:3, 2]
