@@ -15,3 +15,19 @@ def tiny_scene(tmp_path_factory):
 
     out = tmp_path_factory.mktemp("scene") / "portrait"
     return make_scene(out, seed=0, size=32, frames=20, reanimate=3, leakage_steps=1, workers=1)
+
+
+@pytest.fixture(scope="session")
+def toy_dataset(tmp_path_factory):
+    """Every split of the built-in scene at 16x16, made in about a second
+    (src/flamenerf/evaluation/toy.py); shared by tests/evaluation and tests/rendering."""
+    from flamenerf.evaluation.toy import make_toy_dataset
+
+    return make_toy_dataset(tmp_path_factory.mktemp("toy") / "dataset")
+
+
+@pytest.fixture(scope="session")
+def toy_run(toy_dataset, tmp_path_factory):
+    from flamenerf.evaluation.toy import make_toy_run
+
+    return make_toy_run(toy_dataset, tmp_path_factory.mktemp("toy") / "run", "masked")

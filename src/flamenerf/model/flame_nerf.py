@@ -261,7 +261,3 @@ class FlameNeRF(nn.Module):
             occ = F.max_pool3d(occ[None, None], k, stride=1, padding=s.grid_dilate)[0, 0]
         self.occ_mask.copy_(occ > 0)
         return float(self.occ_mask.float().mean())
-
-
-def build_model(cfg: ModelConfig, args: dict) -> FlameNeRF:
-    return FlameNeRF(cfg, **args)
