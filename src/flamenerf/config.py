@@ -109,6 +109,9 @@ class TrainConfig:
     lr_final: float = 5e-4
     """Adam's learning rate decays exponentially from `lr` to `lr_final` (paper: 1e-3→5e-4)."""
     lr_warmup: int = 0
+    warp_lr_scale: float = 1.0
+    """The deformation MLP learns at `lr * warp_lr_scale`: at the hash grid's 1e-2 its
+    ReLU units die within a few hundred steps and the warp becomes a constant identity."""
     face_reg_weight: float = 1.0
     """Weight of ‖D(x_3DMM; ω_i) − x_3DMM‖ (paper's runs: 0.1 to 10)."""
     face_reg_points: int = 1024
@@ -162,7 +165,8 @@ def _fast() -> Config:
     cfg.model.sampler = SamplerConfig(kind="proposal", num_proposal=48, num_main=24,
                                       proposal_levels=5, proposal_max_res=128)
     cfg.train = TrainConfig(steps=2000, batch_rays=4096, lr=1e-2, lr_final=1e-3,
-                            lr_warmup=50, checkpoint_every=500, image_every=500,
+                            lr_warmup=50, warp_lr_scale=0.1, checkpoint_every=500,
+                            image_every=500,
                             log_every=25)
     return cfg
 

@@ -36,6 +36,16 @@ def learning_rate(step: int, cfg) -> float:
     return lr
 
 
+def param_groups(model: FlameNeRF, cfg) -> list[dict]:
+    """The deformation MLP in its own group, so that it can learn more slowly."""
+    warp = set(map(id, model.warp.parameters())) if model.warp is not None else set()
+    rest = [p for p in model.parameters() if id(p) not in warp]
+    groups = [{"params": rest, "lr_scale": 1.0}]
+    if warp:
+        groups.append({"params": list(model.warp.parameters()), "lr_scale": cfg.warp_lr_scale})
+    return groups
+
+
 def train_resolution(ds: Dataset, cfg: Config):
     return ds.intrinsics.scaled(1.0 / cfg.train.downscale)
 
@@ -81,8 +91,8 @@ class Trainer:
         self.train_set = FrameSet(self.ds, self.ds.split("train"), self.intr)
         fused = self.device.type in ("cpu", "cuda")
         eps = 1e-15 if cfg.model.field.kind == "hash" else 1e-8
-        self.opt = torch.optim.Adam(self.model.parameters(), lr=cfg.train.lr, eps=eps,
-                                    fused=fused)
+        self.opt = torch.optim.Adam(param_groups(self.model, cfg.train), lr=cfg.train.lr,
+                                    eps=eps, fused=fused)
         self.gen = torch.Generator().manual_seed(cfg.train.seed)
         self.step = 0
         if resume and ck is not None:
@@ -139,7 +149,7 @@ class Trainer:
         model.train()
         model.update_to_step(self.step)
         for g in self.opt.param_groups:
-            g["lr"] = learning_rate(self.step, cfg)
+            g["lr"] = learning_rate(self.step, cfg) * g["lr_scale"]
         sc = model.cfg.sampler
         if (sc.kind == "occupancy" and self.step >= sc.grid_warmup
                 and (self.step - sc.grid_warmup) % sc.grid_update_every == 0):
