@@ -31,22 +31,25 @@ class NeRFField(nn.Module):
                        cfg.width // 2, 1, (), out_dim=3)
 
     def _trunk(self, x: Tensor, expr: Tensor | None) -> Tensor:
-        h = positional_encoding(x, self.cfg.pos_freqs)
-        if self.expr_dim:
-            h = torch.cat([h, expr], -1)
-        return self.trunk(h)
+        return self.trunk(positional_encoding(x, self.cfg.pos_freqs),
+                          expr if self.expr_dim else None)
 
     def density(self, x: Tensor, expr: Tensor | None) -> Tensor:
         return torch.relu(self.sigma(self._trunk(x, expr)))[..., 0]
 
     def forward(self, x: Tensor, d: Tensor, app: Tensor, expr: Tensor | None):
-        """x (N, 3) canonical in [-1,1]^3, d (N, 3) unit, app (N, A), expr (N, E) ->
-        σ (N,), rgb (N, 3)."""
+        """x (*bs, 3) canonical in [-1,1]^3; d (*, 3) unit, app (*, A), expr (*, E) either
+        per point or per ray (broadcastable to *bs, e.g. (R, 1, ·) for x (R, S, 3)) ->
+        σ (*bs), rgb (*bs, 3)."""
         h = self._trunk(x, expr)
         sigma = torch.relu(self.sigma(h))[..., 0]
-        c = self.rgb(torch.cat([self.feature(h), positional_encoding(d, self.cfg.dir_freqs),
-                                app], -1))
+        c = self.rgb(self.feature(h), _view_conditioning(d, app, self.cfg.dir_freqs))
         return sigma, torch.sigmoid(c)
+
+
+def _view_conditioning(d: Tensor, app: Tensor, dir_freqs: int) -> Tensor:
+    """[γ(d), φ]: (*, 3), (*, A) -> (*, pe_dim(3, dir_freqs) + A)."""
+    return torch.cat([positional_encoding(d, dir_freqs), app.expand(*d.shape[:-1], -1)], -1)
 
 
 class HashField(nn.Module):
@@ -64,18 +67,17 @@ class HashField(nn.Module):
                        cfg.head_width, 2, (), out_dim=3)
 
     def _geo(self, x: Tensor, expr: Tensor | None) -> Tensor:
-        h = self.grid((x + 1) * 0.5)
-        if self.expr_dim:
-            h = torch.cat([h, expr], -1)
-        return self.density_head(h)
+        h = self.grid((x.reshape(-1, 3) + 1) * 0.5).view(*x.shape[:-1], -1)
+        return self.density_head(h, expr if self.expr_dim else None)
 
     def density(self, x: Tensor, expr: Tensor | None) -> Tensor:
         return trunc_exp(self._geo(x, expr)[..., 0])
 
     def forward(self, x: Tensor, d: Tensor, app: Tensor, expr: Tensor | None):
+        """As NeRFField.forward."""
         g = self._geo(x, expr)
         sigma = trunc_exp(g[..., 0])
-        c = self.rgb(torch.cat([g[..., 1:], positional_encoding(d, self.cfg.dir_freqs), app], -1))
+        c = self.rgb(g[..., 1:], _view_conditioning(d, app, self.cfg.dir_freqs))
         return sigma, torch.sigmoid(c)
 
 
@@ -90,10 +92,9 @@ class ProposalField(nn.Module):
         self.head = MLP(self.grid.out_dim + expr_dim, width, 1, (), out_dim=1)
 
     def density(self, x: Tensor, expr: Tensor | None) -> Tensor:
-        h = self.grid((x + 1) * 0.5)
-        if self.expr_dim:
-            h = torch.cat([h, expr], -1)
-        return trunc_exp(self.head(h)[..., 0])
+        """x (*bs, 3) in [-1, 1]^3, expr per point or per ray (broadcastable) -> σ (*bs)."""
+        h = self.grid((x.reshape(-1, 3) + 1) * 0.5).view(*x.shape[:-1], -1)
+        return trunc_exp(self.head(h, expr if self.expr_dim else None)[..., 0])
 
 
 def make_field(cfg: FieldConfig, expr_dim: int) -> nn.Module:

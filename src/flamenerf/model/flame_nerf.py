@@ -102,27 +102,29 @@ class FlameNeRF(nn.Module):
         return (x - self.center) / self.half_extent
 
     def warp_points(self, xn: Tensor, code: Tensor) -> Tensor:
-        """Normalised observation points (N, 3) -> canonical (N, 3)."""
+        """Normalised observation points (*bs, 3), codes (*, D) broadcastable -> canonical
+        (*bs, 3)."""
         return xn if self.warp is None else self.warp(xn, code)
 
     # ---------------------------------------------------------------- querying
     def _query(self, field: nn.Module, xn: Tensor, dirs: Tensor, code: Tensor, app: Tensor,
                expr: Tensor | None) -> tuple[Tensor, Tensor]:
-        """Flat points (N, 3) with per-point conditioning -> σ (N,), rgb (N, 3)."""
+        """Points (*bs, 3) with per-point or broadcastable conditioning -> σ (*bs),
+        rgb (*bs, 3)."""
         xc = self.warp_points(xn, code)
         return field(xc, dirs, app, expr)
 
     def _query_rays(self, field, rays: RayBatch, t: Tensor, expr: Tensor | None):
-        R, S = t.shape
+        """Samples at depths t (R, S) along each ray -> σ (R, S), rgb (R, S, 3). The ray's
+        conditioning goes in once per ray, shaped (R, 1, ·), and broadcasts over samples."""
         xn = self.normalize(rays.origins[:, None] + t[..., None] * rays.dirs[:, None])
         dn = F.normalize(rays.dirs, dim=-1)
 
-        def rep(v):
-            return None if v is None else v[:, None].expand(R, S, v.shape[-1]).reshape(R * S, -1)
+        def per_ray(v):
+            return None if v is None else v[:, None]
 
-        sigma, rgb = self._query(field, xn.reshape(-1, 3), rep(dn), rep(rays.deform_code),
-                                 rep(rays.appearance_code), rep(expr))
-        return sigma.view(R, S), rgb.view(R, S, 3)
+        return self._query(field, xn, per_ray(dn), per_ray(rays.deform_code),
+                           per_ray(rays.appearance_code), per_ray(expr))
 
     def _deltas(self, t: Tensor, dirs: Tensor, last: float) -> Tensor:
         """Distances between samples in normalised units. t (R, S) -> (R, S)."""
@@ -169,8 +171,7 @@ class FlameNeRF(nn.Module):
         edges_p = torch.linspace(self.near, self.far, P + 1, device=dev).expand(R, P + 1)
         t_p = stratified_samples(self.near, self.far, R, P, jitter, dev, generator)
         xn = self.normalize(rays.origins[:, None] + t_p[..., None] * rays.dirs[:, None])
-        e = None if expr is None else expr[:, None].expand(R, P, expr.shape[-1]).reshape(R * P, -1)
-        sig_p = self.proposal.density(xn.reshape(-1, 3), e).view(R, P)
+        sig_p = self.proposal.density(xn, None if expr is None else expr[:, None])  # (R, P)
         scale = rays.dirs.norm(dim=-1, keepdim=True) / self.half_extent
         w_p = render_weights(sig_p, (edges_p[:, 1:] - edges_p[:, :-1]) * scale)
         edges_m, _ = torch.sort(sample_pdf(edges_p, w_p, s.num_main + 1, jitter, generator), -1)

@@ -30,7 +30,8 @@ class SE3Field(nn.Module):
         self.alpha.fill_(alpha)
 
     def forward(self, x: Tensor, code: Tensor) -> Tensor:
-        """x (N, 3) normalised observation points, code (N, code_dim) -> (N, 3) canonical."""
+        """x (*bs, 3) normalised observation points, code (*, code_dim) per point or per ray
+        (broadcastable to *bs) -> (*bs, 3) canonical."""
         win = cosine_easing_window(self.cfg.num_freqs, self.alpha.item()).to(x)
-        h = self.trunk(torch.cat([positional_encoding(x, self.cfg.num_freqs, win), code], -1))
+        h = self.trunk(positional_encoding(x, self.cfg.num_freqs, win), code)
         return apply_se3(self.rot(h), self.trans(h), x)
