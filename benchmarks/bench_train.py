@@ -148,6 +148,9 @@ def main() -> int:
     ap.add_argument("--skip-throughput", action="store_true")
     ap.add_argument("--json", type=Path, default=Path("docs/bench/train.json"))
     args = ap.parse_args()
+    from flamenerf.runtime import reexec_with_tuned_allocator
+
+    reexec_with_tuned_allocator([str(Path(__file__).resolve()), *sys.argv[1:]])
 
     if not (args.scene / "transforms.json").exists():
         from flamenerf.synthetic.scene import make_scene

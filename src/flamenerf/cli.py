@@ -7,7 +7,6 @@ Each subcommand is a typed function in `flamenerf.commands.<name>` whose docstri
 from __future__ import annotations
 
 import importlib
-import os
 import sys
 
 # Order shown in --help: the pipeline, then tools.
@@ -16,15 +15,9 @@ COMMANDS = ["demo", "synth", "preprocess", "track", "train", "eval", "compare", 
 
 
 def _tune_allocator() -> None:
-    # glibc returns large freed blocks to the OS and then page-faults them back on every
-    # training step; keeping them mapped made steps ~2x faster on CPU (PERF_NOTES.md).
-    # The variables are read at process start, so re-exec once with them set.
-    want = {"MALLOC_MMAP_MAX_": "0", "MALLOC_TRIM_THRESHOLD_": "100000000000"}
-    if sys.platform.startswith("linux") and any(os.environ.get(k) != v for k, v in want.items()):
-        if os.environ.get("FLAMENERF_NO_REEXEC"):
-            return
-        env = dict(os.environ, **want, FLAMENERF_NO_REEXEC="1")
-        os.execve(sys.executable, [sys.executable, "-m", "flamenerf.cli", *sys.argv[1:]], env)
+    from flamenerf.runtime import reexec_with_tuned_allocator
+
+    reexec_with_tuned_allocator(["-m", "flamenerf.cli", *sys.argv[1:]])
 
 
 def available_commands() -> dict:

@@ -12,7 +12,7 @@ from flamenerf.evaluation.metrics import psnr
 from flamenerf.model.render_image import render_image
 from flamenerf.training.checkpoint import latest_checkpoint
 from flamenerf.training.run import load_run
-from flamenerf.training.trainer import Trainer
+from flamenerf.training.trainer import Trainer, learning_rate
 
 
 def small(cfg, steps):
@@ -38,6 +38,23 @@ def test_every_preset_trains_two_steps(name, tiny_scene, tmp_path):
     assert res.step == 2 and np.isfinite(res.last_psnr)
     run = load_run(tmp_path / name)
     assert run.step == 2 and run.config.preset == name
+
+
+def test_warp_and_appearance_codes_learn_at_their_own_rates(tiny_scene, tmp_path):
+    cfg = small(preset("fast"), 5)
+    cfg.train.lr_warmup = 0
+    cfg.train.warp_lr_scale, cfg.train.appearance_lr_scale = 0.1, 0.01
+    t = Trainer(cfg, tiny_scene, tmp_path / "run", quiet=True)
+    t.train_step()
+    lr = learning_rate(0, cfg.train)
+    rate = {id(p): g["lr"] for g in t.opt.param_groups for p in g["params"]}
+    assert rate[id(t.model.warp.trunk.layers[0].weight)] == pytest.approx(lr * 0.1)
+    assert rate[id(t.model.appearance_codes.weight)] == pytest.approx(lr * 0.01)
+    assert rate[id(t.model.deform_codes.weight)] == pytest.approx(lr)
+    assert rate[id(t.model.field.grid.tables[0])] == pytest.approx(lr)
+    # every parameter is optimised, and only once
+    ids = [id(p) for g in t.opt.param_groups for p in g["params"]]
+    assert sorted(ids) == sorted(id(p) for p in t.model.parameters())
 
 
 def test_fast_preset_overfits_tiny_scene(tiny_scene, tmp_path):

@@ -37,13 +37,19 @@ def learning_rate(step: int, cfg) -> float:
 
 
 def param_groups(model: FlameNeRF, cfg) -> list[dict]:
-    """The deformation MLP in its own group, so that it can learn more slowly."""
-    warp = set(map(id, model.warp.parameters())) if model.warp is not None else set()
-    rest = [p for p in model.parameters() if id(p) not in warp]
-    groups = [{"params": rest, "lr_scale": 1.0}]
-    if warp:
-        groups.append({"params": list(model.warp.parameters()), "lr_scale": cfg.warp_lr_scale})
-    return groups
+    """The deformation MLP and the appearance codes in groups of their own, so that they
+    can learn more slowly than the rest (`lr_scale`, applied by `Trainer.train_step`)."""
+    special = [(model.warp, cfg.warp_lr_scale), (model.appearance_codes, cfg.appearance_lr_scale)]
+    taken: set[int] = set()
+    groups = []
+    for module, scale in special:
+        if module is None:
+            continue
+        params = list(module.parameters())
+        taken |= set(map(id, params))
+        groups.append({"params": params, "lr_scale": scale})
+    rest = [p for p in model.parameters() if id(p) not in taken]
+    return [{"params": rest, "lr_scale": 1.0}, *groups]
 
 
 def train_resolution(ds: Dataset, cfg: Config):
