@@ -1,8 +1,11 @@
 """Training benchmark (issue 3): quality-vs-time of the `fast` preset, and the throughput and
 render time of every preset, on the machine at hand. Prints figures and writes JSON.
 
-    python benchmarks/bench_train.py --scene scenes/bench --size 128 --budget 600 \
-        --json docs/bench/train.json
+    python benchmarks/bench_train.py --scene scenes/s128 --size 128 --budget 600 \
+        --eval-every 100 --json docs/bench/train.json
+
+(the scene is made first if missing: the built-in scene at `--size`, 300 capture frames,
+i.e. `flamenerf synth scenes/s128 --size 128`).
 
 Quality: `fast` trains for `--budget` seconds of wall time (evaluation pauses excluded).
 Every `--eval-every` seconds it is evaluated with the paper's held-out protocol on a subset
@@ -134,10 +137,10 @@ def throughput(args, scene: Path, log) -> dict:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--scene", type=Path, default=Path("scenes/bench"))
+    ap.add_argument("--scene", type=Path, default=Path("scenes/s128"))
     ap.add_argument("--size", type=int, default=128)
     ap.add_argument("--budget", type=float, default=600.0)
-    ap.add_argument("--eval-every", type=float, default=60.0)
+    ap.add_argument("--eval-every", type=float, default=100.0)
     ap.add_argument("--eval-frames", type=int, default=6)
     ap.add_argument("--eval-fit-steps", type=int, default=60)
     ap.add_argument("--final-fit-steps", type=int, default=200)
@@ -155,8 +158,8 @@ def main() -> int:
     if not (args.scene / "transforms.json").exists():
         from flamenerf.synthetic.scene import make_scene
 
-        print(f"making the built-in scene in {args.scene} (256x256, 300 frames)")
-        make_scene(args.scene, size=256, frames=300)
+        print(f"making the built-in scene in {args.scene} ({args.size}x{args.size}, 300 frames)")
+        make_scene(args.scene, size=args.size, frames=300)
     out = {"machine": {"platform": platform.platform(), "cpus": os.cpu_count(),
                        "torch": torch.__version__, "threads": torch.get_num_threads(),
                        "cuda": torch.cuda.get_device_name(0) if torch.cuda.is_available()

@@ -164,7 +164,7 @@ def _fast() -> Config:
     cfg.model.warp = WarpConfig(code_dim=16, width=64, depth=4, skips=(), num_freqs=6,
                                 anneal_steps=320)
     cfg.model.field = FieldConfig(kind="hash", appearance_dim=8, dir_freqs=4, hash_levels=12,
-                                  hash_log2_size=16, hash_max_res=512)
+                                  hash_log2_size=19, hash_max_res=512)
     cfg.model.sampler = SamplerConfig(kind="proposal", num_proposal=48, num_main=24,
                                       proposal_levels=5, proposal_max_res=128)
     # 640 steps: what fits in 10 minutes on the 2-core CPU (~0.9 s per step), so that the
