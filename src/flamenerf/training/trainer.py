@@ -142,7 +142,11 @@ class Trainer:
     def _load(self, path: Path) -> None:
         st = load_checkpoint(path)
         self.model.load_state_dict(st["model"])
-        self.opt.load_state_dict(st["optimizer"])
+        try:
+            self.opt.load_state_dict(st["optimizer"])
+        except ValueError as e:  # a checkpoint from before the per-group learning rates
+            raise UserError(f"{path}: optimiser state does not match this version's "
+                            f"parameter groups ({e}); start a new run") from None
         self.gen.set_state(st["generator"])
         torch.set_rng_state(st["torch_rng"])
         np.random.set_state(st["numpy_rng"])
