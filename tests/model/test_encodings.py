@@ -66,7 +66,7 @@ def test_hash_grid_is_trilinear_on_a_dense_level():
                     i = (b[0] + dx) + (b[1] + dy) * (r + 1) + (b[2] + dz) * (r + 1) ** 2
                     w = ((f[0] if dx else 1 - f[0]) * (f[1] if dy else 1 - f[1])
                          * (f[2] if dz else 1 - f[2]))
-                    ref += w * g.tables[0][:, i]
+                    ref += w * g.tables[0][i]
         assert torch.allclose(out[k], ref, atol=1e-6)
 
 
@@ -74,3 +74,58 @@ def test_hash_grid_accepts_the_box_faces():
     g = HashGrid(levels=3, features=2, log2_size=10, base_res=4, max_res=64)
     x = torch.tensor([[1.0, 1.0, 1.0], [0.0, 1.0, 0.5], [1.5, -0.2, 1.0]])
     assert torch.isfinite(g(x)).all()
+
+
+def _grid_with_features(levels, features, log2_size, base_res, max_res):
+    g = HashGrid(levels=levels, features=features, log2_size=log2_size, base_res=base_res,
+                 max_res=max_res)
+    for t in g.tables:
+        torch.nn.init.uniform_(t, -1, 1)
+    return g
+
+
+def test_cpu_kernel_builds_here():
+    from flamenerf.model.cpu_kernels import hashgrid_library
+
+    assert hashgrid_library() is not None, "the C hash-grid kernel did not build"
+
+
+def test_cpu_kernel_matches_the_pytorch_reference():
+    torch.manual_seed(0)
+    # dense coarse levels and hashed fine ones (2^10 entries < (r+1)^3 from r = 10 on)
+    for features in (2, 4):
+        g = _grid_with_features(5, features, 10, 4, 64)
+        assert any(g.dense.tolist()) and not all(g.dense.tolist())
+        # points outside the unit cube are clamped: their position gradient is zero
+        x = torch.rand(3000, 3) * 1.2 - 0.1
+        x1, x2 = x.clone().requires_grad_(True), x.clone().requires_grad_(True)
+        a, b = g(x1), g.forward_torch(x2)
+        assert torch.allclose(a, b, atol=1e-6)
+        gout = torch.randn_like(a)
+        ga = torch.autograd.grad(a, [x1, *g.tables], gout)
+        gb = torch.autograd.grad(b, [x2, *g.tables], gout)
+        for u, v in zip(ga, gb):
+            assert torch.allclose(u, v, rtol=1e-4, atol=1e-4)
+        outside = ((x < 0) | (x > 1))
+        assert torch.all(ga[0][outside] == 0) and torch.any(ga[0][~outside] != 0)
+
+
+def test_cpu_kernel_table_gradient_without_position_gradient_is_deterministic():
+    g = _grid_with_features(4, 2, 12, 8, 128)
+    x = torch.rand(4000, 3)  # no position gradient requested (the proposal field's case)
+    grads = [torch.autograd.grad(g(x).square().sum(), list(g.tables)) for _ in range(2)]
+    ref = torch.autograd.grad(g.forward_torch(x).square().sum(), list(g.tables))
+    for a, b, r in zip(*grads, ref):
+        assert torch.equal(a, b)
+        assert torch.allclose(a, r, atol=1e-4)
+
+
+def test_hash_grid_without_the_kernel_uses_pytorch(monkeypatch):
+    from flamenerf.model import cpu_kernels
+
+    g = _grid_with_features(3, 2, 10, 4, 32)
+    x = torch.rand(50, 3)
+    with_kernel = g(x)
+    monkeypatch.setattr(cpu_kernels, "_tried", True)
+    monkeypatch.setattr(cpu_kernels, "_lib", None)
+    assert torch.allclose(g(x), with_kernel, atol=1e-6)

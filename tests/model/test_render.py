@@ -31,6 +31,29 @@ def test_sample_pdf_concentrates_on_heavy_bin():
     assert ((s >= 0.3) & (s <= 0.4)).float().mean() > 0.9
 
 
+def test_stratified_sample_pdf_puts_one_sample_in_each_equal_probability_stratum():
+    torch.manual_seed(0)
+    bins = torch.linspace(0, 1, 9).expand(200, 9)
+    w = torch.rand(200, 8)
+    n = 16
+    s = sample_pdf(bins, w, n, jitter=True, stratified=True)
+    assert torch.all(s[:, 1:] >= s[:, :-1])  # already sorted
+    # map back through the CDF: sample k must lie in probability stratum [k/n, (k+1)/n)
+    p = (w + 1e-5) / (w + 1e-5).sum(-1, keepdim=True)
+    cdf = torch.cat([torch.zeros(200, 1), p.cumsum(-1)], -1)
+    j = (s * 8).floor().long().clamp(max=7)
+    u = cdf.gather(-1, j) + (s * 8 - j) * p.gather(-1, j)
+    k = torch.arange(n).expand(200, n)
+    assert torch.all(u >= k / n - 1e-5) and torch.all(u <= (k + 1) / n + 1e-5)
+    # independent draws (NeRF's) leave larger gaps between neighbouring samples
+    iid, _ = torch.sort(sample_pdf(bins, w, n, jitter=True), -1)
+    gap = lambda v: (v[:, 1:] - v[:, :-1]).max(-1).values.mean()  # noqa: E731
+    assert gap(s) < gap(iid)
+    # without jitter: the middle of each stratum
+    mid = sample_pdf(bins, torch.ones(1, 8), 4, jitter=False, stratified=True)
+    assert torch.allclose(mid, torch.tensor([[0.125, 0.375, 0.625, 0.875]]), atol=1e-4)
+
+
 def test_interlevel_loss_zero_when_proposal_bounds_main():
     from flamenerf.model.render import interlevel_loss
 

@@ -8,6 +8,7 @@ normalised scene box [-1, 1]^3.
 
 from __future__ import annotations
 
+import ctypes
 import math
 
 import torch
@@ -42,10 +43,11 @@ _PRIMES = (1, 2654435761, 805459861)
 
 
 class HashGrid(nn.Module):
-    """Multiresolution hash encoding (Müller et al. 2022) in plain PyTorch.
+    """Multiresolution hash encoding (Müller et al. 2022).
 
-    Tables are feature-major (F, T_l) and gathered with `index_select`, level by level:
-    the fastest layout measured on CPU (PERF_NOTES.md).
+    Tables are (T_l, F), one per level. On a CPU a compiled kernel encodes (cache misses
+    on the tables bound the cost there, and an entry's features side by side halve them);
+    `forward_torch` is the same encoding in PyTorch ops, for GPUs and as the reference.
     """
 
     def __init__(self, levels: int = 16, features: int = 2, log2_size: int = 17,
@@ -61,7 +63,7 @@ class HashGrid(nn.Module):
         # index_select is a zero-filled tensor of the table's size, so per-level tables
         # keep that fill small (one shared table spent 25% of a CPU step in fill_).
         self.tables = nn.ParameterList([
-            nn.Parameter(torch.empty(features, (r + 1) ** 3 if d else self.size)
+            nn.Parameter(torch.empty((r + 1) ** 3 if d else self.size, features)
                          .uniform_(-1e-4, 1e-4))
             for r, d in zip(res, dense)])
 
@@ -70,7 +72,29 @@ class HashGrid(nn.Module):
         return self.levels * self.features
 
     def forward(self, x: Tensor) -> Tensor:
-        """x (N, 3) in [0, 1]^3 -> (N, L·F)."""
+        """x (N, 3) in [0, 1]^3 -> (N, L·F). On a CPU, the compiled kernel when it builds
+        (model/cpu_kernels.py); elsewhere, and as its reference, `forward_torch`."""
+        if x.device.type == "cpu" and x.dtype == torch.float32:
+            from flamenerf.model.cpu_kernels import hashgrid_library
+
+            lib = hashgrid_library()
+            if lib is not None:
+                return _HashGridCPU.apply(x.contiguous(), self, lib, *self.tables)
+        return self.forward_torch(x)
+
+    def kernel_layout(self) -> tuple:
+        """ctypes arrays of the per-level table sizes, resolutions and dense flags."""
+        if getattr(self, "_layout", None) is None:
+            L = self.levels
+            self._layout = (
+                (ctypes.c_int64 * L)(*[t.shape[0] for t in self.tables]),
+                (ctypes.c_int64 * L)(*self.res.tolist()),
+                (ctypes.c_uint8 * L)(*[int(d) for d in self.dense.tolist()]),
+            )
+        return self._layout
+
+    def forward_torch(self, x: Tensor) -> Tensor:
+        """The same encoding as PyTorch ops (the GPU path and the kernel's reference)."""
         n = x.shape[0]
         xs = x.clamp(0, 1)
         mask = self.size - 1  # the table size is a power of two: `& mask` is `% size`
@@ -98,6 +122,51 @@ class HashGrid(nn.Module):
             fx, fy, fz = frac.unbind(-1)
             wxy = [wx * wy for wx in (1 - fx, fx) for wy in (1 - fy, fy)]
             w = torch.stack([v * wz for v in wxy for wz in (1 - fz, fz)])  # (8, N)
-            f = self.tables[lv].index_select(1, idx.reshape(-1)).view(self.features, 8, n)
-            outs.append((f * w).sum(1))  # (F, N)
-        return torch.stack(outs, 0).permute(2, 0, 1).reshape(n, -1)
+            table = self.tables[lv]
+            if table.device.type == "cpu":
+                # a feature-major copy gathers ~2x faster here with index_select (PERF_NOTES)
+                f = table.t().contiguous().index_select(1, idx.reshape(-1)).view(-1, 8, n)
+                outs.append((f * w).sum(1).t())  # (N, F)
+            else:
+                f = table.index_select(0, idx.reshape(-1)).view(8, n, self.features)
+                outs.append((f * w[..., None]).sum(0))  # (N, F)
+        return torch.cat(outs, -1)
+
+
+def _pointers(tensors) -> ctypes.Array:
+    return (ctypes.c_void_p * len(tensors))(*[0 if t is None else t.data_ptr() for t in tensors])
+
+
+class _HashGridCPU(torch.autograd.Function):
+    """HashGrid.forward through the compiled kernel; gradients for x and every table."""
+
+    @staticmethod
+    def forward(ctx, x: Tensor, grid: HashGrid, lib, *tables: Tensor) -> Tensor:
+        n, L, F = x.shape[0], grid.levels, grid.features
+        tables = tuple(t.detach().contiguous() for t in tables)
+        out = torch.empty(n, L * F, dtype=x.dtype)
+        tsize, res, dense = grid.kernel_layout()
+        lib.hashgrid_forward(x.data_ptr(), n, L, F, _pointers(tables), tsize, res, dense,
+                             grid.size - 1, out.data_ptr(), torch.get_num_threads())
+        ctx.grid, ctx.lib = grid, lib
+        ctx.save_for_backward(x, *tables)
+        return out
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, gout: Tensor):
+        x, *tables = ctx.saved_tensors
+        grid, lib = ctx.grid, ctx.lib
+        gout = gout.contiguous()
+        gx = torch.empty_like(x) if ctx.needs_input_grad[0] else None
+        scratch = torch.empty(grid.levels, *x.shape) if gx is not None else None
+        gts = [torch.zeros_like(t) if ctx.needs_input_grad[3 + i] else None
+               for i, t in enumerate(tables)]
+        tsize, res, dense = grid.kernel_layout()
+        any_table = any(g is not None for g in gts)
+        lib.hashgrid_backward(x.data_ptr(), x.shape[0], grid.levels, grid.features,
+                              _pointers(tables), tsize, res, dense, grid.size - 1,
+                              gout.data_ptr(), _pointers(gts) if any_table else None,
+                              None if gx is None else gx.data_ptr(),
+                              None if gx is None else scratch.data_ptr(), torch.get_num_threads())
+        return (gx, None, None, *gts)

@@ -174,7 +174,8 @@ class FlameNeRF(nn.Module):
         sig_p = self.proposal.density(xn, None if expr is None else expr[:, None])  # (R, P)
         scale = rays.dirs.norm(dim=-1, keepdim=True) / self.half_extent
         w_p = render_weights(sig_p, (edges_p[:, 1:] - edges_p[:, :-1]) * scale)
-        edges_m, _ = torch.sort(sample_pdf(edges_p, w_p, s.num_main + 1, jitter, generator), -1)
+        edges_m, _ = torch.sort(sample_pdf(edges_p, w_p, s.num_main + 1, jitter, generator,
+                                          stratified=True), -1)
         t_m = 0.5 * (edges_m[:, 1:] + edges_m[:, :-1])
         sig_m, rgb_m = self._query_rays(self.field, rays, t_m, expr)
         w_m = render_weights(sig_m, (edges_m[:, 1:] - edges_m[:, :-1]) * scale)

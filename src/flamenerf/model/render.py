@@ -27,13 +27,24 @@ def render_weights(sigma: Tensor, deltas: Tensor) -> Tensor:
 
 
 def sample_pdf(bins: Tensor, weights: Tensor, num: int, jitter: bool,
-               generator: torch.Generator | None = None) -> Tensor:
+               generator: torch.Generator | None = None, stratified: bool = False) -> Tensor:
     """Inverse-CDF samples from the piecewise-constant pdf `weights` (R, B) over `bins`
-    (R, B+1). -> (R, num), detached (NeRF's hierarchical sampling)."""
+    (R, B+1). -> (R, num), detached (NeRF's hierarchical sampling).
+
+    `stratified`: one sample per equal-probability stratum of the CDF (jittered inside it
+    when `jitter`, its middle otherwise) instead of NeRF's independent uniform draws. With
+    few samples, independent draws leave large gaps between neighbours: measured on the
+    built-in scene, the proposal sampler's 24 samples then rendered about as badly as ... .
+    """
     w = weights.detach() + 1e-5
     pdf = w / w.sum(-1, keepdim=True)
     cdf = torch.cat([torch.zeros_like(pdf[:, :1]), torch.cumsum(pdf, -1)], -1)
-    if jitter:
+    if stratified:
+        k = torch.arange(num, device=cdf.device, dtype=cdf.dtype)
+        off = (torch.rand(cdf.shape[0], num, device=cdf.device, generator=generator)
+               if jitter else torch.full((cdf.shape[0], num), 0.5, device=cdf.device))
+        u = (k + off) / num
+    elif jitter:
         u = torch.rand(cdf.shape[0], num, device=cdf.device, generator=generator)
     else:
         u = torch.linspace(0.0, 1.0, num, device=cdf.device).expand(cdf.shape[0], num)

@@ -1,0 +1,78 @@
+"""The hash grid's compiled CPU kernel: built on first use with the system's C compiler
+and cached; without a compiler the PyTorch implementation runs instead (with a warning).
+
+One small C file called through ctypes, rather than a PyTorch C++ extension: it compiles
+in well under a second (torch's headers take about a minute on two cores) and needs
+nothing beyond `cc`. `FLAMENERF_CPU_KERNELS=0` turns it off (to compare, or to debug).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import hashlib
+import os
+import shutil
+import subprocess
+import tempfile
+import warnings
+from pathlib import Path
+
+_SOURCE = Path(__file__).with_name("kernels") / "hashgrid.c"
+_FLAGS = ["-O3", "-fPIC", "-shared", "-fopenmp"]
+_lib: ctypes.CDLL | None = None
+_tried = False
+
+
+def cache_dir() -> Path:
+    root = os.environ.get("FLAMENERF_CACHE")
+    if root is None:
+        xdg = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+        root = str(Path(xdg) / "flamenerf")
+    return Path(root) / "kernels"
+
+
+def _build(cc: str, out: Path) -> None:
+    """Compile into a temporary file beside `out`, then rename: concurrent processes (test
+    workers, a benchmark next to a run) never load a half-written library."""
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(suffix=".so", dir=out.parent)
+    os.close(fd)
+    try:
+        subprocess.run([cc, *_FLAGS, str(_SOURCE), "-o", tmp, "-lm"], check=True,
+                       capture_output=True, text=True)
+        os.replace(tmp, out)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+def hashgrid_library() -> ctypes.CDLL | None:
+    """The compiled kernel, or None (disabled, no compiler, or the build failed)."""
+    global _lib, _tried
+    if _tried:
+        return _lib
+    _tried = True
+    if os.environ.get("FLAMENERF_CPU_KERNELS", "1") == "0":
+        return None
+    cc = os.environ.get("CC") or shutil.which("cc") or shutil.which("gcc")
+    if cc is None:
+        warnings.warn("flamenerf: no C compiler (cc) found; the hash grid runs as plain "
+                      "PyTorch, several times slower on a CPU", stacklevel=2)
+        return None
+    key = hashlib.sha256(_SOURCE.read_bytes() + " ".join([cc, *_FLAGS]).encode())
+    so = cache_dir() / f"hashgrid-{key.hexdigest()[:16]}.so"
+    try:
+        if not so.exists():
+            _build(cc, so)
+        lib = ctypes.CDLL(str(so))
+    except (OSError, subprocess.CalledProcessError) as e:
+        detail = getattr(e, "stderr", "") or str(e)
+        warnings.warn(f"flamenerf: building the CPU hash-grid kernel failed ({detail.strip()[:200]}); "
+                      "using the slower PyTorch hash grid", stacklevel=2)
+        return None
+    p, i64, i32 = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int32
+    lib.hashgrid_forward.argtypes = [p, i64, i32, i32, p, p, p, p, i64, p, i32]
+    lib.hashgrid_backward.argtypes = [p, i64, i32, i32, p, p, p, p, i64, p, p, p, p, i32]
+    lib.hashgrid_forward.restype = lib.hashgrid_backward.restype = None
+    _lib = lib
+    return lib

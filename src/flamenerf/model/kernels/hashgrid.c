@@ -1,0 +1,148 @@
+/* Multiresolution hash-grid encoding, forward and backward, for CPUs.
+ *
+ * The same maths as flamenerf.model.encodings.HashGrid's PyTorch path (which stays the
+ * reference and the GPU path): trilinear interpolation of per-level feature tables,
+ * corners c = ix*4 + iy*2 + iz, dense levels indexed x + y(r+1) + z(r+1)^2, hashed levels
+ * (x*1) ^ (y*2654435761) ^ (z*805459861) masked to the table size.
+ *
+ * Written by hand because on a CPU the PyTorch composition of ~40 elementwise ops per
+ * level is bound by memory traffic; one pass per point does the same work several times
+ * faster. Loops are level-major (one level's table at a time stays in cache: the same
+ * layout that made the PyTorch path fast). Deterministic, so that a resumed run repeats
+ * an uninterrupted one: the forward pass is parallel over points, the backward pass over
+ * levels, and every sum runs in a fixed order.
+ *
+ * Layouts: x (N, 3) float32 in [0, 1] (clamped here, as the reference does); table l is
+ * (T_l, F) float32, an entry's features side by side, so that the two x-neighbours of a
+ * corner (indices that differ in the low bits) usually share one cache line; out and gout
+ * are (N, L*F) with level-major features.
+ */
+#include <math.h>
+#include <stdint.h>
+
+#define P1 2654435761LL
+#define P2 805459861LL
+
+static inline void cell(const float *xp, int64_t r, int64_t base[3], float frac[3],
+                        int inside[3]) {
+    for (int k = 0; k < 3; k++) {
+        float v = xp[k];
+        inside[k] = (v >= 0.0f && v <= 1.0f);
+        v = v < 0.0f ? 0.0f : (v > 1.0f ? 1.0f : v);
+        float pos = v * (float)r;
+        float b = (float)(int64_t)pos; /* floor: pos >= 0 (and no libm call) */
+        if (b > (float)(r - 1)) b = (float)(r - 1);
+        base[k] = (int64_t)b;
+        frac[k] = pos - b;
+    }
+}
+
+static inline void corners(const int64_t b[3], int64_t r, int dense, int64_t mask,
+                           int64_t idx[8]) {
+    int64_t tx[2], ty[2], tz[2];
+    if (dense) {
+        int64_t s1 = r + 1, s2 = (r + 1) * (r + 1);
+        tx[0] = b[0]; tx[1] = b[0] + 1;
+        ty[0] = b[1] * s1; ty[1] = (b[1] + 1) * s1;
+        tz[0] = b[2] * s2; tz[1] = (b[2] + 1) * s2;
+        for (int c = 0; c < 8; c++) idx[c] = tx[c >> 2] + ty[(c >> 1) & 1] + tz[c & 1];
+    } else {
+        tx[0] = b[0]; tx[1] = b[0] + 1;
+        ty[0] = b[1] * P1; ty[1] = (b[1] + 1) * P1;
+        tz[0] = b[2] * P2; tz[1] = (b[2] + 1) * P2;
+        for (int c = 0; c < 8; c++)
+            idx[c] = (tx[c >> 2] ^ ty[(c >> 1) & 1] ^ tz[c & 1]) & mask;
+    }
+}
+
+static inline void weights(const float f[3], float w[8]) {
+    float wx[2] = {1.0f - f[0], f[0]}, wy[2] = {1.0f - f[1], f[1]},
+          wz[2] = {1.0f - f[2], f[2]};
+    for (int c = 0; c < 8; c++) w[c] = wx[c >> 2] * wy[(c >> 1) & 1] * wz[c & 1];
+}
+
+void hashgrid_forward(const float *x, int64_t n, int32_t L, int32_t F,
+                      const float *const *tables, const int64_t *tsize, const int64_t *res,
+                      const uint8_t *dense, int64_t hash_mask, float *out, int32_t threads) {
+    /* level-major: one level's table stays in cache while every point reads it */
+    for (int32_t l = 0; l < L; l++) {
+        const float *t = tables[l];
+#pragma omp parallel for schedule(static) num_threads(threads)
+        for (int64_t i = 0; i < n; i++) {
+            int64_t b[3], idx[8];
+            float fr[3], w[8];
+            int inside[3];
+            cell(x + 3 * i, res[l], b, fr, inside);
+            corners(b, res[l], dense[l], hash_mask, idx);
+            weights(fr, w);
+            for (int32_t f = 0; f < F; f++) {
+                float acc = 0.0f;
+                for (int c = 0; c < 8; c++) acc += t[idx[c] * F + f] * w[c];
+                out[i * L * F + l * F + f] = acc;
+            }
+        }
+    }
+}
+
+/* gtables[l] (T_l, F), zero-filled by the caller, or NULL to skip a level (or the whole
+ * array NULL); gx (N, 3) or NULL, with scratch (L, N, 3) for the per-level position
+ * gradients, which are summed afterwards in level order so that the result does not
+ * depend on which thread ran which level. */
+void hashgrid_backward(const float *x, int64_t n, int32_t L, int32_t F,
+                       const float *const *tables, const int64_t *tsize, const int64_t *res,
+                       const uint8_t *dense, int64_t hash_mask, const float *gout,
+                       float *const *gtables, float *gx, float *scratch, int32_t threads) {
+    /* one pass per level, levels in parallel: the table entries read for the position
+     * gradient and the gradient entries written are at the same indices */
+#pragma omp parallel for schedule(dynamic, 1) num_threads(threads)
+    for (int32_t l = 0; l < L; l++) {
+        const float *t = tables[l];
+        float *gt = gtables ? gtables[l] : 0;
+        float *gl = gx ? scratch + (int64_t)l * n * 3 : 0;
+        const float r = (float)res[l];
+        if (!gt && !gl) continue;
+        for (int64_t i = 0; i < n; i++) {
+            int64_t b[3], idx[8];
+            float fr[3], w[8];
+            int inside[3];
+            cell(x + 3 * i, res[l], b, fr, inside);
+            corners(b, res[l], dense[l], hash_mask, idx);
+            const float *go = gout + i * L * F + l * F;
+            if (gt) {
+                weights(fr, w);
+                for (int c = 0; c < 8; c++)
+                    for (int32_t f = 0; f < F; f++) gt[idx[c] * F + f] += go[f] * w[c];
+            }
+            if (gl) {
+                /* s_c = sum_f gout_f * table_f[idx_c]: the loss's slope along corner c */
+                float s[8];
+                for (int c = 0; c < 8; c++) {
+                    float acc = 0.0f;
+                    for (int32_t f = 0; f < F; f++) acc += go[f] * t[idx[c] * F + f];
+                    s[c] = acc;
+                }
+                float wx[2] = {1.0f - fr[0], fr[0]}, wy[2] = {1.0f - fr[1], fr[1]},
+                      wz[2] = {1.0f - fr[2], fr[2]};
+                float dx = 0.0f, dy = 0.0f, dz = 0.0f;
+                for (int c = 0; c < 8; c++) {
+                    int ix = c >> 2, iy = (c >> 1) & 1, iz = c & 1;
+                    dx += s[c] * (ix ? 1.0f : -1.0f) * wy[iy] * wz[iz];
+                    dy += s[c] * (iy ? 1.0f : -1.0f) * wx[ix] * wz[iz];
+                    dz += s[c] * (iz ? 1.0f : -1.0f) * wx[ix] * wy[iy];
+                }
+                /* the reference clamps x to [0, 1]: no gradient outside */
+                gl[3 * i + 0] = inside[0] ? dx * r : 0.0f;
+                gl[3 * i + 1] = inside[1] ? dy * r : 0.0f;
+                gl[3 * i + 2] = inside[2] ? dz * r : 0.0f;
+            }
+        }
+    }
+    if (gx) {
+#pragma omp parallel for schedule(static) num_threads(threads)
+        for (int64_t j = 0; j < 3 * n; j++) {
+            float acc = 0.0f;
+            for (int32_t l = 0; l < L; l++) acc += scratch[(int64_t)l * n * 3 + j];
+            gx[j] = acc;
+        }
+    }
+}
