@@ -33,8 +33,9 @@ def sample_pdf(bins: Tensor, weights: Tensor, num: int, jitter: bool,
 
     `stratified`: one sample per equal-probability stratum of the CDF (jittered inside it
     when `jitter`, its middle otherwise) instead of NeRF's independent uniform draws. With
-    few samples, independent draws leave large gaps between neighbours: measured on the
-    built-in scene, the proposal sampler's 24 samples then rendered about as badly as ... .
+    few samples, independent draws leave large gaps between neighbours: on the built-in
+    scene, `fast` (24 samples from the proposal) scored 25.5 dB held-out after 10 minutes
+    with independent draws and 27.3 dB stratified (docs/presets.md).
     """
     w = weights.detach() + 1e-5
     pdf = w / w.sum(-1, keepdim=True)
