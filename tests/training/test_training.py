@@ -117,6 +117,22 @@ def test_existing_run_without_resume_is_refused(tiny_scene, tmp_path):
         Trainer(small(preset("fast"), 1), tiny_scene, tmp_path / "run", quiet=True)
 
 
+def test_checkpoint_from_an_older_model_layout_is_a_one_line_error(tiny_scene, tmp_path):
+    from flamenerf.errors import UserError
+
+    Trainer(small(preset("fast"), 1), tiny_scene, tmp_path / "run", quiet=True).fit()
+    ck = latest_checkpoint(tmp_path / "run")
+    st = torch.load(ck, weights_only=False)
+    key = next(k for k in st["model"] if ".tables." in k)
+    st["model"][key] = st["model"][key].t().contiguous()  # hash tables were (F, T) before
+    torch.save(st, ck)
+    with pytest.raises(UserError, match="older flamenerf") as e:
+        load_run(tmp_path / "run")
+    assert "\n" not in str(e.value) and ck.name in str(e.value)
+    with pytest.raises(UserError, match="older flamenerf"):
+        Trainer(small(preset("fast"), 2), tiny_scene, tmp_path / "run", resume=True, quiet=True)
+
+
 def test_cli_bad_dataset_is_one_line_error(tmp_path):
     r = subprocess.run([sys.executable, "-m", "flamenerf.cli", "train", str(tmp_path / "nope"),
                         "--out", str(tmp_path / "run")], capture_output=True, text=True)

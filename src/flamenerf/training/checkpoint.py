@@ -68,3 +68,14 @@ def read_json(path: Path) -> dict[str, Any]:
         return json.loads(path.read_text())
     except json.JSONDecodeError as e:
         raise UserError(f"{path}: invalid JSON at line {e.lineno} ({e.msg})") from None
+
+
+def load_model_state(model: torch.nn.Module, state: dict[str, Any], path: Path) -> None:
+    """model.load_state_dict, with a one-line error for a checkpoint whose tensors do not fit
+    this version's model (e.g. hash tables stored (F, T) before version 0.1.0's kernel)."""
+    try:
+        model.load_state_dict(state)
+    except RuntimeError as e:
+        first = next((ln.strip() for ln in str(e).splitlines()[1:] if ln.strip()), str(e))
+        raise UserError(f"{path}: checkpoint does not fit this version's model ({first}); "
+                        "it was written by an older flamenerf: train the run again") from None

@@ -12,7 +12,8 @@ from flamenerf.config import Config, from_dict
 from flamenerf.data.dataset import Dataset, Intrinsics, load_dataset
 from flamenerf.errors import UserError
 from flamenerf.model.flame_nerf import FlameNeRF
-from flamenerf.training.checkpoint import latest_checkpoint, load_checkpoint, read_json
+from flamenerf.training.checkpoint import (latest_checkpoint, load_checkpoint,
+                                           load_model_state, read_json)
 
 
 @dataclass
@@ -61,7 +62,7 @@ def load_run(run_dir: str | Path, device: str = "auto") -> Run:
     cfg = from_dict(meta["config"])
     dev = pick_device(device)
     model = FlameNeRF(cfg.model, **state["model_args"])
-    model.load_state_dict(state["model"])
+    load_model_state(model, state["model"], ck)
     model.to(dev).eval()
     model.update_to_step(int(state["step"]))
     return Run(run_dir, cfg, meta, model, int(state["step"]), dev)

@@ -17,7 +17,8 @@ from flamenerf.data.scene import FrameSet, scene_box
 from flamenerf.errors import UserError
 from flamenerf.model.flame_nerf import FlameNeRF, RayBatch
 from flamenerf.training.checkpoint import (atomic_write_text, latest_checkpoint,
-                                           load_checkpoint, read_json, save_checkpoint)
+                                           load_checkpoint, load_model_state, read_json,
+                                           save_checkpoint)
 from flamenerf.training.losses import face_region_loss, psnr_from_mse
 
 
@@ -141,7 +142,7 @@ class Trainer:
 
     def _load(self, path: Path) -> None:
         st = load_checkpoint(path)
-        self.model.load_state_dict(st["model"])
+        load_model_state(self.model, st["model"], path)
         try:
             self.opt.load_state_dict(st["optimizer"])
         except ValueError as e:  # a checkpoint from before the per-group learning rates
