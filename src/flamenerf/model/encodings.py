@@ -83,14 +83,11 @@ class HashGrid(nn.Module):
         return self.forward_torch(x)
 
     def kernel_layout(self) -> tuple:
-        """ctypes arrays of the per-level table sizes, resolutions and dense flags."""
+        """ctypes arrays of the per-level resolutions and dense flags."""
         if getattr(self, "_layout", None) is None:
             L = self.levels
-            self._layout = (
-                (ctypes.c_int64 * L)(*[t.shape[0] for t in self.tables]),
-                (ctypes.c_int64 * L)(*self.res.tolist()),
-                (ctypes.c_uint8 * L)(*[int(d) for d in self.dense.tolist()]),
-            )
+            self._layout = ((ctypes.c_int64 * L)(*self.res.tolist()),
+                            (ctypes.c_uint8 * L)(*[int(d) for d in self.dense.tolist()]))
         return self._layout
 
     def forward_torch(self, x: Tensor) -> Tensor:
@@ -145,8 +142,8 @@ class _HashGridCPU(torch.autograd.Function):
         n, L, F = x.shape[0], grid.levels, grid.features
         tables = tuple(t.detach().contiguous() for t in tables)
         out = torch.empty(n, L * F, dtype=x.dtype)
-        tsize, res, dense = grid.kernel_layout()
-        lib.hashgrid_forward(x.data_ptr(), n, L, F, _pointers(tables), tsize, res, dense,
+        res, dense = grid.kernel_layout()
+        lib.hashgrid_forward(x.data_ptr(), n, L, F, _pointers(tables), res, dense,
                              grid.size - 1, out.data_ptr(), torch.get_num_threads())
         ctx.grid, ctx.lib = grid, lib
         ctx.save_for_backward(x, *tables)
@@ -162,10 +159,10 @@ class _HashGridCPU(torch.autograd.Function):
         scratch = torch.empty(grid.levels, *x.shape) if gx is not None else None
         gts = [torch.zeros_like(t) if ctx.needs_input_grad[3 + i] else None
                for i, t in enumerate(tables)]
-        tsize, res, dense = grid.kernel_layout()
+        res, dense = grid.kernel_layout()
         any_table = any(g is not None for g in gts)
         lib.hashgrid_backward(x.data_ptr(), x.shape[0], grid.levels, grid.features,
-                              _pointers(tables), tsize, res, dense, grid.size - 1,
+                              _pointers(tables), res, dense, grid.size - 1,
                               gout.data_ptr(), _pointers(gts) if any_table else None,
                               None if gx is None else gx.data_ptr(),
                               None if gx is None else scratch.data_ptr(), torch.get_num_threads())

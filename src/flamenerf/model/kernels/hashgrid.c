@@ -55,6 +55,15 @@ static inline void corners(const int64_t b[3], int64_t r, int dense, int64_t mas
     }
 }
 
+/* Point xp on level (r, dense): its cell's 8 corner indices, its position inside the cell,
+ * and which of its coordinates lie inside [0, 1]. */
+static inline void locate(const float *xp, int64_t r, int dense, int64_t mask, int64_t idx[8],
+                          float fr[3], int inside[3]) {
+    int64_t b[3];
+    cell(xp, r, b, fr, inside);
+    corners(b, r, dense, mask, idx);
+}
+
 static inline void weights(const float f[3], float w[8]) {
     float wx[2] = {1.0f - f[0], f[0]}, wy[2] = {1.0f - f[1], f[1]},
           wz[2] = {1.0f - f[2], f[2]};
@@ -62,18 +71,17 @@ static inline void weights(const float f[3], float w[8]) {
 }
 
 void hashgrid_forward(const float *x, int64_t n, int32_t L, int32_t F,
-                      const float *const *tables, const int64_t *tsize, const int64_t *res,
+                      const float *const *tables, const int64_t *res,
                       const uint8_t *dense, int64_t hash_mask, float *out, int32_t threads) {
     /* level-major: one level's table stays in cache while every point reads it */
     for (int32_t l = 0; l < L; l++) {
         const float *t = tables[l];
 #pragma omp parallel for schedule(static) num_threads(threads)
         for (int64_t i = 0; i < n; i++) {
-            int64_t b[3], idx[8];
+            int64_t idx[8];
             float fr[3], w[8];
             int inside[3];
-            cell(x + 3 * i, res[l], b, fr, inside);
-            corners(b, res[l], dense[l], hash_mask, idx);
+            locate(x + 3 * i, res[l], dense[l], hash_mask, idx, fr, inside);
             weights(fr, w);
             for (int32_t f = 0; f < F; f++) {
                 float acc = 0.0f;
@@ -89,7 +97,7 @@ void hashgrid_forward(const float *x, int64_t n, int32_t L, int32_t F,
  * gradients, which are summed afterwards in level order so that the result does not
  * depend on which thread ran which level. */
 void hashgrid_backward(const float *x, int64_t n, int32_t L, int32_t F,
-                       const float *const *tables, const int64_t *tsize, const int64_t *res,
+                       const float *const *tables, const int64_t *res,
                        const uint8_t *dense, int64_t hash_mask, const float *gout,
                        float *const *gtables, float *gx, float *scratch, int32_t threads) {
     /* one pass per level, levels in parallel: the table entries read for the position
@@ -102,11 +110,10 @@ void hashgrid_backward(const float *x, int64_t n, int32_t L, int32_t F,
         const float r = (float)res[l];
         if (!gt && !gl) continue;
         for (int64_t i = 0; i < n; i++) {
-            int64_t b[3], idx[8];
+            int64_t idx[8];
             float fr[3], w[8];
             int inside[3];
-            cell(x + 3 * i, res[l], b, fr, inside);
-            corners(b, res[l], dense[l], hash_mask, idx);
+            locate(x + 3 * i, res[l], dense[l], hash_mask, idx, fr, inside);
             const float *go = gout + i * L * F + l * F;
             if (gt) {
                 weights(fr, w);
