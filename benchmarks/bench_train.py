@@ -1,5 +1,6 @@
-"""Training benchmark (issue 3): quality-vs-time of the `fast` preset, and the throughput and
-render time of every preset, on the machine at hand. Prints figures and writes JSON.
+"""Training benchmark (issue 3): quality-vs-time of one preset (`fast` unless
+`--quality-preset` says otherwise), and the throughput and render time of every preset, on
+the machine at hand. Prints figures and writes JSON.
 
     python benchmarks/bench_train.py --scene scenes/s128 --size 128 --budget 600 \
         --eval-every 100 --json docs/bench/train.json
@@ -7,10 +8,13 @@ render time of every preset, on the machine at hand. Prints figures and writes J
 (the scene is made first if missing: the built-in scene at `--size`, 300 capture frames,
 i.e. `flamenerf synth scenes/s128 --size 128`).
 
-Quality: `fast` trains for `--budget` seconds of wall time (evaluation pauses excluded).
-Every `--eval-every` seconds it is evaluated with the paper's held-out protocol on a subset
-of `val` frames (ω fitted, everything else frozen); at the end on every `val` frame.
-Time-to-25/28/30 dB are read off those evaluations.
+Quality: the preset trains for `--budget` seconds of wall time (evaluation pauses
+excluded) or its schedule (`--steps` overrides it), whichever ends first. Every
+`--eval-every` seconds it is evaluated with the paper's held-out protocol on a subset of
+`val` frames (ω fitted, everything else frozen); at the end on every `val` frame. The time
+to each of `--targets` (default 25, 28, 30 dB) is read off those evaluations. The H100
+figures in docs/presets.md came from, e.g., `--quality-preset flame-in-nerf --scene
+scenes/s256 --size 256 --budget 290 --eval-every 60 --targets 25,28,29,30`.
 
 Throughput: each preset trains a few steps at its own batch size (rays/s, after one warm-up
 step) and renders one 256x256 frame (`--render-fraction` < 1 renders that fraction of the

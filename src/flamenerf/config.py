@@ -167,7 +167,7 @@ def _fast() -> Config:
                                   hash_log2_size=19, hash_max_res=512)
     cfg.model.sampler = SamplerConfig(kind="proposal", num_proposal=48, num_main=32,
                                       proposal_levels=5, proposal_max_res=128)
-    # 680 steps: what fits in 10 minutes on the 2-core CPU (~0.87 s per step), so that the
+    # 680 steps: what fits in 10 minutes on the 2-core CPU (548 s uninterrupted), so that the
     # learning rate has decayed when the time is up (docs/presets.md)
     cfg.train = TrainConfig(steps=680, batch_rays=4096, lr=1e-2, lr_final=1e-3,
                             lr_warmup=50, warp_lr_scale=0.1, appearance_lr_scale=0.01,

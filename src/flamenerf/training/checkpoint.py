@@ -72,7 +72,7 @@ def read_json(path: Path) -> dict[str, Any]:
 
 def load_model_state(model: torch.nn.Module, state: dict[str, Any], path: Path) -> None:
     """model.load_state_dict, with a one-line error for a checkpoint whose tensors do not fit
-    this version's model (e.g. hash tables stored (F, T) before version 0.1.0's kernel)."""
+    this version's model (e.g. hash tables stored (F, T), as before the CPU kernel)."""
     try:
         model.load_state_dict(state)
     except RuntimeError as e:
