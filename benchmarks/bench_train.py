@@ -103,7 +103,6 @@ def quality_run(args, scene: Path, log) -> dict:
 
 def throughput(args, scene: Path, log) -> dict:
     from flamenerf.config import PRESETS, preset
-    from flamenerf.data.dataset import Intrinsics
     from flamenerf.data.rays import camera_rays
     from flamenerf.model.flame_nerf import RayBatch
     from flamenerf.training.trainer import Trainer

@@ -9,7 +9,7 @@ def test_window_matches_paper_formula():
     m = 8
     for alpha in [0.0, 0.3, 1.0, 2.5, 5.99, 8.0, 11.0]:
         w = cosine_easing_window(m, alpha)
-        expect = [(1 - math.cos(math.pi * min(max(alpha - l, 0.0), 1.0))) / 2 for l in range(m)]
+        expect = [(1 - math.cos(math.pi * min(max(alpha - k, 0.0), 1.0))) / 2 for k in range(m)]
         assert torch.allclose(w, torch.tensor(expect), atol=1e-6), alpha
     assert torch.all(cosine_easing_window(m, 0.0) == 0)
     assert torch.all(cosine_easing_window(m, float(m)) == 1)

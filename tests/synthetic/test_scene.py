@@ -247,7 +247,7 @@ def test_load_dataset_reads_every_split(dataset_dir):
     ds = load_dataset(dataset_dir)
     assert set(ds.splits) == {"train", "val", "reanimate", "leakage"}
     assert ds.expression_names == list(CONTROLS) and ds.expression_kind == "synthetic"
-    assert [f.frame_index for f in ds.split("train") + ds.split("val")] is not None
+    assert all(f.frame_index is not None for f in ds.split("train") + ds.split("val"))
     cap = sorted(ds.split("train") + ds.split("val"), key=lambda f: f.position)
     assert [f.frame_index for f in cap] == list(range(12))
     assert [f.frame_index for f in ds.split("val")] == [5]

@@ -166,7 +166,7 @@ def make_tiny_flame(d: Path, canonical, num_shape: int = 6, num_expr: int = 6,
     Rf = np.array([[1, 0, 0], [0, np.cos(ang), -np.sin(ang)], [0, np.sin(ang), np.cos(ang)]])
     v = X @ Rf.T + np.array([0.0, -0.02, -0.03])  # FLAME frame != head frame
     V = len(v)
-    y, z = v[:, 1], v[:, 2]
+    y = v[:, 1]
     lo = y < np.percentile(y, 25)  # chin and lower lip
 
     def bump():  # a local deformation: Gaussian bump of 2 cm radius, 3 mm tall

@@ -23,8 +23,10 @@ def test_so3_exp_matches_matrix_exp(scale):
     torch.testing.assert_close(so3_exp(v), want, atol=1e-12, rtol=0)
 
 
-def look_at(centre: np.ndarray, target=np.zeros(3), up=np.array([0.0, 1.0, 0.0])):
+def look_at(centre: np.ndarray, target=None, up=None):
     """c2w with OpenGL axes (the camera looks down its -z) from `centre` towards `target`."""
+    target = np.zeros(3) if target is None else target
+    up = np.array([0.0, 1.0, 0.0]) if up is None else up
     back = centre - target
     back = back / np.linalg.norm(back)
     right = np.cross(up, back)

@@ -256,7 +256,7 @@ class SyntheticScene:
         ids = pix[::stride, ::stride].reshape(-1)
         ids = ids[ok[0].index_select(0, ids)]
         if len(ids):
-            sub = lambda x: x.index_select(-1, ids)  # noqa: E731
+            sub = lambda x: x.index_select(-1, ids)  # noqa: E731, B023 (used at once)
             hit, th = self._solve(st, o, tuple(sub(d[0, c]) for c in range(3)), sub(t0[0]),
                                   sub(t1[0]))
             tc.index_copy_(0, ids.index_select(0, hit), th)
@@ -270,7 +270,7 @@ class SyntheticScene:
             ids = pix[::fine, ::fine].reshape(-1)
             keep = (((ids // w) % stride != 0) | ((ids % w) % stride != 0)).nonzero().flatten()
             ids = ids.index_select(0, keep)
-            sub = lambda x: x.index_select(-1, ids)  # noqa: E731
+            sub = lambda x: x.index_select(-1, ids)  # noqa: E731, B023 -- used within this iteration
             hit, th = self._guided(st, o, tuple(sub(d[0, c]) for c in range(3)), sub(t0[0]),
                                    sub(t1[0]), sub(ok[0]), cs.index_select(1, keep),
                                    wx.index_select(0, keep), wy.index_select(0, keep), BISECT)

@@ -481,7 +481,6 @@ def _solve(landmarks, times, template0, faces, stable_weights, width, height,
            init_transforms, cfg: SolveConfig, step: float) -> SolveResult:
     P = _Problem(landmarks, times, template0, faces, stable_weights, width, height,
                  init_transforms, cfg, step)
-    c = cfg.robust_scale
     history: dict = {}
     if cfg.fov_deg is not None:
         f0 = P.focal_of_fov(cfg.fov_deg)
