@@ -90,6 +90,22 @@ class SamplerConfig:
 
 
 @dataclass
+class MeshGuideConfig:
+    """Mesh-guided deformation (as in RigNeRF): points near the face are carried from the
+    mesh of the ray's expression 𝕀β to the neutral mesh before the learned warp, so the
+    face's motion is a function of β that any commanded β reproduces. The mesh of a β comes
+    from a per-subject linear model fitted on the training frames' tracked meshes."""
+
+    enabled: bool = False
+    falloff: float = 0.15
+    """Distance (fraction of the neutral mesh's bounding-box diagonal) over which the motion
+    fades out away from the mesh."""
+    neighbours: int = 4
+    ridge: float = 1e-3
+    """Ridge of the β -> mesh least-squares fit (relative to the mean squared control)."""
+
+
+@dataclass
 class ModelConfig:
     expression_mode: ExpressionMode = "masked"
     """`masked`: β only on rays through the face silhouette (the paper's spatial prior);
@@ -99,6 +115,7 @@ class ModelConfig:
     sampler: SamplerConfig = _field(default_factory=SamplerConfig)
     expression_scale: float = 1.0
     """β is multiplied by this before it enters the field (keeps β and PE on one scale)."""
+    mesh_guide: MeshGuideConfig = _field(default_factory=MeshGuideConfig)
 
 
 @dataclass

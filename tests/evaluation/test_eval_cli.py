@@ -47,8 +47,16 @@ def test_eval_writes_the_documented_schema(evaluated):
     for rel in res["images"]:
         img = iio.imread(evaluated / rel)
         assert img.ndim == 3 and img.shape[0] >= 128
-    assert sorted(res["images"]) == ["images/leakage.png", "images/reanimate_00.png",
-                                     "images/val_00.png"]
+    assert sorted(res["images"]) == ["images/driven_00.png", "images/leakage.png",
+                                     "images/reanimate_00.png", "images/val_00.png"]
+    d = res["driven"]  # nothing fitted: the val frames with frame 0's codes
+    assert d["num_frames"] == len(d["frames"]) == 2 and d["split"] == "val"
+    assert d["psnr_face"] == pytest.approx(np.mean([f["psnr_face"] for f in d["frames"]]))
+    assert h["budget"]["updates_per_frame"] == 3
+    ct = res["control"]  # the toy's quad is no face: re-tracking finds none, and says so
+    assert ct["source"].startswith("the dataset's leakage sweep")
+    assert ct["controls"]["jawOpen"]["detected"] == 0 and ct["mean_gain"] is None
+    assert "**Control response**" in (evaluated / "metrics.md").read_text()
 
 
 def test_compare_prints_a_table(evaluated, tmp_path, capsys):

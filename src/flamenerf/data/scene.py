@@ -7,6 +7,7 @@ import torch
 
 from flamenerf.data.dataset import Dataset, Frame, Intrinsics
 from flamenerf.data.rays import pixel_directions
+from flamenerf.meshes import fit_expression_model
 
 
 def scene_box(ds: Dataset, margin: float = 0.05) -> tuple[list[float], list[float]]:
@@ -26,6 +27,16 @@ def scene_box(ds: Dataset, margin: float = 0.05) -> tuple[list[float], list[floa
     lo, hi = pts.min(0), pts.max(0)
     pad = (hi - lo) * margin
     return (lo - pad).tolist(), (hi + pad).tolist()
+
+
+def fit_dataset_expression_model(ds: Dataset, ridge: float = 1e-3
+                                 ) -> tuple[torch.Tensor, torch.Tensor]:
+    """The subject's linear β -> mesh model fitted on the training frames' face meshes.
+    -> neutral (V, 3), basis (E, V, 3) in world units."""
+    train = ds.split("train") or [f for f in ds.frames if f.frame_index is not None]
+    return fit_expression_model(torch.from_numpy(ds.expression_matrix(train)),
+                                torch.from_numpy(ds.face_vertices[[f.position for f in train]]),
+                                ridge)
 
 
 def resize_image(img: np.ndarray, w: int, h: int) -> np.ndarray:

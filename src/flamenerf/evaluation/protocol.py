@@ -4,7 +4,14 @@ Everything is measured at the run's training resolution (ground truth area-resiz
 
 held-out (`val`)  the paper's protocol: freeze the model, fit only each frame's deformation
                   code ω (from ω_0, with φ_0; `fit_deformation_codes`), render, compare:
-                  MSE, PSNR, SSIM, and PSNR inside / outside the face mask.
+                  MSE, PSNR, SSIM, and PSNR inside / outside the face mask. All frames are
+                  fitted together: each frame's ω gets `fit_steps` Adam updates from about
+                  fit_batch_rays / N of its own rays each (stated in the results).
+driven (`val`)    the same frames with nothing fitted: frame 0's codes and each frame's own
+                  β (evaluation/control.py); whole / face / background / expressive region.
+control           re-tracked response of the renders to commanded controls (control.py): on
+                  the built-in scene's leakage sweep, against the same re-tracking of its
+                  ground truth; elsewhere a sweep over each control's training range.
 reanimate         the built-in scene only: frame 0's codes, the split's expressions, novel
                   cameras and masks, compared with the rendered ground truth.
 leakage           the built-in scene only: frame 0's camera and codes while the expression
@@ -47,6 +54,10 @@ class EvalOptions:
     fit_batch_rays: int = 1024
     fit_lr: float = 1e-2
     seed: int = 0
+    control: bool = True
+    """Measure the control response (re-tracks renders with MediaPipe's landmarker)."""
+    control_steps: int = 5
+    """Values per control in the control sweep (datasets without a leakage split)."""
     leakage_dilate_px: int = 3
     """Pixels (at the evaluation resolution) by which the union of the sweep's face masks is
     grown before measuring change outside it."""
@@ -219,7 +230,7 @@ def evaluate_run(run, ds: Dataset, opts: EvalOptions, out_dir: Path | None = Non
         "resolution": [intr.w, intr.h],
         "device": str(run.device),
         "protocol": asdict(opts),
-        "heldout": None, "reanimate": None, "leakage": None,
+        "heldout": None, "driven": None, "reanimate": None, "leakage": None, "control": None,
     }
     images: dict[str, np.ndarray] = {}
     frames = ds.split(opts.split)
@@ -237,9 +248,22 @@ def evaluate_run(run, ds: Dataset, opts: EvalOptions, out_dir: Path | None = Non
     fs = FrameSet(ds, frames, intr)
     res["heldout"], preds = heldout(model, fs, opts, quiet=quiet)
     res["heldout"]["split"] = opts.split
+    res["heldout"]["budget"] = {
+        "fitted_together": fs.n, "updates_per_frame": opts.fit_steps,
+        "rays_per_frame_per_update": opts.fit_batch_rays / max(fs.n, 1),
+        "note": "each frame's ω is its own parameter: every Adam step updates it from the "
+                "batch's rays of that frame (about fit_batch_rays / N)"}
     for k in range(min(opts.num_images, fs.n)):
         images[f"{opts.split}_{k:02d}.png"] = _triptych(fs, k, preds[k])
     omega0, phi0 = run.frame_codes(0)
+    from flamenerf.evaluation.control import driven
+
+    log(f"driven: {fs.n} {opts.split} frames with their own β and frame 0's codes")
+    res["driven"], preds = driven(model, ds, fs, omega0, phi0, opts.chunk)
+    res["driven"]["split"] = opts.split
+    for k in range(min(opts.num_images, fs.n)):
+        images[f"driven_{k:02d}.png"] = _triptych(fs, k, preds[k])
+    leak_preds = None
     if ds.splits.get("reanimate"):
         fs = FrameSet(ds, ds.split("reanimate"), intr)
         log(f"re-animation: {fs.n} frames (novel expressions and cameras)")
@@ -252,10 +276,42 @@ def evaluate_run(run, ds: Dataset, opts: EvalOptions, out_dir: Path | None = Non
         res["leakage"], preds = leakage(model, fs, omega0, phi0, opts.leakage_dilate_px,
                                         opts.chunk)
         images["leakage.png"] = _sweep_figure(fs, preds, opts.leakage_dilate_px)
+        leak_preds = (fs, preds)
+    if opts.control:
+        log("control response: re-tracking renders with the face landmarker")
+        res["control"] = control_section(run, ds, intr, omega0, phi0, opts, leak_preds)
     res["seconds"] = time.perf_counter() - t_start
     if out_dir is not None:
         write_results(Path(out_dir), res, images)
     return res
+
+
+def control_section(run, ds: Dataset, intr, omega0, phi0, opts: EvalOptions,
+                    leak_preds) -> dict[str, Any]:
+    """The control response (see module doc): the leakage sweep's renders against its ground
+    truth when the dataset has one, else a sweep at the reference frame's camera."""
+    from flamenerf.evaluation import control as C
+    from flamenerf.rendering.cameras import reference_position
+    from flamenerf.rendering.prior import estimate_dilation, mesh_function
+
+    names = run.expression_names
+    train_e = ds.expression_matrix(ds.split("train"))
+    track = C.Retracker()
+    try:
+        if leak_preds is not None:
+            fs, preds = leak_preds
+            return C.sweep_response(fs, preds, track)
+        pos = reference_position(ds)
+        fr = ds.frames[pos]
+        render = C.model_renderer(run.model, ds, intr, fr.c2w, omega0, phi0,
+                                  mesh_function(run.model, ds), estimate_dilation(ds),
+                                  opts.chunk)
+        res = C.control_response(render, names, ds.expression_matrix([fr])[0], train_e, track,
+                                 opts.control_steps)
+        res["source"] = f"sweep over the training range at frame {pos}'s camera"
+        return res
+    finally:
+        track.close()
 
 
 def _triptych(fs: FrameSet, k: int, pred: np.ndarray) -> np.ndarray:

@@ -13,6 +13,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from flamenerf.config import ModelConfig
+from flamenerf.meshes import expression_mesh, mesh_displacement, surface_points
 from flamenerf.model.field import ProposalField, make_field
 from flamenerf.model.render import (composite, interlevel_loss, render_weights, sample_pdf,
                                     stratified_samples)
@@ -42,7 +43,8 @@ class RayBatch:
 
 class FlameNeRF(nn.Module):
     def __init__(self, cfg: ModelConfig, num_codes: int, expr_dim: int, near: float,
-                 far: float, box_min: list[float], box_max: list[float]):
+                 far: float, box_min: list[float], box_max: list[float],
+                 mesh_vertices: int = 0, mesh_faces: int = 0):
         super().__init__()
         self.cfg = cfg
         self.near, self.far = float(near), float(far)
@@ -50,6 +52,15 @@ class FlameNeRF(nn.Module):
         self.init_args = dict(num_codes=num_codes, expr_dim=expr_dim, near=near, far=far,
                               box_min=list(map(float, box_min)),
                               box_max=list(map(float, box_max)))
+        self.mesh_guided = cfg.mesh_guide.enabled and cfg.expression_mode != "none"
+        if self.mesh_guided:
+            if mesh_vertices <= 0 or mesh_faces <= 0:
+                raise ValueError("mesh guidance needs the face mesh's vertex and face counts")
+            self.init_args.update(mesh_vertices=int(mesh_vertices), mesh_faces=int(mesh_faces))
+            # the per-subject expression model (world units), filled by set_expression_model
+            self.register_buffer("mesh_neutral", torch.zeros(mesh_vertices, 3))
+            self.register_buffer("mesh_basis", torch.zeros(expr_dim, mesh_vertices, 3))
+            self.register_buffer("mesh_faces", torch.zeros(mesh_faces, 3, dtype=torch.long))
         bmin, bmax = torch.tensor(box_min), torch.tensor(box_max)
         self.register_buffer("center", (bmin + bmax) / 2)
         # isotropic scale, so that rigid warps in normalised space are rigid in the world
@@ -74,6 +85,50 @@ class FlameNeRF(nn.Module):
         else:
             raise ValueError(f"unknown sampler {s.kind!r}")
         self.grid_warming_up = False
+
+    # ---------------------------------------------------------------- expression mesh
+    def set_expression_model(self, neutral: Tensor, basis: Tensor, faces: Tensor) -> None:
+        """neutral (V, 3), basis (E, V, 3) world units (`meshes.fit_expression_model`),
+        faces (F, 3)."""
+        self.mesh_neutral.copy_(neutral)
+        self.mesh_basis.copy_(basis)
+        self.mesh_faces.copy_(faces)
+
+    def face_mesh(self, expression: Tensor) -> Tensor:
+        """The face mesh of β in world units: (..., E) -> (..., V, 3)."""
+        return expression_mesh(self.mesh_neutral, self.mesh_basis, expression)
+
+    def neutral_face_points(self, n: int, generator: torch.Generator | None = None) -> Tensor:
+        """n uniformly random points on the neutral mesh, normalised. -> (n, 3)."""
+        dev = self.mesh_neutral.device
+        tri = torch.randint(len(self.mesh_faces), (n,), generator=generator).to(dev)
+        uv = torch.rand(n, 2, generator=generator).to(dev)
+        return self.normalize(surface_points(self.mesh_neutral, self.mesh_faces, tri, uv))
+
+    @torch.no_grad()
+    def guide_points(self, xn: Tensor, expr: Tensor | None) -> Tensor:
+        """Carry normalised points (R, S, 3) of rays with masked expressions 𝕀β (R, E) from
+        their expression's mesh to the neutral mesh. Rays with 𝕀β = 0 (every ray outside
+        the silhouette under the prior) get mesh(0) = neutral, i.e. stay put."""
+        if not self.mesh_guided or expr is None:
+            return xn
+        beta = expr / self.cfg.expression_scale
+        nonzero = beta.abs().amax(-1) > 0
+        if not bool(nonzero.any()):
+            return xn
+        g = self.cfg.mesh_guide
+        neutral = self.normalize(self.mesh_neutral)
+        falloff = g.falloff * float((neutral.amax(0) - neutral.amin(0)).norm())
+        rows = nonzero.nonzero()[:, 0]
+        uniq, inv = torch.unique(beta[rows], dim=0, return_inverse=True)
+        out = xn.clone()
+        for j in range(len(uniq)):
+            r = rows[inv == j]
+            pts = xn[r].reshape(-1, 3)
+            mesh = self.normalize(self.face_mesh(uniq[j]))
+            out[r] = pts.add(mesh_displacement(pts, mesh, neutral, falloff, g.neighbours)
+                             ).view(len(r), *xn.shape[1:])
+        return out
 
     # ---------------------------------------------------------------- conditioning
     def update_to_step(self, step: int) -> None:
@@ -118,6 +173,7 @@ class FlameNeRF(nn.Module):
         """Samples at depths t (R, S) along each ray -> σ (R, S), rgb (R, S, 3). The ray's
         conditioning goes in once per ray, shaped (R, 1, ·), and broadcasts over samples."""
         xn = self.normalize(rays.origins[:, None] + t[..., None] * rays.dirs[:, None])
+        xn = self.guide_points(xn, expr)
         dn = F.normalize(rays.dirs, dim=-1)
 
         def per_ray(v):

@@ -10,10 +10,14 @@ trained with.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
+import torch
 
 from flamenerf.data.dataset import Dataset, Intrinsics
-from flamenerf.data.scene import resize_image
+from flamenerf.data.scene import fit_dataset_expression_model, resize_image
+from flamenerf.meshes import expression_mesh
 from flamenerf.tracking.silhouette import rasterize_silhouette
 
 
@@ -41,13 +45,32 @@ def estimate_dilation(ds: Dataset, position: int | None = None, max_px: int = 8)
 
 
 def prior_mask(ds: Dataset, vertices: np.ndarray, c2w: np.ndarray, intr: Intrinsics,
-               dilate_px: int) -> np.ndarray:
+               dilate_px: int, faces: np.ndarray | None = None) -> np.ndarray:
     """(H, W) bool mask at `intr` for one camera: rasterised at the dataset resolution with
-    `dilate_px`, then resized like the training masks."""
-    full = rasterize_silhouette(vertices, ds.faces, ds.intrinsics, c2w, dilate_px)
+    `dilate_px`, then resized like the training masks. `faces`: a part of the mesh (default:
+    all of it)."""
+    full = rasterize_silhouette(vertices, ds.faces if faces is None else faces,
+                                ds.intrinsics, c2w, dilate_px)
     if (intr.w, intr.h) == (ds.intrinsics.w, ds.intrinsics.h):
         return full
     return resize_image(full[..., None].astype(np.float32), intr.w, intr.h)[..., 0] > 0.5
+
+
+def mesh_function(model, ds: Dataset) -> Callable[[np.ndarray], np.ndarray]:
+    """β (E,) -> the face mesh (V, 3) of that expression: the run's own expression model
+    (mesh-guided runs carry it), else one fitted on the dataset's training frames. The
+    spatial prior of a driven expression is this mesh's silhouette, so a jaw opened below
+    the reference frame's chin still gets β."""
+    if getattr(model, "mesh_guided", False):
+        neutral, basis = model.mesh_neutral.cpu(), model.mesh_basis.cpu()
+    else:
+        neutral, basis = fit_dataset_expression_model(ds)
+
+    def mesh_of(beta: np.ndarray) -> np.ndarray:
+        b = torch.as_tensor(np.asarray(beta, np.float32))
+        return expression_mesh(neutral, basis, b).numpy()
+
+    return mesh_of
 
 
 def dataset_scaled(ds: Dataset, intr: Intrinsics) -> bool:

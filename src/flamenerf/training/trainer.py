@@ -13,7 +13,7 @@ import torch
 from flamenerf import __version__
 from flamenerf.config import Config, from_dict
 from flamenerf.data.dataset import Dataset, load_dataset
-from flamenerf.data.scene import FrameSet, scene_box
+from flamenerf.data.scene import FrameSet, fit_dataset_expression_model, scene_box
 from flamenerf.errors import UserError
 from flamenerf.model.flame_nerf import FlameNeRF, RayBatch
 from flamenerf.training.checkpoint import (atomic_write_text, latest_checkpoint,
@@ -59,8 +59,14 @@ def train_resolution(ds: Dataset, cfg: Config):
 
 def build_for_dataset(cfg: Config, ds: Dataset) -> FlameNeRF:
     lo, hi = scene_box(ds)
-    return FlameNeRF(cfg.model, num_codes=ds.num_codes, expr_dim=ds.expression_dim,
-                     near=ds.near, far=ds.far, box_min=lo, box_max=hi)
+    V, nf = ds.face_vertices.shape[1], len(ds.faces)
+    model = FlameNeRF(cfg.model, num_codes=ds.num_codes, expr_dim=ds.expression_dim,
+                      near=ds.near, far=ds.far, box_min=lo, box_max=hi,
+                      mesh_vertices=V, mesh_faces=nf)
+    if model.mesh_guided:
+        neutral, basis = fit_dataset_expression_model(ds, cfg.model.mesh_guide.ridge)
+        model.set_expression_model(neutral, basis, torch.from_numpy(ds.faces).long())
+    return model
 
 
 @dataclass
@@ -187,7 +193,10 @@ class Trainer:
             logs["loss/interlevel"] = out["interlevel"].item()
         if cfg.face_reg_weight > 0 and model.warp is not None:
             pfi = torch.randint(ts.n, (cfg.face_reg_points,), generator=self.gen)
-            pts = model.normalize(ts.face_points(pfi, self.gen).to(self.device))
+            if model.mesh_guided:  # the face is carried to the neutral mesh before the warp
+                pts = model.neutral_face_points(cfg.face_reg_points, self.gen)
+            else:
+                pts = model.normalize(ts.face_points(pfi, self.gen).to(self.device))
             omega_p, _ = model.codes(ts.frame_index[pfi].to(self.device))
             reg = face_region_loss(model.warp_points(pts, omega_p), pts)
             loss = loss + cfg.face_reg_weight * reg

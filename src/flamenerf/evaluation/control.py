@@ -1,0 +1,256 @@
+"""Does the expression input control the face? Metrics a refitted ω cannot fake.
+
+driven held-out    every val frame rendered from its own camera with its own β and the
+                   codes a re-animation uses (frame 0's ω_0, φ_0; nothing fitted), scored on
+                   the whole image, the face, the background and the *expressive region*:
+                   the part of the face mesh that moves with the expression (mouth, eyes,
+                   brows), found from how far each vertex travels over the training frames.
+control response   at a fixed camera, sweep one control across the range the training frames
+                   cover (everything else at the reference frame's β), render, re-track the
+                   renders with MediaPipe's FaceLandmarker and regress the re-tracked value on
+                   the commanded one: gain (slope) and correlation. A model that ignores β
+                   gets gain 0 whatever its held-out PSNR.
+drive correlation  for a driving sequence, the correlation over time of driving and
+                   re-tracked controls.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+
+from flamenerf.data.dataset import Dataset, Intrinsics
+from flamenerf.data.scene import FrameSet
+from flamenerf.evaluation import metrics as M
+from flamenerf.model.flame_nerf import FlameNeRF
+from flamenerf.model.render_image import render_image
+from flamenerf.rendering.prior import prior_mask
+
+
+def expressive_faces(ds: Dataset, fraction: float = 0.2) -> np.ndarray:
+    """Triangles of the face mesh that move with the expression: those with a vertex whose
+    motion over the training frames (RMS distance from its mean position, the rigid sway
+    removed by subtracting each frame's mesh centroid) exceeds `fraction` of the largest.
+    -> (F', 3) int."""
+    train = [f.position for f in ds.split("train")] or [f.position for f in ds.frames]
+    v = ds.face_vertices[train].astype(np.float64)
+    v = v - v.mean(1, keepdims=True)
+    motion = np.sqrt(((v - v.mean(0)) ** 2).sum(-1).mean(0))  # (V,)
+    moving = motion > fraction * motion.max()
+    return ds.faces[moving[ds.faces].any(1)]
+
+
+def region_masks(ds: Dataset, fs: FrameSet, faces: np.ndarray) -> np.ndarray:
+    """The expressive region of each frame of `fs` at its resolution, from the frame's own
+    face mesh (ground truth where the dataset has it). -> (N, H, W) bool."""
+    return np.stack([
+        prior_mask(ds, ds.face_vertices[fr.position], fr.c2w, fs.intr, 0, faces=faces)
+        for fr in fs.frames])
+
+
+def region_metrics(pred: np.ndarray, gt: np.ndarray, face: np.ndarray,
+                   region: np.ndarray) -> dict[str, float]:
+    """pred, gt (H, W, 3); face, region (H, W) bool -> PSNR/SSIM on the whole image, PSNR on
+    the face, the background and the expressive region."""
+    return {"psnr": M.psnr(pred, gt), "ssim": M.ssim(pred, gt),
+            "psnr_face": M.psnr(pred, gt, face), "psnr_background": M.psnr(pred, gt, ~face),
+            "psnr_expressive": M.psnr(pred, gt, region)}
+
+
+DRIVEN_KEYS = ("psnr", "ssim", "psnr_face", "psnr_background", "psnr_expressive")
+
+
+def driven(model: FlameNeRF, ds: Dataset, fs: FrameSet, omega0: torch.Tensor,
+           phi0: torch.Tensor, chunk: int = 16384) -> tuple[dict[str, Any], list[np.ndarray]]:
+    """Frames of `fs` rendered with their own camera, β and prior mask and frame 0's codes
+    (what a re-animation has), against their images. -> (summary with rows, renders)."""
+    from flamenerf.evaluation.protocol import summarize
+
+    regions = region_masks(ds, fs, expressive_faces(ds))
+    rows, preds = [], []
+    for i in range(fs.n):
+        out = render_image(model, fs.intr, fs.c2w[i], omega0, phi0, fs.expressions[i],
+                           fs.masks[i], chunk=chunk)
+        pred = out["rgb"].numpy()
+        preds.append(pred)
+        row = {"position": fs.frames[i].position}
+        row.update(region_metrics(pred, fs.images[i].numpy(), fs.masks[i].numpy(), regions[i]))
+        rows.append(row)
+    res = summarize(rows, DRIVEN_KEYS)
+    res["frames"] = rows
+    return res, preds
+
+
+# ------------------------------------------------------------------------- re-tracking
+
+
+def fit_line(commanded: np.ndarray, measured: np.ndarray) -> tuple[float, float]:
+    """Least-squares slope of measured on commanded, and their Pearson correlation (NaN when
+    either is constant)."""
+    x, y = np.asarray(commanded, np.float64), np.asarray(measured, np.float64)
+    if len(x) < 2 or np.ptp(x) == 0:
+        return float("nan"), float("nan")
+    slope = float(np.polyfit(x, y, 1)[0])
+    corr = float(np.corrcoef(x, y)[0, 1]) if np.ptp(y) > 0 else float("nan")
+    return slope, corr
+
+
+@dataclass
+class Retracker:
+    """Re-tracks rendered images: MediaPipe's blendshape scores by control name. Images are
+    upscaled to at least `min_size` pixels first (the detector misses small faces)."""
+
+    min_size: int = 256
+
+    def __post_init__(self):
+        from flamenerf.tracking.landmarker import FaceLandmarker, blendshape_names
+
+        self._lm = FaceLandmarker()
+        self.names = blendshape_names()
+
+    def __call__(self, img: np.ndarray) -> dict[str, float] | None:
+        """img (H, W, 3) float in [0, 1] -> {control: score}, or None when no face is found."""
+        from PIL import Image
+
+        u8 = (np.clip(img, 0, 1) * 255 + 0.5).astype(np.uint8)
+        h, w = u8.shape[:2]
+        s = max(1.0, self.min_size / min(h, w))
+        if s > 1:
+            u8 = np.asarray(Image.fromarray(u8).resize((round(w * s), round(h * s)),
+                                                      Image.BICUBIC))
+        det = self._lm.detect(u8)
+        if det is None:
+            return None
+        return dict(zip(self.names, map(float, det.blendshapes)))
+
+    def close(self) -> None:
+        self._lm.close()
+
+
+def trackable_controls(names: list[str]) -> list[str]:
+    """Controls the landmarker reports by the same name (ARKit-named expression models)."""
+    from flamenerf.tracking.landmarker import blendshape_names
+
+    known = set(blendshape_names())
+    return [n for n in names if n in known]
+
+
+def sweep_values(values: np.ndarray, steps: int, lo_q: float = 5.0, hi_q: float = 95.0
+                 ) -> np.ndarray | None:
+    """`steps` values across the range a control covers in the training frames (its 5th to
+    95th percentile); None when it barely varies (less than 0.1)."""
+    lo, hi = np.percentile(values, [lo_q, hi_q])
+    if hi - lo < 0.1:
+        return None
+    return np.linspace(lo, hi, steps)
+
+
+RenderFn = Callable[[np.ndarray], np.ndarray]
+"""β (E,) -> rendered image (H, W, 3) at the sweep's fixed camera."""
+
+
+def control_response(render: RenderFn, names: list[str], base: np.ndarray,
+                     train_expressions: np.ndarray, track: Callable, steps: int = 5,
+                     controls: list[str] | None = None) -> dict[str, Any]:
+    """Sweep each trackable control that varies in the training frames; re-track.
+
+    base (E,) the β the other controls keep; train_expressions (N, E). -> {"controls":
+    {name: {commanded, retracked, gain, correlation, detected}}, "mean_gain",
+    "mean_correlation", "skipped": {name: why}}.
+    """
+    out: dict[str, Any] = {"controls": {}, "skipped": {}}
+    want = controls if controls is not None else trackable_controls(names)
+    for name in names:
+        if name not in want:
+            continue
+        k = names.index(name)
+        vals = sweep_values(train_expressions[:, k], steps)
+        if vals is None:
+            out["skipped"][name] = "varies by less than 0.1 in the training frames"
+            continue
+        got = []
+        for v in vals:
+            beta = base.copy()
+            beta[k] = v
+            scores = track(render(beta))
+            got.append(float("nan") if scores is None else scores.get(name, float("nan")))
+        got_a = np.array(got)
+        ok = np.isfinite(got_a)
+        gain, corr = fit_line(vals[ok], got_a[ok]) if ok.sum() >= 2 else (math.nan, math.nan)
+        out["controls"][name] = {"commanded": vals.tolist(), "retracked": got,
+                                 "gain": gain, "correlation": corr,
+                                 "detected": int(ok.sum())}
+    gains = [c["gain"] for c in out["controls"].values() if math.isfinite(c["gain"])]
+    corrs = [c["correlation"] for c in out["controls"].values()
+             if math.isfinite(c["correlation"])]
+    out["mean_gain"] = float(np.mean(gains)) if gains else float("nan")
+    out["mean_correlation"] = float(np.mean(corrs)) if corrs else float("nan")
+    return out
+
+
+def model_renderer(model: FlameNeRF, ds: Dataset, intr: Intrinsics, c2w: np.ndarray,
+                   omega: torch.Tensor, phi: torch.Tensor, mesh_of: Callable,
+                   dilate_px: int, chunk: int = 16384) -> RenderFn:
+    """β -> the model's render at camera c2w, with the prior's mask from β's mesh."""
+
+    def render(beta: np.ndarray) -> np.ndarray:
+        mask = prior_mask(ds, mesh_of(beta), c2w, intr, dilate_px)
+        b = torch.as_tensor(np.asarray(beta, np.float32))
+        return render_image(model, intr, c2w, omega, phi, b, mask, chunk=chunk)["rgb"].numpy()
+
+    return render
+
+
+def sweep_response(fs: FrameSet, preds: list[np.ndarray], track: Callable) -> dict[str, Any]:
+    """Control response on a sweep with ground truth (the built-in scene's leakage split:
+    frame 0 neutral, then one control at a time at a fixed camera). Renders and ground-truth
+    images are re-tracked alike, so `gain` reads against `gt_gain`: what the landmarker sees
+    in the true scene is the most a model can show. -> as `control_response`, plus gt_gain,
+    gt_correlation and relative_gain (gain / gt_gain) per control."""
+    from flamenerf.tracking.landmarker import blendshape_names
+
+    known = set(blendshape_names())
+    ref_pred, ref_gt = track(preds[0]), track(fs.images[0].numpy())
+    by_control: dict[str, list[int]] = {}
+    for i, fr in enumerate(fs.frames[1:], start=1):
+        c = fr.extra.get("leakage_control")
+        if c is not None:
+            by_control.setdefault(c, []).append(i)
+    out: dict[str, Any] = {"controls": {}, "skipped": {},
+                           "source": "the dataset's leakage sweep, against its ground truth"}
+    for name, idx in by_control.items():
+        if name not in known:
+            out["skipped"][name] = "not reported by the landmarker"
+            continue
+        vals = [0.0] + [float(fs.frames[i].extra.get("leakage_value", 0.0)) for i in idx]
+
+        def scores(ref, imgs, name=name):
+            got = [ref] + [track(im) for im in imgs]
+            return np.array([float("nan") if g is None else g.get(name, float("nan"))
+                             for g in got])
+
+        got = scores(ref_pred, [preds[i] for i in idx])
+        gt = scores(ref_gt, [fs.images[i].numpy() for i in idx])
+        v = np.array(vals)
+        ok, okg = np.isfinite(got), np.isfinite(gt)
+        gain, corr = fit_line(v[ok], got[ok]) if ok.sum() >= 2 else (math.nan, math.nan)
+        ggain, gcorr = fit_line(v[okg], gt[okg]) if okg.sum() >= 2 else (math.nan, math.nan)
+        out["controls"][name] = {
+            "commanded": vals, "retracked": got.tolist(), "gt_retracked": gt.tolist(),
+            "gain": gain, "correlation": corr, "gt_gain": ggain, "gt_correlation": gcorr,
+            "relative_gain": gain / ggain if ggain and math.isfinite(ggain) and ggain > 0.05
+            else float("nan"),
+            "detected": int(ok.sum())}
+    rows = out["controls"].values()
+    # only controls the landmarker can see in the true scene say anything about the model
+    seen = [c for c in rows if math.isfinite(c["gt_gain"]) and c["gt_gain"] > 0.1]
+    out["responsive_controls"] = [n for n, c in out["controls"].items() if c in seen]
+    for key in ("gain", "correlation", "gt_gain", "relative_gain"):
+        vals_k = [c[key] for c in seen if math.isfinite(c[key])]
+        out[f"mean_{key}"] = float(np.mean(vals_k)) if vals_k else float("nan")
+    return out

@@ -1,0 +1,78 @@
+"""Face-mesh helpers shared by the model, rendering and evaluation: points on a mesh, the
+per-subject linear expression model β -> mesh, and the displacement a mesh change induces
+on nearby space.
+
+The expression model is what lets a commanded β move the face: fitted on the training
+frames' tracked meshes, it gives the mesh of any β (re-animation, the viewer's sliders, the
+spatial prior's silhouette of the driven expression), and the mesh-guided deformation
+(`mesh_displacement`) carries points near the face from the expression's mesh to the
+neutral one, as RigNeRF does with its 3DMM.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+
+def surface_points(vertices: Tensor, faces: Tensor, tri: Tensor, uv: Tensor) -> Tensor:
+    """Points on triangles by barycentric coordinates.
+
+    vertices (..., V, 3) or (V, 3); faces (F, 3) long; tri (B,) long triangle ids; uv (B, 2)
+    uniform in [0, 1]^2 (folded into the triangle here). With batched vertices (B, V, 3) each
+    point uses its own mesh. -> (B, 3).
+    """
+    u = uv.clone()
+    flip = u.sum(-1) > 1
+    u[flip] = 1 - u[flip]
+    idx = faces[tri]  # (B, 3)
+    if vertices.dim() == 2:
+        v = vertices[idx]  # (B, 3, 3)
+    else:
+        v = vertices[torch.arange(len(tri), device=vertices.device)[:, None], idx]
+    return v[:, 0] + u[:, :1] * (v[:, 1] - v[:, 0]) + u[:, 1:] * (v[:, 2] - v[:, 0])
+
+
+def fit_expression_model(expressions: Tensor, vertices: Tensor, ridge: float = 1e-3
+                         ) -> tuple[Tensor, Tensor]:
+    """Least-squares linear model mesh(β) = neutral + Σ_k β_k basis_k over frames.
+
+    expressions (N, E); vertices (N, V, 3). `ridge` (relative to the mean squared control
+    value) keeps controls that barely vary in the frames from getting wild shapes.
+    -> neutral (V, 3), basis (E, V, 3).
+    """
+    n, e = expressions.shape
+    x = torch.cat([torch.ones(n, 1, dtype=torch.float64),
+                   expressions.to(torch.float64)], 1)  # (N, 1+E)
+    y = vertices.reshape(n, -1).to(torch.float64)  # (N, 3V)
+    reg = torch.eye(e + 1, dtype=torch.float64) * ridge * max(float((x[:, 1:] ** 2).mean()), 1e-12) * n
+    reg[0, 0] = 0.0  # the neutral mesh is not shrunk
+    coef = torch.linalg.solve(x.T @ x + reg, x.T @ y)  # (1+E, 3V)
+    coef = coef.to(torch.float32).view(e + 1, -1, 3)
+    return coef[0], coef[1:]
+
+
+def expression_mesh(neutral: Tensor, basis: Tensor, expression: Tensor) -> Tensor:
+    """neutral (V, 3), basis (E, V, 3), expression (..., E) -> mesh (..., V, 3)."""
+    return neutral + torch.einsum("...e,evc->...vc", expression.to(basis), basis)
+
+
+def mesh_displacement(x: Tensor, mesh: Tensor, target: Tensor, falloff: float, k: int = 4
+                      ) -> Tensor:
+    """The displacement that carries space near `mesh` along with its vertices to `target`.
+
+    x (P, 3) points; mesh, target (V, 3) the same vertices in two poses; `falloff` the
+    distance at which the motion has faded to 1/e (points far from the face stay put).
+    Each point moves by the inverse-square-distance blend of its k nearest vertices'
+    motions, scaled by exp(-(d_min / falloff)^2). -> (P, 3).
+    """
+    if x.shape[0] == 0:
+        return torch.zeros_like(x)
+    d2 = torch.cdist(x, mesh).square()  # (P, V)
+    k = min(k, mesh.shape[0])
+    d2k, idx = torch.topk(d2, k, dim=-1, largest=False)  # (P, k)
+    w = 1.0 / (d2k + 1e-10)
+    w = w / w.sum(-1, keepdim=True)
+    motion = (target - mesh)[idx]  # (P, k, 3)
+    fade = torch.exp(-d2k[:, :1] / (falloff * falloff))  # (P, 1)
+    return (w[..., None] * motion).sum(1) * fade

@@ -1,0 +1,85 @@
+"""Control metrics: the regression, the sweep range, re-tracking on images whose answer is
+known, and the driven/control sections of `evaluate_run`."""
+
+import math
+
+import numpy as np
+import pytest
+
+from flamenerf.evaluation import control as C
+
+
+def test_fit_line_recovers_slope_and_correlation():
+    x = np.linspace(0, 1, 6)
+    g, r = C.fit_line(x, 0.4 * x + 0.1)
+    assert g == pytest.approx(0.4) and r == pytest.approx(1.0)
+    g, r = C.fit_line(x, np.full(6, 0.2))  # a control that does nothing
+    assert abs(g) < 1e-12 and math.isnan(r)
+    g, r = C.fit_line(np.ones(4), x[:4])
+    assert math.isnan(g)
+
+
+def test_sweep_values_cover_the_training_range():
+    vals = np.concatenate([np.zeros(50), np.linspace(0, 0.8, 50)])
+    s = C.sweep_values(vals, 5)
+    assert len(s) == 5 and s[0] == pytest.approx(np.percentile(vals, 5))
+    assert s[-1] == pytest.approx(np.percentile(vals, 95))
+    assert C.sweep_values(np.full(20, 0.3), 5) is None
+
+
+def test_control_response_tells_a_working_control_from_a_dead_one():
+    names = ["jawOpen", "eyeBlinkLeft", "notAControl"]
+    train = np.random.default_rng(0).uniform(0, 1, (40, 3))
+
+    def render(beta):  # an "image" that carries the commanded values
+        return beta
+
+    def track(img):  # jawOpen seen at half strength, eyeBlinkLeft ignored
+        return {"jawOpen": 0.5 * img[0], "eyeBlinkLeft": 0.3}
+
+    res = C.control_response(render, names, np.zeros(3), train, track, steps=4)
+    assert set(res["controls"]) == {"jawOpen", "eyeBlinkLeft"}  # notAControl: not trackable
+    assert res["controls"]["jawOpen"]["gain"] == pytest.approx(0.5)
+    assert res["controls"]["jawOpen"]["correlation"] == pytest.approx(1.0)
+    assert abs(res["controls"]["eyeBlinkLeft"]["gain"]) < 1e-9
+
+
+@pytest.fixture(scope="module")
+def face_scene(tmp_path_factory):
+    """The built-in scene at a size the landmarker can read, with its leakage sweep."""
+    from flamenerf.synthetic.scene import make_scene
+
+    out = tmp_path_factory.mktemp("face") / "scene"
+    return make_scene(out, seed=0, size=128, frames=12, reanimate=2, leakage_steps=2, workers=1)
+
+
+def test_retracker_reads_the_ground_truth_jaw(face_scene):
+    from flamenerf.data.dataset import load_dataset
+
+    ds = load_dataset(face_scene)
+    sweep = ds.split("leakage")
+    neutral = next(f for f in sweep if f.extra.get("leakage_control") in (None, "neutral"))
+    jaw = max((f for f in sweep if f.extra.get("leakage_control") == "jawOpen"),
+              key=lambda f: f.extra["leakage_value"])
+    track = C.Retracker()
+    try:
+        a, b = track(ds.load_image(neutral)), track(ds.load_image(jaw))
+        assert a is not None and b is not None, "no face found in the built-in scene"
+        assert b["jawOpen"] > a["jawOpen"] + 0.2  # the open jaw is seen as open
+        assert track(np.zeros((64, 64, 3), np.float32)) is None  # no face, no scores
+    finally:
+        track.close()
+
+
+def test_expressive_region_is_mouth_eyes_and_brows(face_scene):
+    from flamenerf.data.dataset import load_dataset
+
+    ds = load_dataset(face_scene)
+    part = C.expressive_faces(ds)
+    assert 0 < len(part) < 0.8 * len(ds.faces)
+    # the region holds the vertices that move most over the frames
+    v = ds.face_vertices[[f.position for f in ds.split("train")]]
+    v = v - v.mean(1, keepdims=True)
+    motion = np.sqrt(((v - v.mean(0)) ** 2).sum(-1).mean(0))
+    assert np.argmax(motion) in set(part.ravel())
+    assert np.argmin(motion) not in set(part.ravel())

@@ -1,0 +1,54 @@
+"""The per-subject expression model and the mesh-guided displacement."""
+
+import numpy as np
+import torch
+
+from flamenerf.data.dataset import load_dataset
+from flamenerf.meshes import (expression_mesh, fit_expression_model, mesh_displacement,
+                              surface_points)
+
+
+def test_expression_model_reproduces_the_training_meshes(synth_scene):
+    ds = load_dataset(synth_scene)
+    train = ds.split("train")
+    betas = torch.from_numpy(ds.expression_matrix(train))
+    verts = torch.from_numpy(ds.face_vertices[[f.position for f in train]])
+    neutral, basis = fit_expression_model(betas, verts)
+    fitted = expression_mesh(neutral, basis, betas)
+    motion = (verts - verts.mean(0)).norm(dim=-1).mean()
+    err = (fitted - verts).norm(dim=-1).mean()
+    # the synthetic head's expressions are near-linear in its vertices: the fit explains
+    # almost all of the expression motion (not just the mean mesh)
+    assert err < 0.2 * motion, (float(err), float(motion))
+    # held-out frames too: the model generalises to expressions it was not fitted on
+    val = ds.split("val")
+    v_val = torch.from_numpy(ds.face_vertices[[f.position for f in val]])
+    pred = expression_mesh(neutral, basis, torch.from_numpy(ds.expression_matrix(val)))
+    assert (pred - v_val).norm(dim=-1).mean() < 0.35 * (v_val - verts.mean(0)).norm(dim=-1).mean()
+
+
+def test_displacement_moves_vertices_exactly_and_far_points_not_at_all():
+    g = torch.Generator().manual_seed(0)
+    mesh = torch.rand(50, 3, generator=g) * 0.2
+    target = mesh + torch.tensor([0.0, -0.03, 0.0])
+    d = mesh_displacement(mesh, mesh, target, falloff=0.05)
+    assert torch.allclose(d, target - mesh, atol=1e-4)
+    far = torch.tensor([[2.0, 2.0, 2.0], [-1.0, 0.5, 0.3]])
+    assert mesh_displacement(far, mesh, target, falloff=0.05).abs().max() < 1e-12
+    # in between, the motion fades monotonically with the distance to the mesh
+    probe = mesh[:1] + torch.tensor([[0.0, 0.0, 1.0]]) * torch.tensor([[0.02], [0.05], [0.1]])
+    mags = mesh_displacement(probe, mesh, target, falloff=0.05).norm(dim=-1)
+    assert mags[0] > mags[1] > mags[2]
+
+
+def test_surface_points_lie_in_their_triangles():
+    verts = torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
+    faces = torch.tensor([[0, 1, 2], [0, 1, 3]])
+    g = torch.Generator().manual_seed(1)
+    tri = torch.randint(2, (500,), generator=g)
+    p = surface_points(verts, faces, tri, torch.rand(500, 2, generator=g))
+    on0 = tri == 0
+    assert torch.all(p[on0, 2].abs() < 1e-7) and torch.all(p[~on0, 1].abs() < 1e-7)
+    assert torch.all(p >= -1e-7) and torch.all(p.sum(-1) <= 1 + 1e-6)
+    batched = surface_points(verts.expand(500, -1, -1), faces, tri, torch.rand(500, 2, generator=g))
+    assert np.isfinite(batched.numpy()).all()
