@@ -100,10 +100,12 @@ def test_fit_recovers_expression_from_landmarks(tiny_flame, canonical_mesh):
                           template=canonical_mesh.vertices)
     fit = fit_flame(m, clip, sol, num_expr=E, num_shape=6, iters=300, reg_expr=1e-6,
                     reg_shape=1e-6, smooth=0.0)
-    assert fit.expressions.shape == (N, E) and fit.vertices.shape == (N, 468, 3)
+    assert fit.expressions.shape == (N, E + 3) and fit.vertices.shape == (N, 468, 3)
+    assert fit.names[E:] == ["flame_jaw_rx", "flame_jaw_ry", "flame_jaw_rz"]
+    assert np.array_equal(fit.expressions[:, E:], fit.jaw.astype(np.float32))  # β holds the jaw
     assert fit.median_error_px < 0.3
     # the expression channels follow the truth
     assert np.corrcoef(fit.expressions[:, 1], expr[:, 1])[0, 1] > 0.95
-    assert np.abs(fit.expressions[:, 1:] - expr[:, 1:]).mean() < 0.2
+    assert np.abs(fit.expressions[:, 1:E] - expr[:, 1:]).mean() < 0.2
     err = np.linalg.norm(fit.vertices - v_world, axis=-1)
     assert np.median(err) < 0.002  # metres

@@ -130,7 +130,8 @@ def test_flame_backend_end_to_end(tmp_path, astronaut_video, tiny_flame):
         size=64, face_model="flame", flame_dir=tiny_flame["dir"], flame_expr_dim=4,
         qa=False, progress=False))
     ds = load_dataset(out)
-    assert ds.expression_kind == "flame" and ds.expression_dim == 4
+    assert ds.expression_kind == "flame" and ds.expression_dim == 4 + 3  # + the jaw pose
+    assert ds.expression_names[-3:] == ["flame_jaw_rx", "flame_jaw_ry", "flame_jaw_rz"]
     assert ds.face_vertices.shape == (12, 468, 3)
     assert ds.meta["expression_model"]["fit_error_px"] < 5.0
     assert rep["kept_frames"] == 12

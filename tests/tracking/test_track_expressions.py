@@ -93,5 +93,6 @@ def test_track_with_flame(tmp_path, astronaut_video, tiny_flame):
     assert main(["track", str(astronaut_video), "--out", str(out), "--face-model", "flame",
                  "--flame-dir", str(tiny_flame["dir"]), "--flame-expr-dim", "3"]) == 0
     tr = load_expressions(out)
-    assert tr.kind == "flame" and tr.frames.shape == (12, 3)
-    assert tr.names == ["flame_expr_000", "flame_expr_001", "flame_expr_002"]
+    assert tr.kind == "flame" and tr.frames.shape == (12, 6)  # 3 coefficients + jaw pose
+    assert tr.names == ["flame_expr_000", "flame_expr_001", "flame_expr_002",
+                        "flame_jaw_rx", "flame_jaw_ry", "flame_jaw_rz"]

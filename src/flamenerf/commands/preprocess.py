@@ -67,7 +67,8 @@ def preprocess(
         flame_dir: Folder with FLAME's generic_model.pkl (or flame2020/2023 pkl) and a
             landmark embedding (mediapipe_landmark_embedding.npz). Only load files you
             trust: .pkl files can run code (see docs/preprocessing.md).
-        flame_expr_dim: Number of FLAME expression coefficients to fit and store.
+        flame_expr_dim: Number of FLAME expression coefficients to fit and store (β also
+            holds the 3 jaw-pose angles after them).
         min_tracked: Fail unless at least this fraction of the selected frames is tracked.
         max_error: Drop frames whose median reprojection error exceeds this fraction of
             the face size (and 3x the clip's median).

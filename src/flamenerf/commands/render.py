@@ -94,7 +94,7 @@ def render(
     from flamenerf.errors import UserError
     from flamenerf.rendering import cameras as C
     from flamenerf.rendering import expressions as X
-    from flamenerf.rendering.prior import estimate_dilation
+    from flamenerf.rendering.prior import estimate_dilation, mesh_function
     from flamenerf.training.run import load_run
 
     given = [n for n, v in (("--expressions", expressions), ("--split", split),
@@ -163,7 +163,11 @@ def render(
             poses = C.resample(poses, len(seq))
     n = len(seq) if max_frames is None else min(len(seq), max_frames)
     values, poses = seq.values[:n], poses[:n]
-    verts = seq.vertices[:n] if seq.vertices is not None else ds.face_vertices[ref]
+    if seq.vertices is not None:  # a split with its own (ground-truth) meshes
+        verts = seq.vertices[:n]
+    else:  # the prior's silhouette follows the driven expression's mesh, not frame 0's
+        mesh_of = mesh_function(r.model, ds)
+        verts = np.stack([mesh_of(v) for v in values])
     dil = estimate_dilation(ds) if dilate_px is None else dilate_px
     rate = fps or seq.fps or 30.0
 

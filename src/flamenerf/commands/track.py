@@ -48,7 +48,7 @@ def track(
         face_model: mediapipe (52 ARKit blendshape scores) or flame (FLAME expression
             coefficients; needs --flame-dir).
         flame_dir: Folder with FLAME's model pickle and MediaPipe landmark embedding.
-        flame_expr_dim: Number of FLAME expression coefficients.
+        flame_expr_dim: Number of FLAME expression coefficients (the jaw pose follows them).
         min_tracked: Fail unless at least this fraction of the selected frames is tracked.
         overwrite: Replace OUT if it exists.
     """

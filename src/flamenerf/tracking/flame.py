@@ -259,9 +259,15 @@ def embedded_vertices(m: FlameModel) -> np.ndarray:
 # ----------------------------------------------------------------------------- fitting
 
 
+JAW_NAMES = ("flame_jaw_rx", "flame_jaw_ry", "flame_jaw_rz")
+"""The jaw pose's controls, after the expression coefficients in a FLAME β."""
+
+
 @dataclass
 class FlameFit:
-    expressions: np.ndarray  # (N, E) float32, FLAME expression coefficients
+    expressions: np.ndarray  # (N, E + 3) float32: FLAME expression coefficients, then the
+    # jaw pose (axis-angle, radians): in FLAME the mouth opens mostly through the jaw, so an
+    # expression vector without it could not open the mouth
     names: list[str]
     vertices: np.ndarray  # (N, V, 3) float32, world (head) frame
     shape: np.ndarray  # (S,)
@@ -378,11 +384,12 @@ def _fit(m, clip, sol, num_expr, num_shape, iters, reg_shape, reg_expr, reg_pose
         T[:3, :3] = (s0 * float(torch.exp(0.1 * g_logs))
                      * (so3_exp(0.1 * g_rot) @ so3_exp(r0)).numpy())
         T[:3, 3] = 0.01 * g_t.numpy()
+    jaw = 0.1 * jaw_s.detach().numpy()
     return FlameFit(
-        expressions=expr.detach().numpy().astype(np.float32),
-        names=[f"flame_expr_{k:03d}" for k in range(E)],
+        expressions=np.concatenate([expr.detach().numpy(), jaw], 1).astype(np.float32),
+        names=[f"flame_expr_{k:03d}" for k in range(E)] + list(JAW_NAMES),
         vertices=verts, shape=shape.detach().numpy(),
-        jaw=0.1 * jaw_s.detach().numpy(), neck=0.1 * neck_s.detach().numpy(), to_world=T,
+        jaw=jaw, neck=0.1 * neck_s.detach().numpy(), to_world=T,
         median_error_px=float(np.median(err)), errors_px=err,
         model_info={"model": m.path.name, "embedding": m.embedding_path.name,
                     "num_shape": S, "num_expr": E, "vertices": m.num_vertices,
