@@ -19,6 +19,7 @@ def train(
     downscale: float | None = None,
     batch_rays: int | None = None,
     face_reg_weight: float | None = None,
+    expression_mode: Literal["masked", "none", "everywhere"] | None = None,
     resume: bool = False,
     device: str = "auto",
     threads: int = 0,
@@ -32,6 +33,7 @@ def train(
     continues exactly where the run stopped. TensorBoard logs: `tensorboard --logdir OUT/tb`.
 
     Example: flamenerf train scenes/portrait --out runs/fast --preset fast --size 128
+    (the Nerfies variant of the same: add `--expression-mode none`)
 
     Args:
         dataset: Dataset directory (made by `flamenerf synth` or `flamenerf preprocess`).
@@ -42,6 +44,9 @@ def train(
         downscale: Train at 1/downscale of the dataset resolution (alternative to --size).
         batch_rays: Rays per step.
         face_reg_weight: Weight of the face-region regularisation (paper: 0.1 to 10).
+        expression_mode: The ablations of any preset: `masked` (β through the spatial prior,
+            FLAME-in-NeRF), `none` (no β: the Nerfies variant), `everywhere` (β at every
+            point: no prior). Default: the preset's.
         resume: Continue the run in OUT from its latest checkpoint.
         device: `auto` (CUDA when present), `cpu` or `cuda`.
         threads: CPU threads for torch (0 = default).
@@ -67,6 +72,8 @@ def train(
         cfg.train.batch_rays = batch_rays
     if face_reg_weight is not None:
         cfg.train.face_reg_weight = face_reg_weight
+    if expression_mode is not None:
+        cfg.model.expression_mode = expression_mode
     cfg.train.num_threads = threads
     res = run_train(dataset, out, cfg, resume=resume, device=device, steps=steps)
     state = "interrupted" if res.interrupted else "finished"
