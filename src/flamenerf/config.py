@@ -56,6 +56,14 @@ class FieldConfig:
     hash_max_res: int = 1024
     head_width: int = 64
     geo_features: int = 15
+    expr_rank: int = 0
+    """hash only: > 0 adds expression features to the canonical field, Σ_r (Aβ)_r G_r(x'):
+    a hash grid G of `expr_rank` feature sets mixed by a learned projection A of 𝕀β (a
+    blendshape basis of feature fields). β = 0 adds exactly nothing, so the prior holds."""
+    expr_levels: int = 8
+    expr_features: int = 2
+    expr_log2_size: int = 16
+    expr_max_res: int = 512
 
 
 @dataclass

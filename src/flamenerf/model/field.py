@@ -61,14 +61,39 @@ class HashField(nn.Module):
         self.cfg, self.expr_dim = cfg, expr_dim
         self.grid = HashGrid(cfg.hash_levels, cfg.hash_features, cfg.hash_log2_size,
                              cfg.hash_base_res, cfg.hash_max_res)
-        self.density_head = MLP(self.grid.out_dim + expr_dim, cfg.head_width, 1, (),
+        self.expr_grid = None
+        extra = 0
+        if expr_dim and cfg.expr_rank > 0:
+            self.expr_grid = HashGrid(cfg.expr_levels, cfg.expr_rank * cfg.expr_features,
+                                      cfg.expr_log2_size, cfg.hash_base_res, cfg.expr_max_res)
+            self.expr_proj = nn.Linear(expr_dim, cfg.expr_rank, bias=False)
+            extra = cfg.expr_levels * cfg.expr_features
+        self.density_head = MLP(self.grid.out_dim + extra + expr_dim, cfg.head_width, 1, (),
                                 out_dim=1 + cfg.geo_features)
         self.rgb = MLP(cfg.geo_features + pe_dim(3, cfg.dir_freqs) + cfg.appearance_dim,
                        cfg.head_width, 2, (), out_dim=3)
 
     def _geo(self, x: Tensor, expr: Tensor | None) -> Tensor:
         h = self.grid((x.reshape(-1, 3) + 1) * 0.5).view(*x.shape[:-1], -1)
+        if self.expr_grid is not None:
+            h = torch.cat([h, self._expression_features(x, expr)], -1)
         return self.density_head(h, expr if self.expr_dim else None)
+
+    def _expression_features(self, x: Tensor, expr: Tensor) -> Tensor:
+        """Σ_r (Aβ)_r G_r(x), evaluated only where β ≠ 0 (elsewhere it is exactly 0).
+        x (*bs, 3), expr per point or broadcastable -> (*bs, levels·features)."""
+        cfg = self.cfg
+        L, R, Fe = cfg.expr_levels, cfg.expr_rank, cfg.expr_features
+        bs = x.shape[:-1]
+        z = self.expr_proj(expr).expand(*bs, R).reshape(-1, R)
+        active = (expr.abs().amax(-1, keepdim=True) > 0).expand(*bs, 1).reshape(-1)
+        out = x.new_zeros(z.shape[0], L * Fe)
+        idx = active.nonzero()[:, 0]
+        if len(idx):
+            g = self.expr_grid((x.reshape(-1, 3)[idx] + 1) * 0.5).view(-1, L, R, Fe)
+            out = out.index_copy(0, idx, torch.einsum("nlrf,nr->nlf", g, z[idx])
+                                 .reshape(-1, L * Fe))
+        return out.view(*bs, L * Fe)
 
     def density(self, x: Tensor, expr: Tensor | None) -> Tensor:
         return trunc_exp(self._geo(x, expr)[..., 0])
