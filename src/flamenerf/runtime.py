@@ -1,9 +1,16 @@
-"""Process set-up that must happen before any heavy work."""
+"""The process and its hardware: allocator tuning (before any heavy work), the torch device,
+CPU threads."""
 
 from __future__ import annotations
 
+import contextlib
 import os
 import sys
+from collections.abc import Iterator
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    import torch
 
 TUNED_ALLOCATOR = {"MALLOC_MMAP_MAX_": "0", "MALLOC_TRIM_THRESHOLD_": "100000000000"}
 
@@ -21,3 +28,33 @@ def reexec_with_tuned_allocator(python_args: list[str]) -> None:
         return
     env = dict(os.environ, **TUNED_ALLOCATOR, FLAMENERF_NO_REEXEC="1")
     os.execve(sys.executable, [sys.executable, *python_args], env)
+
+
+def pick_device(device: str = "auto") -> torch.device:
+    """`auto` -> CUDA when present, else CPU; anything else is passed to torch.device."""
+    import torch
+
+    if device == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(device)
+
+
+def set_threads(threads: int) -> None:
+    """Use `threads` CPU threads for torch; 0 (or less) keeps torch's default."""
+    if threads > 0:
+        import torch
+
+        torch.set_num_threads(threads)
+
+
+@contextlib.contextmanager
+def torch_threads(threads: int) -> Iterator[None]:
+    """Run the block with `threads` torch CPU threads, then restore the previous count."""
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)

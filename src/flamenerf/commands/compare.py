@@ -32,7 +32,7 @@ def compare(
     """
     from flamenerf.errors import UserError
     from flamenerf.evaluation.report import compare_latex, compare_markdown, load_eval
-    from flamenerf.training.checkpoint import atomic_write_text
+    from flamenerf.io import atomic_write_text
 
     if not runs:
         raise UserError("give at least one run directory")

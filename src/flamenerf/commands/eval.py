@@ -51,15 +51,14 @@ def eval(  # noqa: A001 - the subcommand's name
         threads: CPU threads for torch (0 = default).
         seed: Seed of the ω fit's ray sampling.
     """
-    import torch
 
     from flamenerf.errors import UserError
     from flamenerf.evaluation.protocol import EvalOptions, evaluate_run
     from flamenerf.evaluation.report import compare_markdown
+    from flamenerf.runtime import set_threads
     from flamenerf.training.run import load_run
 
-    if threads > 0:
-        torch.set_num_threads(threads)
+    set_threads(threads)
     if fit_batch_rays <= 0:
         raise UserError(f"--fit-batch-rays {fit_batch_rays}: must be positive")
     for name, v in (("--fit-steps", fit_steps), ("--images", images),

@@ -204,7 +204,7 @@ def _render_videos(r, ds, intr, poses, values, verts, dil, chunk, rate, paths, s
                    tqdm) -> None:
     import contextlib
 
-    from flamenerf.evaluation.images import expression_panel, hstack, resize_to_height
+    from flamenerf.images import expression_panel, hstack, resize_to_height
     from flamenerf.rendering.reanimate import depth_image, depth_range, render_sequence
     from flamenerf.rendering.video import VideoWriter
 

@@ -63,10 +63,9 @@ def view(
 
     check_port_free(host, port)  # before the slow model load
 
-    import torch
+    from flamenerf.runtime import set_threads
 
-    if threads > 0:
-        torch.set_num_threads(threads)
+    set_threads(threads)
 
     from flamenerf.training.run import load_run
     from flamenerf.viewer.app import Viewer

@@ -144,6 +144,15 @@ class Dataset:
         return np.stack([f.expression for f in frames]).astype(np.float32)
 
 
+def reference_position(ds: Dataset) -> int:
+    """Position (in ds.frames) of frame 0: the frame whose codes re-animation, the viewer
+    and the spatial prior's default mask use."""
+    for f in ds.frames:
+        if f.frame_index == 0:
+            return f.position
+    return ds.splits["train"][0]
+
+
 def _read_png(path: Path, intr: Intrinsics) -> np.ndarray:
     import imageio.v3 as iio
 

@@ -7,6 +7,7 @@ import torch
 
 from flamenerf.data.dataset import Dataset, Frame, Intrinsics
 from flamenerf.data.rays import pixel_directions
+from flamenerf.images import resize_image
 from flamenerf.meshes import fit_expression_model
 
 
@@ -37,15 +38,6 @@ def fit_dataset_expression_model(ds: Dataset, ridge: float = 1e-3
     return fit_expression_model(torch.from_numpy(ds.expression_matrix(train)),
                                 torch.from_numpy(ds.face_vertices[[f.position for f in train]]),
                                 ridge)
-
-
-def resize_image(img: np.ndarray, w: int, h: int) -> np.ndarray:
-    """Area-average resize of an (H, W, C) float image (what a lower-resolution camera sees)."""
-    if img.shape[1] == w and img.shape[0] == h:
-        return img
-    t = torch.from_numpy(np.ascontiguousarray(img)).permute(2, 0, 1)[None].float()
-    t = torch.nn.functional.interpolate(t, size=(h, w), mode="area")
-    return t[0].permute(1, 2, 0).numpy()
 
 
 class FrameSet:

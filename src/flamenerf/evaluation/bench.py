@@ -148,7 +148,8 @@ def _prepare_scene(o: BenchOptions, log) -> tuple[Path, float, bool]:
 
 
 def _train(name: str, cfg: Config, scene: Path, o: BenchOptions, log) -> dict[str, Any]:
-    from flamenerf.training.checkpoint import atomic_write_text, latest_checkpoint
+    from flamenerf.io import atomic_write_text
+    from flamenerf.training.checkpoint import latest_checkpoint
     from flamenerf.training.trainer import train
 
     run_dir = o.work / "runs" / name
@@ -180,16 +181,14 @@ def _train(name: str, cfg: Config, scene: Path, o: BenchOptions, log) -> dict[st
 
 
 def run_bench(o: BenchOptions, log=print) -> dict[str, Any]:
-    import torch
 
     from flamenerf.data.dataset import load_dataset
-    from flamenerf.evaluation.protocol import EvalOptions, evaluate_run, jsonable
-    from flamenerf.training.checkpoint import atomic_write_text
+    from flamenerf.evaluation.protocol import EvalOptions, evaluate_run
+    from flamenerf.io import atomic_write_text, write_json
+    from flamenerf.runtime import pick_device, set_threads
     from flamenerf.training.run import load_run
-    from flamenerf.training.trainer import pick_device
 
-    if o.threads > 0:
-        torch.set_num_threads(o.threads)
+    set_threads(o.threads)
     dev = pick_device(o.device)
     machinery = o.machinery if o.machinery != "auto" else ("paper" if dev.type == "cuda"
                                                             else "fast")
@@ -248,7 +247,7 @@ def run_bench(o: BenchOptions, log=print) -> dict[str, Any]:
         "figure": fig_name,
         "total_seconds": time.perf_counter() - t_all,
     }
-    atomic_write_text(o.out / "bench.json", json.dumps(jsonable(report), indent=1))
+    write_json(o.out / "bench.json", report)
     atomic_write_text(o.out / "README.md", bench_markdown(report))
     return report
 
@@ -270,9 +269,9 @@ def _prior_figure(o: BenchOptions, ds, methods: dict[str, Any], train_size: int)
     import torch
 
     from flamenerf.data.scene import FrameSet
-    from flamenerf.evaluation.images import (abs_diff, hstack, resize_to_height, save_png,
-                                             text_strip, vstack)
     from flamenerf.evaluation.protocol import DIFF_GAIN, pick_sweep_frames, render_frames
+    from flamenerf.images import abs_diff, hstack, resize_to_height, text_strip, vstack
+    from flamenerf.io import save_png
     from flamenerf.training.run import load_run
 
     if not ds.splits.get("leakage") or len(ds.splits["leakage"]) < 2:

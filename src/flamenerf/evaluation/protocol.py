@@ -22,7 +22,6 @@ leakage           the built-in scene only: frame 0's camera and codes while the 
 
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -315,7 +314,7 @@ def control_section(run, ds: Dataset, intr, omega0, phi0, opts: EvalOptions,
 
 
 def _triptych(fs: FrameSet, k: int, pred: np.ndarray) -> np.ndarray:
-    from flamenerf.evaluation.images import abs_diff, hstack, resize_to_height
+    from flamenerf.images import abs_diff, hstack, resize_to_height
 
     gt = fs.images[k].numpy()
     img = hstack([gt, pred, abs_diff(pred, gt, DIFF_GAIN)], gap=2)
@@ -345,7 +344,7 @@ def pick_sweep_frames(fs: FrameSet, limit: int = 8) -> list[int]:
 def _sweep_figure(fs: FrameSet, preds: list[np.ndarray], dilate_px: int) -> np.ndarray:
     """Row 1: renders across the sweep; row 2: |render - reference| x gain, with the region
     where leakage is not measured tinted blue."""
-    from flamenerf.evaluation.images import abs_diff, hstack, resize_to_height, vstack
+    from flamenerf.images import abs_diff, hstack, resize_to_height, vstack
 
     idx = pick_sweep_frames(fs)
     outside = leakage_region(fs.masks.numpy(), dilate_px)
@@ -358,29 +357,13 @@ def _sweep_figure(fs: FrameSet, preds: list[np.ndarray], dilate_px: int) -> np.n
     return resize_to_height(fig, max(fig.shape[0], 256))
 
 
-def jsonable(x: Any) -> Any:
-    """NaN/inf -> None, numpy scalars -> Python (strict JSON)."""
-    if isinstance(x, dict):
-        return {k: jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [jsonable(v) for v in x]
-    if isinstance(x, np.generic):
-        x = x.item()
-    if isinstance(x, float) and not math.isfinite(x):
-        return None
-    return x
-
-
 def write_results(out_dir: Path, res: dict[str, Any], images: dict[str, np.ndarray]) -> None:
-    import json
-
-    from flamenerf.evaluation.images import save_png
     from flamenerf.evaluation.report import eval_markdown
-    from flamenerf.training.checkpoint import atomic_write_text
+    from flamenerf.io import atomic_write_text, save_png, write_json
 
     out_dir.mkdir(parents=True, exist_ok=True)
     for name, img in images.items():
         save_png(out_dir / "images" / name, img)
     res["images"] = sorted(f"images/{n}" for n in images)
-    atomic_write_text(out_dir / "metrics.json", json.dumps(jsonable(res), indent=1))
+    write_json(out_dir / "metrics.json", res)
     atomic_write_text(out_dir / "metrics.md", eval_markdown(res))

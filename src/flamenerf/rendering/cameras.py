@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from flamenerf.data.dataset import Dataset
+from flamenerf.data.dataset import Dataset, reference_position
 from flamenerf.errors import UserError
 
 PATH_KINDS = ("static", "orbit", "spiral", "dolly")
@@ -81,14 +81,6 @@ class CameraRig:
     @property
     def eye(self) -> np.ndarray:
         return self.reference[:3, 3].copy()
-
-
-def reference_position(ds: Dataset) -> int:
-    """Position (in ds.frames) of frame 0: the frame whose codes re-animation uses."""
-    for f in ds.frames:
-        if f.frame_index == 0:
-            return f.position
-    return ds.splits["train"][0]
 
 
 def rig_from_dataset(ds: Dataset) -> CameraRig:

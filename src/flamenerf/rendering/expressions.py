@@ -235,7 +235,7 @@ def _load_csv(path: Path, names: list[str]) -> tuple[np.ndarray, list[str]]:
 
 def from_split(ds, split: str, panel_hw: tuple[int, int] | None = None) -> ExpressionSequence:
     """A dataset split's expressions, cameras, per-frame face meshes and images."""
-    from flamenerf.data.scene import resize_image
+    from flamenerf.images import resize_image
 
     frames = ds.split(split)
     if not frames:
@@ -263,7 +263,7 @@ def from_video(video: Path, ds, names: list[str], relative: bool = True,
 
     With `relative` and a dataset of the same expression model, expressions are transferred
     relative to each subject's neutral face (as `flamenerf track --relative-to`)."""
-    from flamenerf.data.scene import resize_image
+    from flamenerf.images import resize_image
     from flamenerf.data.video import iter_frames, probe_video
     from flamenerf.tracking.expressions import estimate_neutral, transfer_relative
     from flamenerf.tracking.pipeline import track_expressions

@@ -15,8 +15,9 @@ from collections.abc import Callable
 import numpy as np
 import torch
 
-from flamenerf.data.dataset import Dataset, Intrinsics
-from flamenerf.data.scene import fit_dataset_expression_model, resize_image
+from flamenerf.data.dataset import Dataset, Intrinsics, reference_position
+from flamenerf.data.scene import fit_dataset_expression_model
+from flamenerf.images import resize_image
 from flamenerf.meshes import expression_mesh
 from flamenerf.tracking.silhouette import rasterize_silhouette
 
@@ -24,8 +25,6 @@ from flamenerf.tracking.silhouette import rasterize_silhouette
 def estimate_dilation(ds: Dataset, position: int | None = None, max_px: int = 8) -> int:
     """The dilation (pixels at the dataset resolution) that best reproduces the dataset's
     mask of one frame (default: frame 0) from its face mesh (highest IoU)."""
-    from flamenerf.rendering.cameras import reference_position
-
     pos = reference_position(ds) if position is None else position
     fr = ds.frames[pos]
     target = ds.load_mask(fr)

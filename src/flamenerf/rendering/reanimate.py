@@ -51,6 +51,6 @@ def depth_range(frame: RenderedFrame, near: float, far: float) -> tuple[float, f
 
 def depth_image(frame: RenderedFrame, lo: float, hi: float) -> np.ndarray:
     """Colour-mapped depth, faded to black where the ray hit nothing."""
-    from flamenerf.evaluation.images import colorize_depth
+    from flamenerf.images import colorize_depth
 
     return colorize_depth(frame.depth, lo, hi) * np.clip(frame.acc, 0, 1)[..., None]

@@ -46,7 +46,7 @@ class VideoWriter:
     def write(self, frame: np.ndarray) -> None:
         import imageio_ffmpeg
 
-        from flamenerf.evaluation.images import to_uint8
+        from flamenerf.images import to_uint8
 
         img = even_pad(np.ascontiguousarray(to_uint8(np.asarray(frame))[..., :3]))
         h, w = img.shape[:2]

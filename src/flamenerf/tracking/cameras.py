@@ -34,6 +34,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from flamenerf.runtime import torch_threads
+
 # MediaPipe's geometry pipeline assumes this vertical field of view for its head pose.
 MEDIAPIPE_VFOV_DEG = 63.0
 
@@ -202,15 +204,11 @@ def solve_cameras(
     if frame_step is None:
         gaps = np.diff(np.asarray(times, np.float64))
         frame_step = float(gaps[gaps > 0].min()) if np.any(gaps > 0) else 1.0
-    threads = torch.get_num_threads()
     # these tensors are small: thread-pool synchronisation costs more than it saves, and
     # ~10x more when other processes compete for the cores
-    torch.set_num_threads(1)
-    try:
+    with torch_threads(1):
         return _solve(landmarks, times, template0, faces, stable_weights, width, height,
                       init_transforms, cfg, frame_step)
-    finally:
-        torch.set_num_threads(threads)
 
 
 class _Problem:

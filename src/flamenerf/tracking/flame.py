@@ -302,13 +302,11 @@ def fit_flame(m: FlameModel, clip, sol, num_expr: int = 50, num_shape: int = 100
     Loss: Cauchy reprojection error of the embedded landmarks (face-size units) + L2 priors
     + temporal smoothness of ψ and jaw. L-BFGS over all frames, float64.
     """
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
+    from flamenerf.runtime import torch_threads
+
+    with torch_threads(1):  # small tensors: as in the camera solve
         return _fit(m, clip, sol, num_expr, num_shape, iters, reg_shape, reg_expr, reg_pose,
                     smooth)
-    finally:
-        torch.set_num_threads(threads)
 
 
 def _fit(m, clip, sol, num_expr, num_shape, iters, reg_shape, reg_expr, reg_pose, smooth):

@@ -20,6 +20,7 @@ from typing import Any, Literal
 import numpy as np
 
 from flamenerf.errors import UserError
+from flamenerf.io import jsonable
 
 GROUPS_ARKIT = {  # channels plotted in qa/expressions.png (groups are averaged)
     "jawOpen": ["jawOpen"],
@@ -243,7 +244,7 @@ def preprocess_video(video: str | os.PathLike, out: str | os.PathLike,
         "video": str(video), "video_frames": info.num_frames, "video_fps": info.fps,
         "video_size": [info.width, info.height], "rotation": info.rotation,
         "crop": crop.to_dict(), "focal_source_px": sol.focal, "face_model": opts.face_model,
-        "options": _jsonable(asdict(opts)),
+        "options": jsonable(asdict(opts)),
     }
     writer = DatasetWriter(out, intr, near, far, names, kind, expr_info, source,
                            overwrite=opts.overwrite)
@@ -338,7 +339,7 @@ def preprocess_video(video: str | os.PathLike, out: str | os.PathLike,
         report["frames_per_second"] = len(clip.selected) / total
         (writer.tmp / "qa").mkdir(exist_ok=True)
         (writer.tmp / "qa" / "tracking_report.json").write_text(json.dumps(
-            _jsonable(report), indent=1))
+            jsonable(report), indent=1))
         writer.close()
     except BaseException:
         if video_out is not None:
@@ -396,20 +397,6 @@ def _azimuth_range(c2w: np.ndarray) -> list[float]:
 def _top(vec: np.ndarray, names: list[str], k: int = 3) -> dict[str, float]:
     idx = np.argsort(-np.abs(vec))[:k]
     return {names[i]: round(float(vec[i]), 3) for i in idx}
-
-
-def _jsonable(x):
-    if isinstance(x, dict):
-        return {str(k): _jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_jsonable(v) for v in x]
-    if isinstance(x, Path):
-        return str(x)
-    if isinstance(x, np.ndarray):
-        return x.tolist()
-    if isinstance(x, np.generic):
-        return x.item()
-    return x
 
 
 def track_expressions(video: str | os.PathLike, fps: float | None = None,

@@ -12,8 +12,9 @@ from flamenerf.config import Config, from_dict
 from flamenerf.data.dataset import Dataset, Intrinsics, load_dataset
 from flamenerf.errors import UserError
 from flamenerf.model.flame_nerf import FlameNeRF
-from flamenerf.training.checkpoint import (latest_checkpoint, load_checkpoint,
-                                           load_model_state, read_json)
+from flamenerf.io import read_json
+from flamenerf.runtime import pick_device
+from flamenerf.training.checkpoint import latest_checkpoint, load_checkpoint, load_model_state
 
 
 @dataclass
@@ -49,7 +50,6 @@ class Run:
 
 
 def load_run(run_dir: str | Path, device: str = "auto") -> Run:
-    from flamenerf.training.trainer import pick_device
 
     run_dir = Path(run_dir)
     if not run_dir.is_dir():

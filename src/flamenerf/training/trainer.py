@@ -15,17 +15,12 @@ from flamenerf.config import Config, from_dict
 from flamenerf.data.dataset import Dataset, load_dataset
 from flamenerf.data.scene import FrameSet, fit_dataset_expression_model, scene_box
 from flamenerf.errors import UserError
+from flamenerf.io import atomic_write_text, read_json
 from flamenerf.model.flame_nerf import FlameNeRF, RayBatch
-from flamenerf.training.checkpoint import (atomic_write_text, latest_checkpoint,
-                                           load_checkpoint, load_model_state, read_json,
+from flamenerf.runtime import pick_device
+from flamenerf.training.checkpoint import (latest_checkpoint, load_checkpoint, load_model_state,
                                            save_checkpoint)
 from flamenerf.training.losses import face_region_loss, psnr_from_mse
-
-
-def pick_device(device: str = "auto") -> torch.device:
-    if device == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    return torch.device(device)
 
 
 def learning_rate(step: int, cfg) -> float:
@@ -215,7 +210,7 @@ class Trainer:
     # --------------------------------------------------------------- loop
     def preview(self, writer=None) -> None:
         """Render the first val frame (else train frame 0) with its own codes."""
-        from flamenerf.evaluation.images import save_png
+        from flamenerf.io import save_png
         from flamenerf.model.render_image import render_image
 
         frames = self.ds.splits.get("val") or self.ds.splits["train"]

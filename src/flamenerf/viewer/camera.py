@@ -13,8 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from flamenerf.data.dataset import Dataset, Intrinsics
-from flamenerf.rendering.cameras import reference_position
+from flamenerf.data.dataset import Dataset, Intrinsics, reference_position
 
 _CV_TO_GL = np.diag([1.0, -1.0, -1.0])
 

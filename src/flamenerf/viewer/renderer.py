@@ -275,7 +275,7 @@ class RenderWorker:
         return v is None or (v.version, self.shared.version) != snap["state"] or self._stop
 
     def _render(self, snap, level: int, cancellable: bool) -> Frame:
-        from flamenerf.evaluation.images import colorize_depth, to_uint8
+        from flamenerf.images import colorize_depth, to_uint8
 
         t0 = time.perf_counter()
         intr = view_intrinsics(snap["fov_y"], snap["aspect"], snap["height"])

@@ -1,12 +1,12 @@
-"""Image files and colour maps."""
+"""Image arrays: conversion, resizing, colour maps and the panels of figures and videos.
+
+Images are (H, W, 3) float32 in [0, 1] unless a function says otherwise; writing them to
+files is `flamenerf.io.save_png`'s job.
+"""
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
-
-from flamenerf.training.checkpoint import atomic_write_bytes
 
 
 def to_uint8(img: np.ndarray) -> np.ndarray:
@@ -15,12 +15,15 @@ def to_uint8(img: np.ndarray) -> np.ndarray:
     return (np.clip(img, 0, 1) * 255 + 0.5).astype(np.uint8)
 
 
-def save_png(path: str | Path, img: np.ndarray) -> None:
-    """Write an (H, W[, 3]) float-in-[0,1] or uint8 image atomically."""
-    import imageio.v3 as iio
+def resize_image(img: np.ndarray, w: int, h: int) -> np.ndarray:
+    """Area-average resize of an (H, W, C) float image (what a lower-resolution camera sees)."""
+    import torch
 
-    data = iio.imwrite("<bytes>", to_uint8(np.asarray(img)), extension=".png")
-    atomic_write_bytes(Path(path), lambda f: f.write(data))
+    if img.shape[1] == w and img.shape[0] == h:
+        return img
+    t = torch.from_numpy(np.ascontiguousarray(img)).permute(2, 0, 1)[None].float()
+    t = torch.nn.functional.interpolate(t, size=(h, w), mode="area")
+    return t[0].permute(1, 2, 0).numpy()
 
 
 def colorize_depth(depth: np.ndarray, lo: float | None = None, hi: float | None = None,
@@ -36,7 +39,6 @@ def colorize_depth(depth: np.ndarray, lo: float | None = None, hi: float | None 
 
 
 # --------------------------------------------------------------------------- panels
-# (added for eval/render/bench figures)
 
 
 def abs_diff(a: np.ndarray, b: np.ndarray, gain: float = 1.0) -> np.ndarray:
@@ -85,8 +87,6 @@ def _as_float_rgb(img: np.ndarray) -> np.ndarray:
 
 def resize_to_height(img: np.ndarray, h: int) -> np.ndarray:
     """Nearest/area resize of an image to height `h`, keeping its aspect ratio."""
-    from flamenerf.data.scene import resize_image
-
     img = _as_float_rgb(img)
     if img.shape[0] == h:
         return img
