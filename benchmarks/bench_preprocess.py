@@ -32,7 +32,7 @@ def contact_sheet_from_dataset(ds_dir: Path, out_png: Path, n: int = 8, cols: in
     import imageio.v3 as iio
 
     from flamenerf.data.dataset import load_dataset
-    from flamenerf.data.rays import project_points
+    from flamenerf.geometry import project_points
     from flamenerf.tracking import qa
 
     ds = load_dataset(ds_dir)

@@ -11,7 +11,8 @@ import pytest
 import torch
 
 from flamenerf.data.dataset import DatasetError, Intrinsics, load_dataset
-from flamenerf.data.rays import camera_rays, project_points
+from flamenerf.data.rays import camera_rays
+from flamenerf.geometry import project_points
 from flamenerf.synthetic.cameras import capture_path, intrinsics, novel_path, orbit
 from flamenerf.synthetic.head import CONTROLS, R_OUTER
 from flamenerf.synthetic.render import SyntheticScene

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from flamenerf.data.dataset import Intrinsics
-from flamenerf.data.rays import project_points
+from flamenerf.geometry import project_points
 from flamenerf.tracking.crop import Crop, stable_square_crop
 
 

@@ -68,7 +68,7 @@ def test_fit_recovers_expression_from_landmarks(tiny_flame, canonical_mesh):
     """Synthetic landmarks from known FLAME parameters and cameras -> the fit finds them."""
     from types import SimpleNamespace
 
-    from flamenerf.tracking.cameras import so3_exp
+    from flamenerf.geometry import so3_exp
     from flamenerf.tracking.flame import _umeyama
 
     m = load_flame_dir(tiny_flame["dir"])

@@ -40,7 +40,7 @@ def test_dataset_is_valid_and_complete(dataset):
 
 
 def test_masks_cover_the_projected_face(dataset):
-    from flamenerf.data.rays import project_points
+    from flamenerf.geometry import project_points
 
     ds = load_dataset(dataset)
     for f in ds.frames[::3]:

@@ -30,16 +30,3 @@ def camera_rays(
     dirs = d_cam @ c2w[:3, :3].T
     origins = c2w[:3, 3].expand_as(dirs)
     return origins, dirs
-
-
-def project_points(
-    points: np.ndarray, intr: Intrinsics, c2w: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """World points (N, 3) -> pixel coordinates (N, 2) (x right, y down) and z-depth (N,)."""
-    w2c = np.linalg.inv(c2w)
-    pc = points @ w2c[:3, :3].T + w2c[:3, 3]
-    z = -pc[:, 2]
-    zs = np.where(np.abs(z) < 1e-9, 1e-9, z)
-    u = intr.fx * pc[:, 0] / zs + intr.cx
-    v = -intr.fy * pc[:, 1] / zs + intr.cy
-    return np.stack([u, v], -1), z

@@ -10,7 +10,7 @@ import numpy as np
 
 from flamenerf.config import Config, ExpressionMode, preset
 from flamenerf.data.dataset import DatasetWriter, Intrinsics
-from flamenerf.rendering.cameras import look_at
+from flamenerf.geometry import look_at
 from flamenerf.tracking.silhouette import rasterize_silhouette
 
 TOY_NAMES = ["jawOpen", "mouthSmileLeft", "browInnerUp"]

@@ -32,33 +32,9 @@ import numpy as np
 
 from flamenerf.data.dataset import Dataset, reference_position
 from flamenerf.errors import UserError
+from flamenerf.geometry import look_at, rotate_about
 
 PATH_KINDS = ("static", "orbit", "spiral", "dolly")
-
-
-def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarray:
-    """Camera-to-world (OpenGL axes) at `eye` looking at `target`, with `up` roughly up."""
-    eye, target, up = (np.asarray(v, np.float64) for v in (eye, target, up))
-    back = eye - target
-    back = back / np.linalg.norm(back)
-    right = np.cross(up, back)
-    if np.linalg.norm(right) < 1e-9:  # looking along `up`: any perpendicular will do
-        right = np.cross([1.0, 0.0, 0.0] if abs(back[0]) < 0.9 else [0.0, 1.0, 0.0], back)
-    right = right / np.linalg.norm(right)
-    cam_up = np.cross(back, right)
-    c2w = np.eye(4)
-    c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = right, cam_up, back, eye
-    return c2w
-
-
-def rotate_about(points: np.ndarray, axis: np.ndarray, angle: float, center: np.ndarray
-                 ) -> np.ndarray:
-    """Rotate points (..., 3) by `angle` radians about the line through `center` along
-    `axis` (Rodrigues)."""
-    k = np.asarray(axis, np.float64) / np.linalg.norm(axis)
-    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    R = np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
-    return (np.asarray(points, np.float64) - center) @ R.T + center
 
 
 @dataclass

@@ -10,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from flamenerf.data.dataset import Intrinsics
+from flamenerf.geometry import look_at
 
 DISTANCE = 0.60  # metres from the head centre
 TARGET = np.array([0.0, -0.035, 0.0])  # where the camera aims (between nose and mouth)
@@ -22,26 +23,12 @@ def intrinsics(size: int) -> Intrinsics:
     return Intrinsics(w=size, h=size, fx=f, fy=f, cx=size / 2, cy=size / 2)
 
 
-def look_at(eye: np.ndarray, target: np.ndarray, roll_deg: float = 0.0) -> np.ndarray:
-    """Camera-to-world (OpenGL axes) at `eye` looking at `target`, world +y up."""
-    back = eye - target
-    back = back / np.linalg.norm(back)
-    right = np.cross([0.0, 1.0, 0.0], back)
-    right = right / np.linalg.norm(right)
-    up = np.cross(back, right)
-    r = np.deg2rad(roll_deg)
-    right, up = np.cos(r) * right + np.sin(r) * up, -np.sin(r) * right + np.cos(r) * up
-    c2w = np.eye(4)
-    c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = right, up, back, eye
-    return c2w
-
-
 def orbit(yaw_deg: float, pitch_deg: float, distance: float = DISTANCE,
           target: np.ndarray = TARGET, roll_deg: float = 0.0) -> np.ndarray:
     """Camera on a sphere around `target`; yaw > 0 moves it towards +x, pitch > 0 up."""
     y, p = np.deg2rad(yaw_deg), np.deg2rad(pitch_deg)
     eye = target + distance * np.array([np.sin(y) * np.cos(p), np.sin(p), np.cos(y) * np.cos(p)])
-    return look_at(eye, target, roll_deg)
+    return look_at(eye, target, roll_deg=roll_deg)
 
 
 def _smooth_noise(rng: np.random.Generator, n: int, dims: int, corr: float) -> np.ndarray:

@@ -22,6 +22,7 @@ import torch
 import torch.nn.functional as F
 
 from flamenerf.data.dataset import Intrinsics
+from flamenerf.geometry import project
 from flamenerf.synthetic.background import Backdrop, sway_pose
 from flamenerf.synthetic.cameras import intrinsics
 from flamenerf.synthetic.head import (CONTROLS, R_INNER, R_OUTER, TEX_STEP, Head, HeadState,
@@ -321,8 +322,7 @@ def _box_culler(intr: Intrinsics, c2w: np.ndarray, pose: np.ndarray, K: int):
         zc = -cam[:, 2]
         if (zc < 1e-3).any():
             return None
-        px = intr.fx * cam[:, 0] / zc + intr.cx
-        py = -intr.fy * cam[:, 1] / zc + intr.cy
+        px, py = project(cam, intr.fx, intr.fy, intr.cx, intr.cy).T
         c0, c1 = max(0, int(np.floor(px.min())) - 1), min(intr.w, int(np.ceil(px.max())) + 1)
         r0, r1 = max(0, int(np.floor(py.min())) - 1), min(intr.h, int(np.ceil(py.max())) + 1)
         if c0 >= c1 or r0 >= r1:

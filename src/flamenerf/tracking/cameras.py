@@ -6,7 +6,7 @@ Model (the head is still, the camera moves, so the world frame is the head's)::
     x_ij = K (R_i (X_j + Δ_ij) + t_i)          j = 0..467 face-mesh landmarks, frame i
 
 with OpenGL camera axes (x right, y up, the camera looks down -z), so a world point p maps to
-pixels u = cx + f·p_x/(-p_z), v = cy - f·p_y/(-p_z) (as `flamenerf.data.rays.project_points`).
+pixels u = cx + f·p_x/(-p_z), v = cy - f·p_y/(-p_z) (as `flamenerf.geometry.project`).
 `X = X0 + δ` is the per-subject template (MediaPipe's canonical mesh X0, metres, refined by
 a regularised offset δ); `Δ_ij` is a per-frame non-rigid offset for expressions, solved in a
 second stage with the cameras held fixed.
@@ -34,8 +34,12 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from flamenerf.geometry import matrix_to_rotvec, project, skew, so3_exp
 from flamenerf.runtime import torch_threads
 
+# Depths are clamped to at least this in the solve: points that stray behind the camera
+# while the optimiser searches must not flip their projection.
+MIN_DEPTH = 1e-6
 # MediaPipe's geometry pipeline assumes this vertical field of view for its head pose.
 MEDIAPIPE_VFOV_DEG = 63.0
 
@@ -102,35 +106,6 @@ class SolveResult:
 
 
 # ----------------------------------------------------------------------------- math
-
-
-def so3_exp(r: torch.Tensor) -> torch.Tensor:
-    """Rodrigues' formula, batched: axis-angle (*, 3) -> rotation matrix (*, 3, 3)."""
-    theta2 = (r * r).sum(-1, keepdim=True)[..., None]  # (*, 1, 1)
-    theta = torch.sqrt(theta2 + 1e-24)
-    small = theta2 < 1e-8
-    a = torch.where(small, 1 - theta2 / 6, torch.sin(theta) / theta)
-    b = torch.where(small, 0.5 - theta2 / 24, (1 - torch.cos(theta)) / (theta2 + 1e-24))
-    zero = torch.zeros_like(r[..., 0])
-    K = torch.stack([
-        torch.stack([zero, -r[..., 2], r[..., 1]], -1),
-        torch.stack([r[..., 2], zero, -r[..., 0]], -1),
-        torch.stack([-r[..., 1], r[..., 0], zero], -1),
-    ], -2)
-    eye = torch.eye(3, dtype=r.dtype, device=r.device).expand(K.shape)
-    return eye + a * K + b * (K @ K)
-
-
-def rotvec_from_matrix(R: np.ndarray) -> np.ndarray:
-    from scipy.spatial.transform import Rotation
-
-    return Rotation.from_matrix(R).as_rotvec()
-
-
-def project(points_cam: torch.Tensor, f: torch.Tensor, cx: float, cy: float) -> torch.Tensor:
-    """OpenGL camera-space points (*, 3) -> pixels (*, 2), x right, y down."""
-    z = (-points_cam[..., 2]).clamp_min(1e-6)
-    return torch.stack([cx + f * points_cam[..., 0] / z, cy - f * points_cam[..., 1] / z], -1)
 
 
 def cauchy(r2: torch.Tensor, c: float) -> torch.Tensor:
@@ -253,7 +228,7 @@ class _Problem:
         if self.init_transforms is not None:
             f_mp = 0.5 * self.height / np.tan(np.radians(MEDIAPIPE_VFOV_DEG) / 2)
             U, _, Vt = np.linalg.svd(self.init_transforms[:, :3, :3])
-            rvec0 = np.stack([rotvec_from_matrix(R) for R in U @ Vt])
+            rvec0 = matrix_to_rotvec(U @ Vt)
             # same image size at focal f0: scale the depth, keep x/y (cm -> m)
             tvec0 = self.init_transforms[:, :3, 3] / 100.0
             tvec0[:, 2] *= f0 / f_mp
@@ -285,15 +260,6 @@ def _proj_jacobian(Pc: torch.Tensor, f: float) -> torch.Tensor:
     ], -2)
 
 
-def _skew(v: torch.Tensor) -> torch.Tensor:
-    zero = torch.zeros_like(v[..., 0])
-    return torch.stack([
-        torch.stack([zero, -v[..., 2], v[..., 1]], -1),
-        torch.stack([v[..., 2], zero, -v[..., 0]], -1),
-        torch.stack([-v[..., 1], v[..., 0], zero], -1),
-    ], -2)
-
-
 def _lm_poses(P: _Problem, X: torch.Tensor, f: float, rvec: torch.Tensor,
               tvec: torch.Tensor, iters: int) -> tuple[torch.Tensor, torch.Tensor, float]:
     """Robust (Cauchy IRLS) Levenberg-Marquardt over each frame's pose independently,
@@ -306,7 +272,7 @@ def _lm_poses(P: _Problem, X: torch.Tensor, f: float, rvec: torch.Tensor,
 
     def resid(R: torch.Tensor, t: torch.Tensor):
         Pc = torch.einsum("nab,vb->nva", R, X) + t[:, None]
-        return Pc, (project(Pc, f_t, P.cx, P.cy) - P.obs) / P.face_size
+        return Pc, (project(Pc, f_t, f_t, P.cx, P.cy, MIN_DEPTH) - P.obs) / P.face_size
 
     def cost(r: torch.Tensor) -> torch.Tensor:  # per frame
         return (cauchy((r * r).sum(-1), c) * P.w).sum(-1) / (c * c)
@@ -316,7 +282,7 @@ def _lm_poses(P: _Problem, X: torch.Tensor, f: float, rvec: torch.Tensor,
     cur = cost(r)
     for _ in range(iters):
         Jp = _proj_jacobian(Pc, f) / P.face_size  # (N, V, 2, 3)
-        dP = torch.cat([-_skew(Pc - t[:, None]), torch.eye(3, dtype=Pc.dtype).expand(
+        dP = torch.cat([-skew(Pc - t[:, None]), torch.eye(3, dtype=Pc.dtype).expand(
             *Pc.shape[:2], 3, 3)], -1)  # (N, V, 3, 6): d Pc / d (ω, dt)
         J = Jp @ dP  # (N, V, 2, 6)
         wr = P.w / (1 + (r * r).sum(-1) / (c * c))  # IRLS weights (N, V)
@@ -335,7 +301,7 @@ def _lm_poses(P: _Problem, X: torch.Tensor, f: float, rvec: torch.Tensor,
         r = torch.where(ok[:, None, None], r_new, r)
         cur = torch.where(ok, new, cur)
         lam = torch.where(ok, lam * 0.3, lam * 10).clamp(1e-12, 1e9)
-    rv = torch.from_numpy(np.stack([rotvec_from_matrix(m) for m in R.numpy()]))
+    rv = torch.from_numpy(matrix_to_rotvec(R.numpy()))
     return rv, t, float(cur.mean())
 
 
@@ -353,7 +319,7 @@ def _gn_template(P: _Problem, f: float, rvec: torch.Tensor, tvec: torch.Tensor,
 
     def resid(d: torch.Tensor):
         Pc = torch.einsum("nab,vb->nva", R, P.X0 + d) + tvec[:, None]
-        return Pc, (project(Pc, f_t, P.cx, P.cy) - P.obs) / P.face_size
+        return Pc, (project(Pc, f_t, f_t, P.cx, P.cy, MIN_DEPTH) - P.obs) / P.face_size
 
     def cost(r: torch.Tensor, d: torch.Tensor) -> torch.Tensor:  # per vertex
         data = cauchy((r * r).sum(-1), c).mean(0) * wv / (c * c)
@@ -401,7 +367,7 @@ def _gn_mesh(P: _Problem, f: float, rvec: torch.Tensor, tvec: torch.Tensor,
     H_depth = cfg.mesh_depth_weight * (Rz[..., :, None] * Rz[..., None, :]) / s_m**2
     for _ in range(iters):
         Pc = torch.einsum("nab,nvb->nva", R, X[None] + d) + tvec[:, None]
-        r = (project(Pc, f_t, P.cx, P.cy) - P.obs) / P.face_size  # (N, V, 2)
+        r = (project(Pc, f_t, f_t, P.cx, P.cy, MIN_DEPTH) - P.obs) / P.face_size  # (N,V,2)
         J = (_proj_jacobian(Pc, f) / P.face_size) @ R[:, None]  # (N, V, 2, 3)
         H = J.transpose(-1, -2) @ J / c**2 + H_depth + cfg.mesh_prior * eye / s_m**2
         dz = (-Pc[..., 2] - D_target)[..., None]  # (N, V, 1); d(-z)/dΔ = -Rz
@@ -427,7 +393,9 @@ def _joint(P: _Problem, f: float, rvec0: torch.Tensor, tvec0: torch.Tensor,
 
     def loss_fn() -> torch.Tensor:
         tvec = that * d0
-        uv = project(_cam_points(rvec, tvec, P.X0 + dhat * s), log_f.exp(), P.cx, P.cy)
+        f_cur = log_f.exp()
+        uv = project(_cam_points(rvec, tvec, P.X0 + dhat * s), f_cur, f_cur, P.cx, P.cy,
+                     MIN_DEPTH)
         r2 = ((uv - P.obs) ** 2).sum(-1) / P.face_size**2
         loss = (cauchy(r2, c) * P.w).sum(-1).mean() / (c * c)
         if cfg.smooth > 0 and P.N >= 3:
@@ -498,7 +466,8 @@ def _solve(landmarks, times, template0, faces, stable_weights, width, height,
     Xt = P.X0 + delta
     with torch.no_grad():
         Pc = _cam_points(rvec, tvec, Xt)
-        rigid_err = (project(Pc, f_t, P.cx, P.cy) - P.obs).norm(dim=-1).median(-1).values
+        uv = project(Pc, f_t, f_t, P.cx, P.cy, MIN_DEPTH)
+        rigid_err = (uv - P.obs).norm(dim=-1).median(-1).values
         # MediaPipe's relative depth, as a depth target anchored on the template's mean depth
         D = -Pc[..., 2]
         D_target = D.mean(1, keepdim=True) * (1 + (P.zrel - P.zrel.mean(1, keepdim=True)) / f)
@@ -508,7 +477,7 @@ def _solve(landmarks, times, template0, faces, stable_weights, width, height,
 
     with torch.no_grad():
         verts = Xt[None] + dper
-        uv = project(_cam_points(rvec, tvec, verts), f_t, P.cx, P.cy)
+        uv = project(_cam_points(rvec, tvec, verts), f_t, f_t, P.cx, P.cy, MIN_DEPTH)
         mesh_err = (uv - P.obs).norm(dim=-1).median(-1).values.numpy()
         w2c = np.tile(np.eye(4), (P.N, 1, 1))
         w2c[:, :3, :3] = so3_exp(rvec).numpy()

@@ -29,6 +29,7 @@ import numpy as np
 import torch
 
 from flamenerf.errors import UserError
+from flamenerf.geometry import matrix_to_rotvec, project, so3_exp
 
 NUM_FLAME_SHAPE = 300  # FLAME's shape components precede its expression components
 
@@ -196,12 +197,6 @@ def load_flame_dir(flame_dir: str | os.PathLike | None) -> FlameModel:
 # ----------------------------------------------------------------------------- the model
 
 
-def _rodrigues(r: torch.Tensor) -> torch.Tensor:
-    from flamenerf.tracking.cameras import so3_exp
-
-    return so3_exp(r)
-
-
 class FlameLayer(torch.nn.Module):
     """FLAME's forward model restricted to a subset of vertices (all by default).
 
@@ -232,7 +227,7 @@ class FlameLayer(torch.nn.Module):
         coeff = torch.cat([shape[None].expand(N, -1), expr], -1)  # (N, S+E)
         v = self.v_template + torch.einsum("vck,nk->nvc", self.dirs, coeff)
         J = self.J_template + torch.einsum("jck,nk->njc", self.J_dirs, coeff)  # (N, 5, 3)
-        R = _rodrigues(pose)  # (N, 5, 3, 3)
+        R = so3_exp(pose)  # (N, 5, 3, 3)
         eye = torch.eye(3, dtype=v.dtype)
         pose_feat = (R[:, 1:] - eye).reshape(N, 36)
         v = v + torch.einsum("vck,nk->nvc", self.posedirs, pose_feat)
@@ -310,7 +305,7 @@ def fit_flame(m: FlameModel, clip, sol, num_expr: int = 50, num_shape: int = 100
 
 
 def _fit(m, clip, sol, num_expr, num_shape, iters, reg_shape, reg_expr, reg_pose, smooth):
-    from flamenerf.tracking.cameras import _lbfgs, cauchy, project, so3_exp
+    from flamenerf.tracking.cameras import MIN_DEPTH, _lbfgs, cauchy
 
     dt = torch.float64
     sub = embedded_vertices(m)
@@ -332,11 +327,10 @@ def _fit(m, clip, sol, num_expr, num_shape, iters, reg_shape, reg_expr, reg_pose
         lm0 = landmarks(layer(zeros(S, dtype=dt), zeros(1, E, dtype=dt),
                               zeros(1, 5, 3, dtype=dt)))[0].numpy()
     s0, R0, t0 = _umeyama(lm0, sol.template[m.lmk_mediapipe])
-    from flamenerf.tracking.cameras import rotvec_from_matrix
 
     # unknowns are scaled so that one unit moves the landmarks by similar amounts (L-BFGS
     # converges slowly otherwise): translation in cm, angles and log-scale in 0.1 units
-    r0 = torch.tensor(rotvec_from_matrix(R0), dtype=dt)
+    r0 = torch.tensor(matrix_to_rotvec(R0), dtype=dt)
     g_rot = zeros(3, dtype=dt, requires_grad=True)
     g_t = torch.tensor(t0 / 0.01, dtype=dt, requires_grad=True)
     g_logs = zeros((), dtype=dt, requires_grad=True)
@@ -358,7 +352,7 @@ def _fit(m, clip, sol, num_expr, num_shape, iters, reg_shape, reg_expr, reg_pose
     def loss_fn() -> torch.Tensor:
         P = world(landmarks(posed(layer, shape, expr, jaw_s, neck_s)))
         Pc = torch.einsum("nab,nlb->nla", w2c[:, :3, :3], P) + w2c[:, None, :3, 3]
-        r2 = ((project(Pc, f, sol.cx, sol.cy) - obs) ** 2).sum(-1) / fs**2
+        r2 = ((project(Pc, f, f, sol.cx, sol.cy, MIN_DEPTH) - obs) ** 2).sum(-1) / fs**2
         loss = cauchy(r2, c).mean() / c**2
         loss = loss + reg_shape * shape.pow(2).sum() + reg_expr * expr.pow(2).sum(-1).mean()
         loss = loss + reg_pose * (jaw_s.pow(2).sum(-1).mean() + neck_s.pow(2).sum(-1).mean())
@@ -373,7 +367,7 @@ def _fit(m, clip, sol, num_expr, num_shape, iters, reg_shape, reg_expr, reg_pose
     with torch.no_grad():
         P = world(landmarks(posed(layer, shape, expr, jaw_s, neck_s)))
         Pc = torch.einsum("nab,nlb->nla", w2c[:, :3, :3], P) + w2c[:, None, :3, 3]
-        err = (project(Pc, f, sol.cx, sol.cy) - obs).norm(dim=-1).median(-1).values.numpy()
+        err = (project(Pc, f, f, sol.cx, sol.cy, MIN_DEPTH) - obs).norm(dim=-1).median(-1).values.numpy()
         full = FlameLayer(m, num_shape, num_expr)
         verts = np.concatenate([world(posed(full, shape, expr[k:k + 32], jaw_s[k:k + 32],
                                             neck_s[k:k + 32])).numpy().astype(np.float32)

@@ -9,7 +9,7 @@ import numpy as np
 from PIL import Image, ImageDraw
 
 from flamenerf.data.dataset import Intrinsics
-from flamenerf.data.rays import project_points
+from flamenerf.geometry import project_points
 
 AXIS_LENGTH = 0.06  # metres
 

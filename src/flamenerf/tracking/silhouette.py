@@ -7,7 +7,7 @@ from PIL import Image, ImageDraw
 from scipy import ndimage
 
 from flamenerf.data.dataset import Intrinsics
-from flamenerf.data.rays import project_points
+from flamenerf.geometry import project_points
 
 
 def rasterize_silhouette(

@@ -14,17 +14,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from flamenerf.data.dataset import Dataset, Intrinsics, reference_position
+from flamenerf.geometry import quat_wxyz_to_matrix
 
 _CV_TO_GL = np.diag([1.0, -1.0, -1.0])
-
-
-def quat_wxyz_to_matrix(wxyz: np.ndarray) -> np.ndarray:
-    w, x, y, z = np.asarray(wxyz, np.float64) / np.linalg.norm(wxyz)
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ])
 
 
 def c2w_from_viser(wxyz: np.ndarray, position: np.ndarray) -> np.ndarray:

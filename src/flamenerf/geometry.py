@@ -1,0 +1,137 @@
+"""Rotations, cameras and projection: the one home of the project's geometry.
+
+Conventions (the dataset's): camera-to-world 4x4 matrices with OpenGL camera axes (x right,
+y up, the camera looks down -z); pixels x right, y down; depth is -z in camera space.
+
+Rotations in NumPy are SciPy's (`scipy.spatial.transform.Rotation`). The SO(3) exponential
+is also written here in torch, batched and differentiable, because the camera solve, the
+FLAME fit and the deformation field's SE(3) warp (`flamenerf.model.se3`) optimise through
+it. Equations from Lynch & Park, *Modern Robotics* (2017): Rodrigues' formula (3.51).
+"""
+
+from __future__ import annotations
+
+from typing import Protocol, TypeVar
+
+import numpy as np
+import torch
+from torch import Tensor
+
+Array = TypeVar("Array", np.ndarray, Tensor)
+
+
+class Pinhole(Protocol):
+    """A pinhole camera's intrinsics in pixels (e.g. `flamenerf.data.dataset.Intrinsics`)."""
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+
+
+# ----------------------------------------------------------------------------- SO(3), torch
+
+
+def skew(w: Tensor) -> Tensor:
+    """(*bs, 3) -> (*bs, 3, 3) with skew(w) @ v = w × v."""
+    z = torch.zeros_like(w[..., 0])
+    return torch.stack(
+        [z, -w[..., 2], w[..., 1], w[..., 2], z, -w[..., 0], -w[..., 1], w[..., 0], z], -1
+    ).reshape(*w.shape[:-1], 3, 3)
+
+
+def rodrigues_coefficients(theta: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """sin θ/θ, (1−cos θ)/θ², (θ − sin θ)/θ³ of angles θ (*bs), with Taylor forms near
+    θ = 0 so that values and gradients stay finite at the identity."""
+    small = theta < 1e-3
+    t = torch.where(small, torch.ones_like(theta), theta)
+    t2 = theta * theta
+    a = torch.where(small, 1 - t2 / 6, torch.sin(t) / t)
+    b = torch.where(small, 0.5 - t2 / 24, (1 - torch.cos(t)) / (t * t))
+    c = torch.where(small, 1.0 / 6 - t2 / 120, (t - torch.sin(t)) / (t * t * t))
+    return a, b, c
+
+
+def so3_exp(w: Tensor) -> Tensor:
+    """Rotation vector (*bs, 3) -> rotation matrix (*bs, 3, 3) (Rodrigues, MR eq. 3.51)."""
+    theta = torch.linalg.vector_norm(w, dim=-1)
+    a, b, _ = rodrigues_coefficients(theta)
+    W = skew(w)
+    eye = torch.eye(3, dtype=w.dtype, device=w.device).expand_as(W)
+    return eye + a[..., None, None] * W + b[..., None, None] * (W @ W)
+
+
+# ----------------------------------------------------------------------------- SO(3), NumPy
+
+
+def matrix_to_rotvec(R: np.ndarray) -> np.ndarray:
+    """Rotation matrices (*bs, 3, 3) -> rotation vectors (*bs, 3)."""
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_matrix(R).as_rotvec()
+
+
+def quat_wxyz_to_matrix(wxyz: np.ndarray) -> np.ndarray:
+    """A quaternion (w, x, y, z), any norm -> its rotation matrix (3, 3)."""
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_quat(np.asarray(wxyz, np.float64), scalar_first=True).as_matrix()
+
+
+def rotate_about(points: np.ndarray, axis: np.ndarray, angle: float, center: np.ndarray
+                 ) -> np.ndarray:
+    """Rotate points (..., 3) by `angle` radians about the line through `center` along
+    `axis`."""
+    from scipy.spatial.transform import Rotation
+
+    k = np.asarray(axis, np.float64) / np.linalg.norm(axis)
+    R = Rotation.from_rotvec(angle * k).as_matrix()
+    return (np.asarray(points, np.float64) - center) @ R.T + center
+
+
+# ----------------------------------------------------------------------------- cameras
+
+
+def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray = (0.0, 1.0, 0.0),
+            roll_deg: float = 0.0) -> np.ndarray:
+    """Camera-to-world (4, 4), OpenGL axes, at `eye` looking at `target` with `up` roughly
+    up, then rolled by `roll_deg` about its viewing axis."""
+    eye, target, up = (np.asarray(v, np.float64) for v in (eye, target, up))
+    back = eye - target
+    back = back / np.linalg.norm(back)
+    right = np.cross(up, back)
+    if np.linalg.norm(right) < 1e-9:  # looking along `up`: any perpendicular will do
+        right = np.cross([1.0, 0.0, 0.0] if abs(back[0]) < 0.9 else [0.0, 1.0, 0.0], back)
+    right = right / np.linalg.norm(right)
+    cam_up = np.cross(back, right)
+    if roll_deg:
+        c, s = np.cos(np.deg2rad(roll_deg)), np.sin(np.deg2rad(roll_deg))
+        right, cam_up = c * right + s * cam_up, -s * right + c * cam_up
+    c2w = np.eye(4)
+    c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = right, cam_up, back, eye
+    return c2w
+
+
+def project(points_cam: Array, fx, fy, cx: float, cy: float,
+            min_depth: float | None = None) -> Array:
+    """Pinhole projection of camera-space points (..., 3), NumPy or torch -> pixels (..., 2).
+
+    Depth -z is the divisor. `min_depth` clamps it from below, which an optimiser needs when
+    points stray behind the camera; without it only depths within 1e-9 of zero are
+    replaced (points behind the camera keep their sign). fx, fy may be tensors (a focal
+    length being optimised)."""
+    xp = torch if isinstance(points_cam, Tensor) else np
+    z = -points_cam[..., 2]
+    if min_depth is not None:
+        z = xp.where(z < min_depth, min_depth, z)
+    else:
+        z = xp.where(xp.abs(z) < 1e-9, 1e-9, z)
+    return xp.stack([fx * points_cam[..., 0] / z + cx, cy - fy * points_cam[..., 1] / z], -1)
+
+
+def project_points(points: np.ndarray, intr: Pinhole, c2w: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """World points (N, 3) -> pixel coordinates (N, 2) (x right, y down) and z-depth (N,)."""
+    w2c = np.linalg.inv(c2w)
+    pc = points @ w2c[:3, :3].T + w2c[:3, 3]
+    return project(pc, intr.fx, intr.fy, intr.cx, intr.cy), -pc[:, 2]
