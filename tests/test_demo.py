@@ -2,7 +2,7 @@ import subprocess
 import sys
 
 from flamenerf.data.dataset import load_dataset
-from flamenerf.rendering.video import read_frames
+from flamenerf.data.video import read_frames
 
 
 def test_demo_end_to_end_at_tiny_size(tmp_path):

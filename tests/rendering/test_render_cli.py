@@ -9,7 +9,7 @@ from flamenerf.commands.render import render
 from flamenerf.data.dataset import load_dataset
 from flamenerf.errors import UserError
 from flamenerf.rendering.prior import estimate_dilation, prior_mask
-from flamenerf.rendering.video import VideoWriter, read_frames
+from flamenerf.data.video import VideoWriter, read_frames
 
 
 def test_orbit_with_depth_and_side_by_side(toy_run, tmp_path):

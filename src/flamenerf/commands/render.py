@@ -206,7 +206,7 @@ def _render_videos(r, ds, intr, poses, values, verts, dil, chunk, rate, paths, s
 
     from flamenerf.images import expression_panel, hstack, resize_to_height
     from flamenerf.rendering.reanimate import depth_image, depth_range, render_sequence
-    from flamenerf.rendering.video import VideoWriter
+    from flamenerf.data.video import VideoWriter
 
     omega, phi = r.frame_codes(0)
     frames = render_sequence(r.model, ds, intr, poses, values, verts, omega, phi, dil, chunk)

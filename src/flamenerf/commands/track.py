@@ -52,11 +52,8 @@ def track(
         min_tracked: Fail unless at least this fraction of the selected frames is tracked.
         overwrite: Replace OUT if it exists.
     """
-    import numpy as np
-
     from flamenerf.errors import UserError
-    from flamenerf.tracking.expressions import (estimate_neutral, save_expressions,
-                                                transfer_relative)
+    from flamenerf.tracking.expressions import save_expressions, transfer_to_subject
     from flamenerf.tracking.pipeline import track_expressions
 
     if out.exists() and not overwrite:
@@ -71,29 +68,7 @@ def track(
     tr = track_expressions(video, fps, max_frames, landmarker, face_model, flame_dir,
                            flame_expr_dim, min_tracked)
     if subject is not None:
-        if subject.expression_names != tr.names:
-            raise UserError(
-                f"{relative_to}: its expression model ({subject.expression_kind}, "
-                f"{subject.expression_dim} values) differs from this track's ({tr.kind}, "
-                f"{len(tr.names)}); use the same --face-model")
-        capture = [f for f in subject.frames if f.frame_index is not None]
-        s_neutral, s_used = estimate_neutral(subject.expression_matrix(capture))
-        if driver_neutral_frame is not None:
-            if driver_neutral_frame not in (tr.source_frames or []):
-                raise UserError(f"{video}: frame {driver_neutral_frame} was not tracked "
-                                "(pick a selected frame with a face)")
-            d_neutral = tr.frames[tr.source_frames.index(driver_neutral_frame)].astype(
-                np.float64)
-            d_used = [driver_neutral_frame]
-        else:
-            d_neutral, used = estimate_neutral(tr.frames)
-            d_used = [tr.source_frames[i] for i in used]
-        tr.frames = transfer_relative(tr.frames, d_neutral, s_neutral, tr.kind)
-        tr.transfer = {"mode": "relative", "subject": str(relative_to),
-                       "subject_neutral": np.round(s_neutral, 6).tolist(),
-                       "subject_neutral_frames": [capture[i].frame_index for i in s_used],
-                       "driver_neutral": np.round(d_neutral, 6).tolist(),
-                       "driver_neutral_frames": d_used}
+        tr = transfer_to_subject(tr, subject, driver_neutral_frame)
     save_expressions(out, tr)
     print(f"wrote {out}: {len(tr.frames)} frames x {len(tr.names)} {tr.kind} values at "
           f"{tr.fps:g} fps; dropped {len(tr.dropped)}"

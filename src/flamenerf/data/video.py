@@ -1,4 +1,6 @@
-"""Video decoding (imageio-ffmpeg) that honours rotation metadata, and frame selection.
+"""Video decoding (imageio-ffmpeg) that honours rotation metadata, frame selection, and
+H.264 writing to a temporary file renamed into place (an interrupted render or preprocess
+never leaves a truncated video under the final name).
 
 Phones store portrait videos as landscape frames plus a display-matrix rotation; ffmpeg
 applies it while decoding (its default `autorotate`), so the frames we return, and the
@@ -147,46 +149,93 @@ def iter_frames(info: VideoInfo, indices: np.ndarray | None = None
         gen.close()
 
 
-class VideoWriter:
-    """Streaming H.264 mp4 writer (yuv420p, plays everywhere); RGB uint8 frames of one size.
+def even_pad(img: np.ndarray) -> np.ndarray:
+    """Pad an (H, W, 3) uint8 image with black to even sides (yuv420p needs them)."""
+    h, w = img.shape[:2]
+    ph, pw = h % 2, w % 2
+    if ph or pw:
+        img = np.pad(img, ((0, ph), (0, pw), (0, 0)))
+    return img
 
-        with VideoWriter(path, fps) as vw:
-            vw.write(frame)
+
+class VideoWriter:
+    """Frames in, one mp4 out. Use as a context manager: on success the temporary file is
+    renamed to `path`; on an exception it is deleted.
+
+        with VideoWriter(path, fps=30) as v:
+            for frame in frames:
+                v.write(frame)  # (H, W, 3) uint8 or float in [0, 1]
     """
 
-    def __init__(self, path: str | os.PathLike, fps: float, quality: int = 7,
+    def __init__(self, path: str | os.PathLike, fps: float, quality: int = 8,
                  preset: str = "veryfast"):
-        self.path, self.fps, self.quality, self.preset = Path(path), float(fps), quality, preset
+        if fps <= 0:
+            raise UserError(f"--fps must be positive, got {fps}")
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        # the extension stays .mp4 so that ffmpeg picks the container from it
+        self.tmp = self.path.with_name(f".{self.path.stem}.{os.getpid()}.tmp.mp4")
+        self.fps, self.quality, self.preset = float(fps), quality, preset
         self._gen = None
+        self._size: tuple[int, int] | None = None
+        self.frames = 0
 
     def write(self, frame: np.ndarray) -> None:
         import imageio_ffmpeg
 
+        from flamenerf.images import to_uint8
+
+        img = even_pad(np.ascontiguousarray(to_uint8(np.asarray(frame))[..., :3]))
+        h, w = img.shape[:2]
         if self._gen is None:
             logging.getLogger("imageio_ffmpeg").setLevel(logging.ERROR)
-            h, w = frame.shape[:2]
+            self._size = (w, h)
             self._gen = imageio_ffmpeg.write_frames(
-                str(self.path), (w, h), fps=self.fps, quality=self.quality,
-                macro_block_size=2, ffmpeg_log_level="error",
-                output_params=["-preset", self.preset])
+                str(self.tmp), (w, h), fps=self.fps, quality=self.quality, macro_block_size=2,
+                ffmpeg_log_level="error", output_params=["-preset", self.preset])
             self._gen.send(None)
-        self._gen.send(np.ascontiguousarray(frame[..., :3]))
+        elif (w, h) != self._size:
+            raise ValueError(f"frame size {w}x{h} differs from the video's {self._size}")
+        self._gen.send(np.ascontiguousarray(img))
+        self.frames += 1
 
-    def close(self) -> None:
+    def close(self) -> Path:
+        if self._gen is None:
+            raise UserError(f"{self.path}: no frames to write")
+        self._gen.close()
+        self._gen = None
+        os.replace(self.tmp, self.path)
+        return self.path
+
+    def abort(self) -> None:
         if self._gen is not None:
-            self._gen.close()
+            try:
+                self._gen.close()
+            except Exception:  # noqa: BLE001 - ffmpeg may already be gone
+                pass
             self._gen = None
+        self.tmp.unlink(missing_ok=True)
 
     def __enter__(self) -> "VideoWriter":
         return self
 
-    def __exit__(self, *exc) -> None:
-        self.close()
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()
 
 
 def write_video(path: str | os.PathLike, frames: list[np.ndarray] | Iterator[np.ndarray],
-                fps: float, quality: int = 7) -> None:
+                fps: float, quality: int = 8) -> None:
     """Write RGB uint8 frames as H.264 mp4."""
     with VideoWriter(path, fps, quality) as vw:
         for fr in frames:
             vw.write(fr)
+
+
+def read_frames(path: str | os.PathLike) -> list[np.ndarray]:
+    """Decode every frame of a video (for checks and tests)."""
+    import imageio.v3 as iio
+
+    return list(iio.imiter(path, plugin="FFMPEG"))

@@ -53,9 +53,11 @@ def _suggest(name: str, names: list[str]) -> str:
 
 
 def map_by_name(values: np.ndarray, src_names: list[str], names: list[str], where: str,
-                strict: bool) -> tuple[np.ndarray, list[str]]:
+                strict: bool, what: str = "controls", hint: str = ""
+                ) -> tuple[np.ndarray, list[str]]:
     """Columns of `values` (T, len(src_names)) onto `names`; missing controls are 0.
-    -> (T, len(names)), the source's names the run lacks (an error when `strict`)."""
+    -> (T, len(names)), the source's names the run lacks (an error when `strict`).
+    The error when no name matches calls the source's columns `what` and ends with `hint`."""
     values = np.asarray(values, np.float32)
     index = {n: i for i, n in enumerate(names)}
     unknown = [n for n in src_names if n not in index]
@@ -63,9 +65,9 @@ def map_by_name(values: np.ndarray, src_names: list[str], names: list[str], wher
         raise UserError(f"{where}: unknown control {unknown[0]!r}{_suggest(unknown[0], names)} "
                         f"(this run's controls: {', '.join(names)})")
     if len(unknown) == len(src_names):
-        raise UserError(f"{where}: none of its controls ({', '.join(src_names[:6])}"
+        raise UserError(f"{where}: none of its {what} ({', '.join(src_names[:6])}"
                         f"{', ...' if len(src_names) > 6 else ''}) is one of this run's "
-                        f"({', '.join(names)})")
+                        f"({', '.join(names)}){hint}")
     out = np.zeros((len(values), len(names)), np.float32)
     for j, n in enumerate(src_names):
         if n in index:
@@ -263,21 +265,17 @@ def from_video(video: Path, ds, names: list[str], relative: bool = True,
 
     With `relative` and a dataset of the same expression model, expressions are transferred
     relative to each subject's neutral face (as `flamenerf track --relative-to`)."""
-    from flamenerf.images import resize_image
     from flamenerf.data.video import iter_frames, probe_video
-    from flamenerf.tracking.expressions import estimate_neutral, transfer_relative
+    from flamenerf.images import resize_image
+    from flamenerf.tracking.expressions import transfer_to_subject
     from flamenerf.tracking.pipeline import track_expressions
 
     tr = track_expressions(video, fps=fps, max_frames=max_frames, landmarker=landmarker)
     notes = []
-    frames = tr.frames
     if relative and tr.names == ds.expression_names and tr.kind == ds.expression_kind:
-        capture = [f for f in ds.frames if f.frame_index is not None]
-        s_neutral, _ = estimate_neutral(ds.expression_matrix(capture))
-        d_neutral, _ = estimate_neutral(tr.frames)
-        frames = transfer_relative(tr.frames, d_neutral, s_neutral, tr.kind)
+        tr = transfer_to_subject(tr, ds)
         notes.append("expressions transferred relative to each subject's neutral face")
-    values, unknown = map_by_name(frames, tr.names, names, str(video), strict=False)
+    values, unknown = map_by_name(tr.frames, tr.names, names, str(video), strict=False)
     if unknown:
         notes.append(f"{video}: {len(unknown)} tracked controls are not in this run's "
                      "expression model and are ignored")

@@ -30,6 +30,7 @@ from typing import Any
 
 import numpy as np
 
+from flamenerf.data.dataset import Dataset
 from flamenerf.errors import UserError
 
 FORMAT = "flamenerf-expressions"
@@ -122,3 +123,40 @@ def transfer_relative(drive: np.ndarray, driver_neutral: np.ndarray,
     if kind == "arkit":
         out = np.clip(out, 0.0, 1.0)
     return out.astype(np.float32)
+
+
+def transfer_to_subject(track: ExpressionTrack, subject: Dataset,
+                        driver_neutral_frame: int | None = None) -> ExpressionTrack:
+    """`track` re-expressed relative to the subject dataset's neutral face
+    (`transfer_relative`), with the record of what was used in `transfer`.
+
+    The subject's neutral comes from its capture frames, the driver's from the track
+    (`estimate_neutral`) or from video frame `driver_neutral_frame`. The expression models
+    must match (same names)."""
+    from dataclasses import replace
+
+    if subject.expression_names != track.names:
+        raise UserError(
+            f"{subject.root}: its expression model ({subject.expression_kind}, "
+            f"{subject.expression_dim} values) differs from this track's ({track.kind}, "
+            f"{len(track.names)}); use the same --face-model")
+    capture = [f for f in subject.frames if f.frame_index is not None]
+    s_neutral, s_used = estimate_neutral(subject.expression_matrix(capture))
+    if driver_neutral_frame is not None:
+        if driver_neutral_frame not in (track.source_frames or []):
+            raise UserError(f"{track.source.get('video', 'the track')}: frame "
+                            f"{driver_neutral_frame} was not tracked (pick a selected frame "
+                            "with a face)")
+        d_neutral = track.frames[track.source_frames.index(driver_neutral_frame)].astype(
+            np.float64)
+        d_used = [driver_neutral_frame]
+    else:
+        d_neutral, used = estimate_neutral(track.frames)
+        d_used = [track.source_frames[i] for i in used] if track.source_frames else used
+    return replace(
+        track, frames=transfer_relative(track.frames, d_neutral, s_neutral, track.kind),
+        transfer={"mode": "relative", "subject": str(subject.root),
+                  "subject_neutral": np.round(s_neutral, 6).tolist(),
+                  "subject_neutral_frames": [capture[i].frame_index for i in s_used],
+                  "driver_neutral": np.round(d_neutral, 6).tolist(),
+                  "driver_neutral_frames": d_used})

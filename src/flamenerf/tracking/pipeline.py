@@ -258,7 +258,8 @@ def preprocess_video(video: str | os.PathLike, out: str | os.PathLike,
 
         if opts.qa:  # streamed, so long clips do not pile up overlay frames in memory
             (writer.tmp / "qa").mkdir(exist_ok=True)
-            video_out = VideoWriter(writer.tmp / "qa" / "overlay.mp4", min(info.fps, 30.0))
+            video_out = VideoWriter(writer.tmp / "qa" / "overlay.mp4", min(info.fps, 30.0),
+                                    quality=7)
 
         pos_of = {int(s): k for k, s in enumerate(clip.frames)}
         it = iter_frames(info, clip.frames)
@@ -343,7 +344,7 @@ def preprocess_video(video: str | os.PathLike, out: str | os.PathLike,
         writer.close()
     except BaseException:
         if video_out is not None:
-            video_out.close()
+            video_out.abort()
         writer.abort()
         raise
     return report

@@ -9,7 +9,6 @@ from pathlib import Path
 import numpy as np
 
 from flamenerf.data.dataset import Dataset, Frame
-from flamenerf.errors import UserError
 
 
 @dataclass
@@ -55,23 +54,13 @@ def dataset_tracks(ds: Dataset) -> list[Track]:
 def load_track_file(path: str | Path, names: list[str]) -> Track:
     """A `flamenerf track` JSON file, with its channels matched to `names` by name
     (channels the run lacks are dropped, controls the file lacks stay 0)."""
+    from flamenerf.rendering.expressions import map_by_name
     from flamenerf.tracking.expressions import load_expressions
 
     tr = load_expressions(path)
-    if tr.names == names:
-        mat = np.asarray(tr.frames, np.float32)
-    else:
-        col = {n: i for i, n in enumerate(tr.names)}
-        shared = [n for n in names if n in col]
-        if not shared:
-            raise UserError(
-                f"{path}: none of its {len(tr.names)} expression channels "
-                f"({', '.join(tr.names[:3])}, ...) is a control of this run "
-                f"({', '.join(names[:3])}, ...); track with the run's --face-model")
-        mat = np.zeros((len(tr.frames), len(names)), np.float32)
-        for j, n in enumerate(names):
-            if n in col:
-                mat[:, j] = tr.frames[:, col[n]]
+    mat, _ = map_by_name(tr.frames, tr.names, names, str(path), strict=False,
+                         what=f"{len(tr.names)} expression channels",
+                         hint="; track with the run's --face-model")
     return Track(f"file {Path(path).name} ({len(mat)} frames)", mat, float(tr.fps))
 
 
