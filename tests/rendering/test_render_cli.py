@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from flamenerf.commands.render import render
+from flamenerf.rendering.videos import RenderOptions
 from flamenerf.data.dataset import load_dataset
 from flamenerf.errors import UserError
 from flamenerf.rendering.prior import estimate_dilation, prior_mask
@@ -14,8 +15,8 @@ from flamenerf.data.video import VideoWriter, read_frames
 
 def test_orbit_with_depth_and_side_by_side(toy_run, tmp_path):
     out = tmp_path / "v.mp4"
-    render(toy_run, out=out, expressions=["jawOpen=1"], camera="orbit", frames=5, depth=True,
-           side_by_side=True, device="cpu")
+    render(RenderOptions(toy_run, out=out, expressions=["jawOpen=1"], camera="orbit", frames=5,
+                         depth=True, side_by_side=True, device="cpu"))
     for name, min_w in (("v.mp4", 16), ("v_depth.mp4", 16), ("v_sbs.mp4", 3 * 16)):
         frames = read_frames(tmp_path / name)
         assert len(frames) == 5, name
@@ -27,28 +28,29 @@ def test_orbit_with_depth_and_side_by_side(toy_run, tmp_path):
 
 
 def test_split_and_file_sources_set_the_length(toy_run, tmp_path):
-    render(toy_run, out=tmp_path / "s.mp4", split="reanimate", device="cpu")
+    render(RenderOptions(toy_run, out=tmp_path / "s.mp4", split="reanimate", device="cpu"))
     assert len(read_frames(tmp_path / "s.mp4")) == 2
     np.save(tmp_path / "e.npy", np.random.default_rng(0).uniform(size=(4, 3)))
-    render(toy_run, out=tmp_path / "e.mp4", expressions=[str(tmp_path / "e.npy")],
-           camera="spiral", size=20, device="cpu")
+    render(RenderOptions(toy_run, out=tmp_path / "e.mp4", expressions=[str(tmp_path / "e.npy")],
+                         camera="spiral", size=20, device="cpu"))
     frames = read_frames(tmp_path / "e.mp4")
     assert len(frames) == 4 and frames[0].shape[:2] == (20, 20)
 
 
 def test_bad_inputs_are_user_errors(toy_run, tmp_path):
     with pytest.raises(UserError, match="nope: run directory does not exist"):
-        render(tmp_path / "nope")
+        render(RenderOptions(tmp_path / "nope"))
     with pytest.raises(UserError, match="unknown control 'jawOpn'"):
-        render(toy_run, out=tmp_path / "x.mp4", expressions=["jawOpn=0.8"], device="cpu")
+        render(RenderOptions(toy_run, out=tmp_path / "x.mp4", expressions=["jawOpn=0.8"],
+                             device="cpu"))
     with pytest.raises(UserError, match="missing.json: expression file does not exist"):
-        render(toy_run, out=tmp_path / "x.mp4", expressions=[str(tmp_path / "missing.json")],
-               device="cpu")
+        render(RenderOptions(toy_run, out=tmp_path / "x.mp4",
+                             expressions=[str(tmp_path / "missing.json")], device="cpu"))
     with pytest.raises(UserError, match="one expression source"):
-        render(toy_run, expressions=["jawOpen=1"], split="reanimate")
+        render(RenderOptions(toy_run, expressions=["jawOpen=1"], split="reanimate"))
     (tmp_path / "taken.mp4").write_bytes(b"")
     with pytest.raises(UserError, match="taken.mp4: already exists"):
-        render(toy_run, out=tmp_path / "taken.mp4", device="cpu")
+        render(RenderOptions(toy_run, out=tmp_path / "taken.mp4", device="cpu"))
     assert not (tmp_path / "x.mp4").exists()
 
 

@@ -34,6 +34,7 @@ def demo(
     """
     from flamenerf.commands.render import render
     from flamenerf.commands.synth import synth
+    from flamenerf.rendering.videos import RenderOptions
     from flamenerf.config import preset
     from flamenerf.training.checkpoint import latest_checkpoint
     from flamenerf.training.trainer import train
@@ -52,7 +53,7 @@ def demo(
     print(f"[2/3] training the fast preset for {steps} steps into {run}")
     train(scene, run, cfg, resume=ck is not None, steps=steps)
     print("[3/3] rendering the re-animation video")
-    render(run, out=out / "reanimation.mp4", split="reanimate", camera="orbit", depth=True,
-           side_by_side=True, overwrite=True)
+    render(RenderOptions(run, out=out / "reanimation.mp4", split="reanimate", camera="orbit",
+                         depth=True, side_by_side=True, overwrite=True))
     print(f"done: {out / 'reanimation.mp4'} (+ _depth, _sbs); "
           f"`flamenerf view {run}` to play with it")

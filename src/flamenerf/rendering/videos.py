@@ -1,0 +1,258 @@
+"""The re-animation videos of `flamenerf render`: options, the expression source, the camera
+path, the output paths, then rendering and writing (result, depth, side by side).
+
+`render_videos(opts)` is the whole job; the pieces are separate so that each choice (which
+source, which cameras, how many frames) can be read and tested on its own.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Annotated, Literal
+
+import numpy as np
+import tyro
+
+from flamenerf.data.dataset import Dataset, Intrinsics, reference_position
+from flamenerf.errors import UserError
+from flamenerf.rendering import cameras as C
+from flamenerf.rendering import expressions as X
+
+
+@dataclass
+class RenderOptions:
+    """Options of `flamenerf render` (its flags, same names; the help text below is
+    their --help).
+
+    Attributes:
+        run: Run directory (made by `flamenerf train`).
+        out: Output video (default: RUN/renders/SOURCE_CAMERA.mp4).
+        expressions: An expression file, or name=value[,name=value] keyframes.
+        split: Take expressions, cameras and face meshes from this dataset split.
+        drive: Track the expressions of this driving video.
+        camera: static, orbit, spiral, dolly, a JSON file of poses, or auto.
+        frames: Number of frames when the source does not fix it (keyframes, held
+            expression, a named camera path).
+        fps: Frames per second (default: the source's, else 30). With --drive the video
+            is sampled at this rate.
+        size: Render width in pixels (default: the run's training width).
+        amplitude: Path amplitude: degrees for orbit/spiral, a fraction of the distance
+            for dolly (default: from the training cameras; dolly 0.2).
+        expression_base: What keyframes start from and return to, and which controls
+            they leave unchanged: frame 0's expression (reference) or all zeros.
+        depth: Also write a colour-mapped depth video.
+        side_by_side: Also write driving | result | depth (the expression as bars when
+            there is no driving image).
+        dataset: Dataset with the face mesh and cameras (default: the run's own).
+        dilate_px: Dilation of the prior's mask in dataset pixels (default: estimated
+            from the dataset's masks).
+        max_frames: Render at most this many frames (with --drive: this many spread over
+            the clip).
+        relative: With --drive on a dataset of the same expression model, transfer
+            expressions relative to each subject's neutral face.
+        landmarker: face_landmarker.task for --drive (default: as for preprocess).
+        chunk: Rays per forward pass (lower it if memory runs out).
+        device: `auto` (CUDA when present), `cpu` or `cuda`.
+        threads: CPU threads for torch (0 = default).
+        overwrite: Replace existing output videos.
+    """
+
+    run: Annotated[Path, tyro.conf.Positional]
+    out: Path | None = None
+    expressions: list[str] | None = None
+    split: str | None = None
+    drive: Path | None = None
+    camera: str = "auto"
+    frames: int = 60
+    fps: float | None = None
+    size: int | None = None
+    amplitude: float | None = None
+    expression_base: Literal["reference", "zero"] = "reference"
+    depth: bool = False
+    side_by_side: bool = False
+    dataset: Path | None = None
+    dilate_px: int | None = None
+    max_frames: int | None = None
+    relative: bool = True
+    landmarker: Path | None = None
+    chunk: int = 16384
+    device: str = "auto"
+    threads: int = 0
+    overwrite: bool = False
+
+    def check(self) -> None:
+        """One-line errors for options that cannot work, before anything is loaded."""
+        given = [n for n, v in (("--expressions", self.expressions), ("--split", self.split),
+                                ("--drive", self.drive)) if v]
+        if len(given) > 1:
+            raise UserError(f"give one expression source, not {' and '.join(given)}")
+        if self.frames < 1:
+            raise UserError(f"--frames {self.frames}: must be at least 1")
+        if self.max_frames is not None and self.max_frames < 1:
+            raise UserError(f"--max-frames {self.max_frames}: must be at least 1")
+        if self.chunk < 1:
+            raise UserError(f"--chunk {self.chunk}: must be positive")
+        if self.dilate_px is not None and self.dilate_px < 0:
+            raise UserError(f"--dilate-px {self.dilate_px}: must be >= 0")
+
+
+@dataclass
+class RenderSummary:
+    paths: dict[str, Path]  # "rgb", and "depth" / "sbs" when asked for
+    frames: int
+    width: int
+    height: int
+    fps: float
+    source: str  # the expression source's label
+    camera: str  # the camera path's label
+    dilate_px: int
+
+    def describe(self) -> str:
+        return (f"wrote {', '.join(str(p) for p in self.paths.values())}: {self.frames} "
+                f"frames at {self.width}x{self.height}, {self.fps:g} fps (expressions: "
+                f"{self.source}; camera: {self.camera}; prior mask dilation "
+                f"{self.dilate_px} px)")
+
+
+def render_intrinsics(run, ds: Dataset, size: int | None) -> Intrinsics:
+    """The run's training resolution, or `size` pixels wide."""
+    if size is None:
+        return run.train_intrinsics(ds)
+    if not 8 <= size <= 8192:
+        raise UserError(f"--size {size}: must be between 8 and 8192")
+    return ds.intrinsics.scaled(size / ds.intrinsics.w)
+
+
+def expression_source(opts: RenderOptions, ds: Dataset, names: list[str], intr: Intrinsics,
+                      base: np.ndarray, log=print) -> X.ExpressionSequence:
+    """The sequence --split, --drive or --expressions name; else `base` held."""
+    if opts.split:
+        return X.from_split(ds, opts.split, (intr.h, intr.w))
+    if opts.drive:
+        seq = X.from_video(opts.drive, ds, names, relative=opts.relative, fps=opts.fps,
+                           max_frames=opts.max_frames, panel_height=intr.h,
+                           landmarker=opts.landmarker)
+        if opts.max_frames is not None and opts.fps is None:
+            log(f"note: --max-frames spreads the {len(seq)} frames over the clip; the video "
+                f"plays at their rate ({seq.fps:.3g} fps) unless --fps is given")
+        return seq
+    if opts.expressions:
+        return X.from_items(opts.expressions, names, base, opts.frames)
+    return held_expression(base, opts.frames, "reference")
+
+
+def held_expression(base: np.ndarray, num: int, label: str) -> X.ExpressionSequence:
+    return X.ExpressionSequence(np.repeat(base[None], num, 0), label=label, resizable=True)
+
+
+def camera_poses(opts: RenderOptions, seq: X.ExpressionSequence, rig: C.CameraRig,
+                 names: list[str], base: np.ndarray, log=print
+                 ) -> tuple[np.ndarray, str, X.ExpressionSequence]:
+    """--camera -> poses (T, 4, 4), the path's label, and the expression sequence (re-made
+    when a pose file fixes the length of a keyframe/held sequence)."""
+    camera = opts.camera
+    if camera in ("auto", "split"):
+        if seq.cameras is not None:
+            return seq.cameras, "split", seq
+        if camera == "split":
+            raise UserError("--camera split: needs --split")
+        return C.camera_path("static", len(seq), rig), "static", seq
+    if camera in C.PATH_KINDS:
+        return C.camera_path(camera, len(seq), rig, opts.amplitude), camera, seq
+    poses = C.load_poses(Path(camera))
+    if seq.resizable and len(poses) != len(seq):
+        seq = (X.from_items(opts.expressions, names, base, len(poses)) if opts.expressions
+               else held_expression(base, len(poses), seq.label))
+    elif len(poses) != len(seq):
+        log(f"note: {camera} has {len(poses)} poses for {len(seq)} frames; resampled")
+        poses = C.resample(poses, len(seq))
+    return poses, Path(camera).stem, seq
+
+
+def output_paths(opts: RenderOptions, source: str, camera: str) -> dict[str, Path]:
+    """The videos to write, refusing to replace existing ones without --overwrite."""
+    out = (opts.out if opts.out is not None
+           else Path(opts.run) / "renders" / f"{source}_{camera}.mp4")
+    if out.suffix.lower() != ".mp4":
+        raise UserError(f"{out}: the output must be an .mp4 file")
+    paths = {"rgb": out}
+    if opts.depth:
+        paths["depth"] = out.with_name(f"{out.stem}_depth.mp4")
+    if opts.side_by_side:
+        paths["sbs"] = out.with_name(f"{out.stem}_sbs.mp4")
+    for p in paths.values():
+        if p.exists() and not opts.overwrite:
+            raise UserError(f"{p}: already exists (pass --overwrite to replace it)")
+    return paths
+
+
+def write_videos(run, ds: Dataset, intr: Intrinsics, poses: np.ndarray, values: np.ndarray,
+                 verts: np.ndarray, dilate_px: int, chunk: int, fps: float,
+                 paths: dict[str, Path], seq: X.ExpressionSequence, names: list[str]) -> None:
+    """Render frame 0's codes along poses (T, 4, 4) with expressions values (T, E) and write
+    the result, and with "depth"/"sbs" in `paths` the depth video and driving | result |
+    depth side by side (the expression as bars when the source has no driving image)."""
+    import contextlib
+
+    from tqdm import tqdm
+
+    from flamenerf.data.video import VideoWriter
+    from flamenerf.images import expression_panel, hstack, resize_to_height
+    from flamenerf.rendering.reanimate import depth_image, depth_range, render_sequence
+
+    omega, phi = run.frame_codes(0)
+    frames = render_sequence(run.model, ds, intr, poses, values, verts, omega, phi, dilate_px,
+                             chunk)
+    with contextlib.ExitStack() as stack:
+        writers = {k: stack.enter_context(VideoWriter(p, fps)) for k, p in paths.items()}
+        lo = hi = None
+        for i, fr in enumerate(tqdm(frames, total=len(poses), desc="render", unit="frame")):
+            writers["rgb"].write(fr.rgb)
+            if lo is None:
+                lo, hi = depth_range(fr, run.model.near, run.model.far)
+            if "depth" in writers or "sbs" in writers:
+                dimg = depth_image(fr, lo, hi)
+            if "depth" in writers:
+                writers["depth"].write(dimg)
+            if "sbs" in writers:
+                if seq.driving is not None:
+                    left = resize_to_height(seq.driving(i), intr.h)
+                else:
+                    left = expression_panel(values[i], names, intr.h, intr.w)
+                writers["sbs"].write(hstack([left, fr.rgb, dimg], gap=2))
+
+
+def render_videos(opts: RenderOptions, log=print) -> RenderSummary:
+    """The whole of `flamenerf render` (see its --help)."""
+    from flamenerf.rendering.prior import estimate_dilation, mesh_function
+    from flamenerf.runtime import set_threads
+    from flamenerf.training.run import load_run
+
+    opts.check()
+    set_threads(opts.threads)
+    run = load_run(opts.run, opts.device)
+    ds = run.dataset(opts.dataset)
+    names = run.expression_names
+    intr = render_intrinsics(run, ds, opts.size)
+    ref = reference_position(ds)
+    base = (ds.frames[ref].expression.astype(np.float32) if opts.expression_base == "reference"
+            else np.zeros(len(names), np.float32))
+
+    seq = expression_source(opts, ds, names, intr, base, log)
+    for note in seq.notes:
+        log(f"note: {note}")
+    poses, cam_label, seq = camera_poses(opts, seq, C.rig_from_dataset(ds), names, base, log)
+    n = len(seq) if opts.max_frames is None else min(len(seq), opts.max_frames)
+    values, poses = seq.values[:n], poses[:n]
+    if seq.vertices is not None:  # a split with its own (ground-truth) meshes
+        verts = seq.vertices[:n]
+    else:  # the prior's silhouette follows the driven expression's mesh, not frame 0's
+        mesh_of = mesh_function(run.model, ds)
+        verts = np.stack([mesh_of(v) for v in values])
+    dil = estimate_dilation(ds) if opts.dilate_px is None else opts.dilate_px
+    fps = opts.fps or seq.fps or 30.0
+
+    paths = output_paths(opts, seq.label, cam_label)
+    write_videos(run, ds, intr, poses, values, verts, dil, opts.chunk, fps, paths, seq, names)
+    return RenderSummary(paths, n, intr.w, intr.h, fps, seq.label, cam_label, dil)
