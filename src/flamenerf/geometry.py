@@ -11,13 +11,14 @@ it. Equations from Lynch & Park, *Modern Robotics* (2017): Rodrigues' formula (3
 
 from __future__ import annotations
 
-from typing import Protocol, TypeVar
+from typing import TYPE_CHECKING, Protocol, TypeVar
 
 import numpy as np
-import torch
-from torch import Tensor
 
-Array = TypeVar("Array", np.ndarray, Tensor)
+if TYPE_CHECKING:  # torch is imported where it is used: `flamenerf --help` stays fast
+    from torch import Tensor
+
+Array = TypeVar("Array", np.ndarray, "Tensor")
 
 
 class Pinhole(Protocol):
@@ -34,6 +35,8 @@ class Pinhole(Protocol):
 
 def skew(w: Tensor) -> Tensor:
     """(*bs, 3) -> (*bs, 3, 3) with skew(w) @ v = w × v."""
+    import torch
+
     z = torch.zeros_like(w[..., 0])
     return torch.stack(
         [z, -w[..., 2], w[..., 1], w[..., 2], z, -w[..., 0], -w[..., 1], w[..., 0], z], -1
@@ -43,6 +46,8 @@ def skew(w: Tensor) -> Tensor:
 def rodrigues_coefficients(theta: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """sin θ/θ, (1−cos θ)/θ², (θ − sin θ)/θ³ of angles θ (*bs), with Taylor forms near
     θ = 0 so that values and gradients stay finite at the identity."""
+    import torch
+
     small = theta < 1e-3
     t = torch.where(small, torch.ones_like(theta), theta)
     t2 = theta * theta
@@ -54,6 +59,8 @@ def rodrigues_coefficients(theta: Tensor) -> tuple[Tensor, Tensor, Tensor]:
 
 def so3_exp(w: Tensor) -> Tensor:
     """Rotation vector (*bs, 3) -> rotation matrix (*bs, 3, 3) (Rodrigues, MR eq. 3.51)."""
+    import torch
+
     theta = torch.linalg.vector_norm(w, dim=-1)
     a, b, _ = rodrigues_coefficients(theta)
     W = skew(w)
@@ -120,7 +127,10 @@ def project(points_cam: Array, fx, fy, cx: float, cy: float,
     points stray behind the camera; without it only depths within 1e-9 of zero are
     replaced (points behind the camera keep their sign). fx, fy may be tensors (a focal
     length being optimised)."""
-    xp = torch if isinstance(points_cam, Tensor) else np
+    if isinstance(points_cam, np.ndarray):
+        xp = np
+    else:
+        import torch as xp
     z = -points_cam[..., 2]
     if min_depth is not None:
         z = xp.where(z < min_depth, min_depth, z)

@@ -15,9 +15,10 @@ import os
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 import numpy as np
+import tyro
 
 from flamenerf.errors import UserError
 from flamenerf.io import jsonable
@@ -32,7 +33,38 @@ GROUPS_ARKIT = {  # channels plotted in qa/expressions.png (groups are averaged)
 
 @dataclass
 class PreprocessOptions:
-    """Options of `flamenerf preprocess` (the command's flags, same names)."""
+    """Options of `flamenerf preprocess` (its flags, same names; the help text below is
+    their --help).
+
+    Attributes:
+        fps: Keep about this many frames per second (default: every frame).
+        max_frames: Keep at most this many frames, spread evenly over the clip.
+        size: Output image width and height in pixels.
+        crop_scale: Crop side as a multiple of the largest face box (hair, neck, some
+            background); limited to the frame.
+        val_every: Hold out every k-th kept frame as the val split (0: none).
+        dilate: Grow the silhouette masks by this many output pixels.
+        near: Near bound in metres (default: half the nearest face-mesh depth).
+        far: Far bound in metres, i.e. how far the background reaches (default:
+            far-scale x the largest camera-head distance).
+        far_scale: See --far.
+        fov: Fix the horizontal field of view in degrees instead of estimating it.
+        landmarker: face_landmarker.task to use (default: $FLAMENERF_LANDMARKER, then the
+            copy installed by scripts/get_landmarker.py).
+        face_model: mediapipe: MediaPipe face mesh + ARKit blendshapes; flame: fit FLAME
+            (needs --flame-dir) and use its expression vector and mesh.
+        flame_dir: Folder with FLAME's generic_model.pkl (or flame2020/2023 pkl) and a
+            landmark embedding (mediapipe_landmark_embedding.npz). Only load files you
+            trust: .pkl files can run code (see docs/preprocessing.md).
+        flame_expr_dim: Number of FLAME expression coefficients to fit and store (β also
+            holds the 3 jaw-pose angles after them).
+        min_tracked: Fail unless at least this fraction of the selected frames is tracked.
+        max_error: Drop frames whose median reprojection error exceeds this fraction of
+            the face size (and 3x the clip's median).
+        qa: Write OUT/qa (overlay video, contact sheet, camera plot, report).
+        overwrite: Replace OUT if it exists.
+        progress: Show progress bars (not a flag: the command always does).
+    """
 
     fps: float | None = None
     max_frames: int | None = None
@@ -52,7 +84,7 @@ class PreprocessOptions:
     max_error: float = 0.03
     qa: bool = True
     overwrite: bool = False
-    progress: bool = True
+    progress: Annotated[bool, tyro.conf.Suppress] = True
 
 
 @dataclass

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import json
 
-from flamenerf.evaluation import bench
-from flamenerf.evaluation.bench import BenchOptions, method_configs, run_bench
+from flamenerf.workflows import bench
+from flamenerf.workflows.bench import BenchOptions, method_configs, run_bench
 from flamenerf.evaluation.toy import toy_config
 
 

@@ -1,0 +1,3 @@
+"""Workflows: several pipeline steps run as one job (synthesise -> train -> evaluate ->
+report).
+"""
