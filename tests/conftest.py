@@ -20,15 +20,15 @@ def tiny_scene(tmp_path_factory):
 @pytest.fixture(scope="session")
 def toy_dataset(tmp_path_factory):
     """Every split of the built-in scene at 16x16, made in about a second
-    (src/flamenerf/evaluation/toy.py); shared by tests/evaluation and tests/rendering."""
-    from flamenerf.evaluation.toy import make_toy_dataset
+    (tests/toy.py); shared by tests/evaluation and tests/rendering."""
+    from toy import make_toy_dataset
 
     return make_toy_dataset(tmp_path_factory.mktemp("toy") / "dataset")
 
 
 @pytest.fixture(scope="session")
 def toy_run(toy_dataset, tmp_path_factory):
-    from flamenerf.evaluation.toy import make_toy_run
+    from toy import make_toy_run
 
     return make_toy_run(toy_dataset, tmp_path_factory.mktemp("toy") / "run", "masked")
 

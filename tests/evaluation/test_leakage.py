@@ -9,7 +9,7 @@ import torch
 from flamenerf.data.dataset import load_dataset
 from flamenerf.data.scene import FrameSet
 from flamenerf.evaluation.protocol import leakage
-from flamenerf.evaluation.toy import toy_config
+from toy import toy_config
 from flamenerf.training.trainer import build_for_dataset
 
 

@@ -6,7 +6,7 @@ import json
 
 from flamenerf.workflows import bench
 from flamenerf.workflows.bench import BenchOptions, method_configs, run_bench
-from flamenerf.evaluation.toy import toy_config
+from toy import toy_config
 
 
 def test_cpu_methods_share_the_fast_machinery_and_budget():

@@ -1,6 +1,6 @@
 """Screenshots of `flamenerf view` for docs/viewer.md (not a test).
 
-    python tests/viewer/make_screenshots.py RUN [--out docs] [--resolution 160]
+    python scripts/make_screenshots.py RUN [--out docs] [--resolution 160]
 
 Starts the viewer on RUN, opens it in headless Chromium and saves
 viewer_rgb.png (frame 0's camera, an expression set with the sliders), viewer_depth.png
@@ -16,7 +16,8 @@ import sys
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).parent))
+# the headless-Chromium client the viewer test uses
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "viewer"))
 from cdp import Browser, find_chromium  # noqa: E402
 
 

@@ -1,6 +1,8 @@
-"""A toy dataset and toy runs, small enough for tests and smoke checks (well under a second
-to make): a textured quad 'face' in front of a striped backdrop, seen by a few cameras,
-with every split of the built-in scene (train, val, reanimate, leakage)."""
+"""Test fixture data: a toy dataset and toy runs, small enough for tests (well under a
+second to make): a textured quad 'face' in front of a striped backdrop, seen by a few
+cameras, with every split of the built-in scene (train, val, reanimate, leakage).
+
+Imported by the tests as `toy` (tests/ is on sys.path through tests/conftest.py)."""
 
 from __future__ import annotations
 
