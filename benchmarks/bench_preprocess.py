@@ -52,7 +52,7 @@ def contact_sheet_from_dataset(ds_dir: Path, out_png: Path, n: int = 8, cols: in
 def trace_from_dataset(ds_dir: Path, out_png: Path, title: str):
     from flamenerf.data.dataset import load_dataset
     from flamenerf.tracking import qa
-    from flamenerf.tracking.pipeline import GROUPS_ARKIT
+    from flamenerf.tracking.report import GROUPS_ARKIT
 
     ds = load_dataset(ds_dir)
     t = np.array([f.extra["time"] for f in ds.frames])

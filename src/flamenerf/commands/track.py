@@ -54,7 +54,7 @@ def track(
     """
     from flamenerf.errors import UserError
     from flamenerf.tracking.expressions import save_expressions, transfer_to_subject
-    from flamenerf.tracking.pipeline import track_expressions
+    from flamenerf.tracking.driving import track_expressions
 
     if out.exists() and not overwrite:
         raise UserError(f"{out}: already exists (pass --overwrite to replace it)")

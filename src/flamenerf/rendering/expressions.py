@@ -268,7 +268,7 @@ def from_video(video: Path, ds, names: list[str], relative: bool = True,
     from flamenerf.data.video import iter_frames, probe_video
     from flamenerf.images import resize_image
     from flamenerf.tracking.expressions import transfer_to_subject
-    from flamenerf.tracking.pipeline import track_expressions
+    from flamenerf.tracking.driving import track_expressions
 
     tr = track_expressions(video, fps=fps, max_frames=max_frames, landmarker=landmarker)
     notes = []

@@ -1,0 +1,139 @@
+"""Tracked clips: FaceLandmarker over the selected frames of a video, the check that enough
+of them have a face, and the camera solve with misfit frames dropped. Shared by the
+preprocessing pipeline and the driving-video tracker."""
+
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from flamenerf.errors import UserError
+
+MAX_ERROR = 0.03
+"""Default misfit limit of the camera solve, as a fraction of the face size."""
+
+
+@dataclass
+class TrackedClip:
+    """Per-frame FaceLandmarker output for the selected frames of a video."""
+
+    info: Any  # VideoInfo
+    selected: np.ndarray  # (S,) source frame indices that were looked at
+    frames: np.ndarray  # (T,) source frame indices where a face was found
+    times: np.ndarray  # (T,) seconds
+    landmarks: np.ndarray  # (T, 478, 3) source pixels
+    blendshapes: np.ndarray  # (T, 52)
+    transforms: np.ndarray  # (T, 4, 4)
+    names: list[str]
+    dropped: list[dict] = field(default_factory=list)  # {"source_frame", "time", "reason"}
+    seconds: float = 0.0
+
+
+def progress_bar(it, total: int, desc: str, enabled: bool):
+    if not enabled:
+        return it
+    from tqdm import tqdm
+
+    # disable=None: only on a terminal, so logs and captured stderr stay clean
+    return tqdm(it, total=total, desc=desc, unit="frame", leave=False, dynamic_ncols=True,
+                disable=None)
+
+
+def track_clip(video: str | os.PathLike, fps: float | None = None,
+               max_frames: int | None = None, landmarker: str | os.PathLike | None = None,
+               progress: bool = True) -> TrackedClip:
+    """Decode the selected frames and run FaceLandmarker on each (IMAGE mode)."""
+    from flamenerf.data.video import iter_frames, probe_video, select_frames
+    from flamenerf.tracking.landmarker import FaceLandmarker, blendshape_names, find_model
+
+    model = find_model(landmarker)  # fail on a bad model path before decoding anything
+    info = probe_video(video)
+    sel = select_frames(info.num_frames, info.fps, fps, max_frames)
+    t0 = time.perf_counter()
+    frames, L, B, M, dropped = [], [], [], [], []
+    seen = set()
+    with FaceLandmarker(model) as lm:
+        for i, rgb in progress_bar(iter_frames(info, sel), len(sel), "tracking", progress):
+            seen.add(i)
+            det = lm.detect(rgb)
+            if det is None:
+                dropped.append({"source_frame": i, "time": i / info.fps,
+                                "reason": "no face detected"})
+                continue
+            frames.append(i)
+            L.append(det.landmarks)
+            B.append(det.blendshapes)
+            M.append(det.transform)
+        names = lm.names or blendshape_names()
+    for i in sel:
+        if int(i) not in seen:
+            dropped.append({"source_frame": int(i), "time": int(i) / info.fps,
+                            "reason": "frame could not be decoded"})
+    fr = np.asarray(frames, np.int64)
+    return TrackedClip(
+        info=info, selected=sel, frames=fr, times=fr / info.fps,
+        landmarks=np.asarray(L, np.float64).reshape(-1, 478, 3),
+        blendshapes=np.asarray(B, np.float32).reshape(len(frames), len(names)),
+        transforms=np.asarray(M, np.float64).reshape(-1, 4, 4), names=list(names),
+        dropped=sorted(dropped, key=lambda d: d["source_frame"]),
+        seconds=time.perf_counter() - t0,
+    )
+
+
+def require_enough(clip: TrackedClip, min_fraction: float, minimum: int = 2) -> None:
+    """UserError when too few of the selected frames have a face."""
+    n_sel, n_ok = len(clip.selected), len(clip.frames)
+    path = clip.info.path
+    if n_ok == 0:
+        raise UserError(f"{path}: no face found in any of the {n_sel} selected frames")
+    need = max(minimum, int(np.ceil(min_fraction * n_sel)))
+    if n_ok < need:
+        first = ", ".join(str(d["source_frame"]) for d in clip.dropped[:8])
+        more = "..." if len(clip.dropped) > 8 else ""
+        raise UserError(
+            f"{path}: face tracked in only {n_ok} of {n_sel} selected frames (need at least "
+            f"{need}; --min-tracked {min_fraction:g}); frames without a face: {first}{more}")
+
+
+def drop_frames(clip: TrackedClip, keep: np.ndarray, reasons: dict[int, str]) -> TrackedClip:
+    """A copy of `clip` without the frames where keep is False (reasons by position)."""
+    dropped = clip.dropped + [
+        {"source_frame": int(clip.frames[k]), "time": float(clip.times[k]), "reason": r}
+        for k, r in reasons.items()]
+    return TrackedClip(
+        info=clip.info, selected=clip.selected, frames=clip.frames[keep],
+        times=clip.times[keep], landmarks=clip.landmarks[keep],
+        blendshapes=clip.blendshapes[keep], transforms=clip.transforms[keep],
+        names=clip.names, dropped=sorted(dropped, key=lambda d: d["source_frame"]),
+        seconds=clip.seconds)
+
+
+def solve_clip(clip: TrackedClip, mesh, fov: float | None, max_error: float = MAX_ERROR,
+               min_tracked: float = 0.5):
+    """Camera solve (`fov`: fixed horizontal field of view in degrees, or None to estimate
+    it); frames whose rigid reprojection error exceeds max_error x face size (and 3x the
+    median) are dropped, listed, and the solve is rerun without them, if at least
+    `min_tracked` of the selected frames remain. -> (clip, SolveResult)"""
+    from flamenerf.tracking.cameras import SolveConfig, solve_cameras
+
+    cfg = SolveConfig(fov_deg=fov)
+    step = 1.0 / clip.info.fps
+
+    def run(c: TrackedClip):
+        return solve_cameras(c.landmarks, c.times, mesh.vertices, mesh.faces, mesh.weights,
+                             c.info.width, c.info.height, c.transforms, cfg, step)
+
+    res = run(clip)
+    limit = max(max_error * res.face_size, 3 * float(np.median(res.rigid_error)))
+    bad = res.rigid_error > limit
+    if bad.any():
+        reasons = {int(k): f"camera-solve misfit: {res.rigid_error[k]:.1f} px > {limit:.1f} px"
+                   for k in np.flatnonzero(bad)}
+        clip = drop_frames(clip, ~bad, reasons)
+        require_enough(clip, min_tracked)
+        res = run(clip)
+    return clip, res

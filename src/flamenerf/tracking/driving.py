@@ -1,0 +1,52 @@
+"""The driving-video tracker behind `flamenerf track` and `render --drive`: per-frame
+expression vectors of a video (ARKit blendshape scores, or a FLAME fit)."""
+
+from __future__ import annotations
+
+import os
+from typing import Literal
+
+import numpy as np
+
+from flamenerf.errors import UserError
+from flamenerf.tracking.clip import require_enough, solve_clip, track_clip
+
+
+def track_expressions(video: str | os.PathLike, fps: float | None = None,
+                      max_frames: int | None = None, landmarker: str | os.PathLike | None = None,
+                      face_model: Literal["mediapipe", "flame"] = "mediapipe",
+                      flame_dir: str | os.PathLike | None = None, flame_expr_dim: int = 50,
+                      min_tracked: float = 0.5, progress: bool = True):
+    """Per-frame expression vectors of a (driving) video -> ExpressionTrack."""
+    import flamenerf
+    from flamenerf.tracking.expressions import ExpressionTrack
+
+    flame = None
+    if face_model == "flame":
+        from flamenerf.tracking.flame import load_flame_dir
+
+        flame = load_flame_dir(flame_dir)
+    clip = track_clip(video, fps, max_frames, landmarker, progress)
+    require_enough(clip, min_tracked, minimum=1)
+    if flame is not None:
+        from flamenerf.tracking.flame import fit_flame
+        from flamenerf.tracking.landmarker import find_model, load_canonical_mesh
+
+        if len(clip.frames) < 2:
+            raise UserError(f"{video}: the FLAME fit needs at least 2 tracked frames")
+        mesh = load_canonical_mesh(find_model(landmarker))
+        clip, sol = solve_clip(clip, mesh, fov=None, min_tracked=min_tracked)
+        fit = fit_flame(flame, clip, sol, num_expr=flame_expr_dim)
+        frames, names, kind = fit.expressions, fit.names, "flame"
+    else:
+        frames, names, kind = clip.blendshapes, clip.names, "arkit"
+    rate = clip.info.fps
+    if len(clip.selected) > 1:  # the rate of the selected frames
+        rate = clip.info.fps / float(np.median(np.diff(clip.selected)))
+    return ExpressionTrack(
+        names=list(names), frames=np.asarray(frames, np.float32), fps=float(rate), kind=kind,
+        source_frames=[int(i) for i in clip.frames],
+        times=[round(float(t), 6) for t in clip.times], dropped=clip.dropped,
+        source={"video": str(video), "tool": "flamenerf track",
+                "version": flamenerf.__version__, "video_fps": clip.info.fps,
+                "selected_frames": int(len(clip.selected))})

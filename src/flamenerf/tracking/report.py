@@ -1,0 +1,105 @@
+"""The preprocessing report (qa/tracking_report.json) and the QA figures next to it."""
+
+from __future__ import annotations
+
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+
+GROUPS_ARKIT = {  # channels plotted in qa/expressions.png (groups are averaged)
+    "jawOpen": ["jawOpen"],
+    "smile (mouthSmileLeft+Right)/2": ["mouthSmileLeft", "mouthSmileRight"],
+    "eyeBlinkLeft": ["eyeBlinkLeft"],
+    "eyeBlinkRight": ["eyeBlinkRight"],
+}
+
+
+
+def tracking_report(video: Path, clip, sol, intr, crop, crop_facts, n_tracked: int,
+                    cam_dist: np.ndarray, near: float, far: float, kind: str,
+                    names: list[str], splits: list[str], per_frame: list[dict],
+                    timings: dict[str, float]) -> dict:
+    """What preprocessing found and kept: video, frames, cameras, crop, errors, bounds."""
+    info, N = clip.info, len(clip.frames)
+    return {
+        "video": {"path": str(video), "width": info.width, "height": info.height,
+                  "fps": info.fps, "frames": info.num_frames, "rotation": info.rotation,
+                  "codec": info.codec},
+        "selected_frames": int(len(clip.selected)),
+        "tracked_frames": n_tracked,
+        "kept_frames": N,
+        "tracked_percent": 100.0 * n_tracked / max(1, len(clip.selected)),
+        "kept_percent": 100.0 * N / max(1, len(clip.selected)),
+        "dropped": clip.dropped,
+        "camera": {
+            "focal_px_source": sol.focal, "fov_x_deg": _fov(sol.focal, info.width),
+            "fov_y_deg": _fov(sol.focal, info.height),
+            "focal_scan": sol.history.get("focal_scan"),
+            "intrinsics_out": asdict(intr),
+            "camera_distance_m": [float(cam_dist.min()), float(cam_dist.max())],
+            "azimuth_range_deg": _azimuth_range(sol.c2w),
+        },
+        "crop": {**crop.to_dict(), **crop_facts},
+        "reprojection_error_px": {
+            "what": "median over landmarks of |projection - landmark|, per frame; "
+                    "rigid = shared template + camera, mesh = per-frame face mesh",
+            "rigid_median_source": float(np.median(sol.rigid_error)),
+            "rigid_median_out": float(np.median(sol.rigid_error) * crop.scale),
+            "rigid_p95_out": float(np.percentile(sol.rigid_error, 95) * crop.scale),
+            "mesh_median_out": float(np.median(sol.mesh_error) * crop.scale),
+        },
+        "near": near, "far": far,
+        "expression_model": {"kind": kind, "dim": len(names)},
+        "splits": {s: splits.count(s) for s in sorted(set(splits))},
+        "timings_s": timings,
+        "frames": per_frame,
+    }
+
+
+def frame_entry(k: int, source_frame: int, clip, sol, crop, split: str, mask: np.ndarray,
+                expression: np.ndarray, names: list[str]) -> dict:
+    """One kept frame's line of the report."""
+    return {
+        "position": k, "source_frame": source_frame, "time": float(clip.times[k]),
+        "split": split,
+        "rigid_error_px_source": float(sol.rigid_error[k]),
+        "rigid_error_px_out": float(sol.rigid_error[k] * crop.scale),
+        "mesh_error_px_out": float(sol.mesh_error[k] * crop.scale),
+        "camera_center": sol.c2w[k, :3, 3].round(5).tolist(),
+        "mask_fraction": float(mask.mean()),
+        "top_expressions": _top(expression, names),
+    }
+
+
+def write_qa(qa_dir: Path, report: dict, sheet_frames: list[np.ndarray], sol, clip, splits,
+              expressions, names, kind) -> None:
+    import imageio.v3 as iio
+
+    from flamenerf.tracking import qa
+
+    qa_dir.mkdir(exist_ok=True)
+    iio.imwrite(qa_dir / "contact_sheet.png", qa.contact_sheet(sheet_frames, cols=4))
+    rep = report["reprojection_error_px"]
+    qa.plot_cameras(qa_dir / "cameras.png", sol.c2w, sol.template, clip.times, splits,
+                    title=f"{len(sol.c2w)} cameras, focal {sol.focal:.0f} px (source), "
+                          f"median reprojection error {rep['rigid_median_out']:.2f} px "
+                          f"(output)")
+    if kind == "arkit":
+        qa.plot_expression_traces(qa_dir / "expressions.png", clip.times, expressions, names,
+                                  GROUPS_ARKIT, title="expression trace")
+
+
+def _fov(f: float, extent: float) -> float:
+    return float(np.degrees(2 * np.arctan(0.5 * extent / f)))
+
+
+def _azimuth_range(c2w: np.ndarray) -> list[float]:
+    C = c2w[:, :3, 3]
+    az = np.degrees(np.arctan2(C[:, 0], C[:, 2]))
+    return [float(az.min()), float(az.max())]
+
+
+def _top(vec: np.ndarray, names: list[str], k: int = 3) -> dict[str, float]:
+    idx = np.argsort(-np.abs(vec))[:k]
+    return {names[i]: round(float(vec[i]), 3) for i in idx}
