@@ -7,6 +7,8 @@ import torch
 
 torch.set_num_threads(max(1, min(2, torch.get_num_threads())))
 
+pytest_plugins = ["media"]  # videos and the 48x48 scene shared by several test folders
+
 
 @pytest.fixture(scope="session")
 def tiny_scene(tmp_path_factory):

@@ -1,11 +1,12 @@
-"""Video decoding with rotation metadata, frame selection, and unreadable inputs."""
+"""Video decoding with rotation metadata, frame selection, unreadable inputs, and atomic
+writing."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from flamenerf.data.video import iter_frames, probe_video, select_frames
+from flamenerf.data.video import VideoWriter, iter_frames, probe_video, select_frames
 from flamenerf.errors import UserError
 
 
@@ -51,3 +52,11 @@ def test_unreadable_inputs(tmp_path):
     junk.write_bytes(bytes(range(256)) * 50)
     with pytest.raises(UserError, match="junk.mov"):
         probe_video(junk)
+
+
+def test_an_aborted_video_leaves_nothing(tmp_path):
+    with pytest.raises(RuntimeError):
+        with VideoWriter(tmp_path / "a.mp4", fps=10) as v:
+            v.write(np.zeros((9, 9, 3)))  # odd sizes are padded
+            raise RuntimeError("boom")
+    assert list(tmp_path.iterdir()) == []

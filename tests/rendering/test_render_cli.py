@@ -10,7 +10,7 @@ from flamenerf.rendering.videos import RenderOptions
 from flamenerf.data.dataset import load_dataset
 from flamenerf.errors import UserError
 from flamenerf.rendering.prior import estimate_dilation, prior_mask
-from flamenerf.data.video import VideoWriter, read_frames
+from flamenerf.data.video import read_frames
 
 
 def test_orbit_with_depth_and_side_by_side(toy_run, tmp_path):
@@ -63,11 +63,3 @@ def test_prior_mask_reproduces_the_dataset_masks(toy_dataset):
         np.testing.assert_array_equal(m, ds.load_mask(fr))
     small = prior_mask(ds, ds.face_vertices[0], ds.frames[0].c2w, ds.intrinsics.scaled(0.5), 1)
     assert small.shape == (8, 8) and small.any()
-
-
-def test_an_aborted_video_leaves_nothing(tmp_path):
-    with pytest.raises(RuntimeError):
-        with VideoWriter(tmp_path / "a.mp4", fps=10) as v:
-            v.write(np.zeros((9, 9, 3)))  # odd sizes are padded
-            raise RuntimeError("boom")
-    assert list(tmp_path.iterdir()) == []

@@ -1,0 +1,49 @@
+"""Reading datasets: every split of the built-in scene, and one-line errors naming the
+file for a corrupted transforms.json."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from flamenerf.data.dataset import DatasetError, load_dataset
+from flamenerf.synthetic.head import CONTROLS
+
+
+def test_load_dataset_reads_every_split(dataset_dir):
+    ds = load_dataset(dataset_dir)
+    assert set(ds.splits) == {"train", "val", "reanimate", "leakage"}
+    assert ds.expression_names == list(CONTROLS) and ds.expression_kind == "synthetic"
+    assert all(f.frame_index is not None for f in ds.split("train") + ds.split("val"))
+    cap = sorted(ds.split("train") + ds.split("val"), key=lambda f: f.position)
+    assert [f.frame_index for f in cap] == list(range(12))
+    assert [f.frame_index for f in ds.split("val")] == [5]
+    assert all(f.frame_index is None for f in ds.split("reanimate") + ds.split("leakage"))
+    assert len(ds.split("leakage")) == 1 + len(CONTROLS)
+    assert ds.face_vertices.shape[0] == len(ds.frames) and 300 <= ds.face_vertices.shape[1] <= 1000
+    f = ds.split("reanimate")[0]
+    img, m, dep = ds.load_image(f), ds.load_mask(f), ds.load_depth(f)
+    assert img.shape == (48, 48, 3) and m.any() and dep is not None
+    assert ds.near <= dep.min() and dep.max() <= ds.far
+    # the leakage frames share frame 0's camera and body pose
+    lk = ds.split("leakage")
+    assert all(np.allclose(x.c2w, ds.frames[0].c2w) for x in lk)
+    assert all(x.extra["body_pose"] == ds.frames[0].extra["body_pose"] for x in lk)
+
+
+def test_corrupted_transforms_is_a_dataset_error_naming_the_file(dataset_dir, tmp_path):
+    import shutil
+
+    bad = tmp_path / "bad"
+    shutil.copytree(dataset_dir, bad)
+    tj = bad / "transforms.json"
+    tj.write_text(tj.read_text()[:-200])
+    with pytest.raises(DatasetError, match="transforms.json"):
+        load_dataset(bad)
+    meta = json.loads((dataset_dir / "transforms.json").read_text())
+    del meta["frames"][0]["expression"]
+    tj.write_text(json.dumps(meta))
+    with pytest.raises(DatasetError, match="transforms.json"):
+        load_dataset(bad)

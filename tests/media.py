@@ -1,0 +1,105 @@
+"""Videos and datasets made by the tests, shared by tests/data, tests/tracking and
+tests/synthetic (registered as a pytest plugin in tests/conftest.py): short videos made from
+scikit-image's astronaut photo (a real face), face-less and rotated videos, and a small
+built-in scene."""
+
+from __future__ import annotations
+
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+
+@pytest.fixture(scope="session")
+def dataset_dir(tmp_path_factory) -> Path:
+    """The built-in scene at 48x48: 12 capture frames (val: frame 5), 3 reanimate, one
+    leakage step."""
+    from flamenerf.synthetic.scene import make_scene
+
+    out = tmp_path_factory.mktemp("synth") / "scene"
+    make_scene(out, seed=1, size=48, frames=12, reanimate=3, leakage_steps=1, workers=1)
+    return out
+
+
+def _warp(img: np.ndarray, zoom: float, dx: float, dy: float, out: int) -> np.ndarray:
+    """Crop-and-zoom of img around its face (a hand-held camera, roughly)."""
+    from PIL import Image
+
+    h, w = img.shape[:2]
+    cx, cy = 0.4 * w + dx, 0.32 * h + dy  # the astronaut's face is up and left of centre
+    half = 0.3 * w / zoom
+    box = (cx - half, cy - half, cx + half, cy + half)
+    return np.asarray(Image.fromarray(img).resize((out, out), Image.Resampling.BICUBIC,
+                                                  box=box))
+
+
+def astronaut_frames(n: int = 12, size: int = 256, seed: int = 0) -> list[np.ndarray]:
+    from skimage import data
+
+    img = data.astronaut()
+    rng = np.random.default_rng(seed)
+    frames = []
+    for k in range(n):
+        t = k / max(1, n - 1)
+        frames.append(_warp(img, 1.0 + 0.15 * t, 20 * np.sin(3 * t) + rng.normal(0, 1),
+                            10 * t + rng.normal(0, 1), size))
+    return frames
+
+
+def write_mp4(path: Path, frames: list[np.ndarray], fps: float = 10.0) -> Path:
+    from flamenerf.data.video import write_video
+
+    write_video(path, frames, fps=fps, quality=9)
+    return path
+
+
+@pytest.fixture(scope="session")
+def astronaut_video(tmp_path_factory) -> Path:
+    return write_mp4(tmp_path_factory.mktemp("vid") / "astronaut.mp4", astronaut_frames())
+
+
+@pytest.fixture(scope="session")
+def gappy_video(tmp_path_factory) -> Path:
+    """12 frames, frames 3 and 7 without a face (grey)."""
+    frames = astronaut_frames()
+    for k in (3, 7):
+        frames[k] = np.full_like(frames[k], 128)
+    return write_mp4(tmp_path_factory.mktemp("vid") / "gappy.mp4", frames)
+
+
+@pytest.fixture(scope="session")
+def noface_video(tmp_path_factory) -> Path:
+    from skimage import data
+
+    coffee = data.coffee()[:256, :256]
+    frames = [np.roll(coffee, 4 * k, axis=1) for k in range(6)]
+    return write_mp4(tmp_path_factory.mktemp("vid") / "noface.mp4", frames)
+
+
+@pytest.fixture(scope="session")
+def mostly_noface_video(tmp_path_factory) -> Path:
+    """10 frames, only 2 with a face."""
+    frames = astronaut_frames(10)
+    for k in range(2, 10):
+        frames[k] = np.full_like(frames[k], 90)
+    return write_mp4(tmp_path_factory.mktemp("vid") / "mostly_noface.mp4", frames)
+
+
+@pytest.fixture(scope="session")
+def rotated_video(tmp_path_factory) -> Path:
+    """A 320x160 stream with a 90° display rotation (how phones store portrait video)."""
+    import imageio_ffmpeg
+
+    d = tmp_path_factory.mktemp("vid")
+    frames = [np.zeros((160, 320, 3), np.uint8) for _ in range(5)]
+    for k, f in enumerate(frames):
+        f[:, :40] = 255  # a white band on the stored frame's left edge
+        f[:8, :, 1] = 20 * k
+    plain = write_mp4(d / "plain.mp4", frames)
+    out = d / "rotated.mp4"
+    subprocess.run([imageio_ffmpeg.get_ffmpeg_exe(), "-y", "-loglevel", "error",
+                    "-display_rotation", "90", "-i", str(plain), "-c", "copy", str(out)],
+                   check=True)
+    return out

@@ -1,0 +1,39 @@
+"""The command line's argument errors: a message naming the problem and a non-zero exit,
+never a traceback."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import pytest
+
+from flamenerf.cli import main
+
+
+def _run(*args: str) -> subprocess.CompletedProcess:
+    env = dict(os.environ, FLAMENERF_NO_REEXEC="1", COLUMNS="200")
+    return subprocess.run([sys.executable, "-m", "flamenerf.cli", *args], capture_output=True,
+                          text=True, env=env, timeout=120)
+
+
+def test_missing_dataset_is_one_error_line(tmp_path, capsys):
+    assert main(["train", str(tmp_path / "nope"), "--out", str(tmp_path / "run")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"flamenerf: error: {tmp_path / 'nope'}: dataset directory does not exist"]
+    assert not (tmp_path / "run").exists()
+
+
+def test_bad_preset_name_is_refused_with_the_choices(tmp_path):
+    r = _run("train", str(tmp_path), "--preset", "nope")
+    assert r.returncode != 0
+    assert "nope" in r.stderr and "fast" in r.stderr and "flame-in-nerf" in r.stderr
+    assert "Traceback" not in r.stderr
+
+
+@pytest.mark.parametrize("args", [["render"], ["preprocess", "only-one.mp4"],
+                                  ["bench", "--steps", "many"]])
+def test_malformed_arguments_exit_non_zero_without_a_traceback(args):
+    r = _run(*args)
+    assert r.returncode != 0 and "Traceback" not in r.stderr

@@ -1,0 +1,36 @@
+"""Config <-> the plain dict a run's config.json stores."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import pytest
+
+from flamenerf.config import PRESETS, Config, from_dict, preset
+from flamenerf.errors import UserError
+
+
+@pytest.mark.parametrize("name", list(PRESETS))
+def test_every_preset_survives_a_round_trip_through_json(name):
+    cfg = preset(name)
+    saved = json.loads(json.dumps(cfg.to_dict()))  # as config.json stores it
+    assert from_dict(saved) == cfg
+
+
+def test_unknown_keys_are_ignored_and_missing_ones_default():
+    cfg = preset("fast")
+    d = cfg.to_dict()
+    d["removed_top_level_field"] = 1
+    d["model"]["removed_model_field"] = {"nested": True}
+    d["train"]["removed_train_field"] = [1, 2]
+    assert from_dict(d) == cfg
+    assert from_dict({}) == Config()
+    partial = from_dict({"train": {"steps": 7}})
+    assert partial.train.steps == 7
+    assert dataclasses.replace(partial.train, steps=Config().train.steps) == Config().train
+
+
+def test_unknown_preset_is_a_user_error_naming_the_choices():
+    with pytest.raises(UserError, match="unknown preset 'nope'.*fast"):
+        preset("nope")
