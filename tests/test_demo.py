@@ -1,10 +1,13 @@
 import subprocess
 import sys
 
+import pytest
+
 from flamenerf.data.dataset import load_dataset
 from flamenerf.data.video import read_frames
 
 
+@pytest.mark.slow
 def test_demo_end_to_end_at_tiny_size(tmp_path):
     out = tmp_path / "demo"
     r = subprocess.run([sys.executable, "-m", "flamenerf.cli", "demo", "--out", str(out),

@@ -223,6 +223,7 @@ def _digest(root: Path) -> dict[str, str]:
             for p in sorted(root.rglob("*")) if p.is_file()}
 
 
+@pytest.mark.slow
 def test_same_seed_gives_identical_bytes_different_seed_does_not(tmp_path):
     kw = dict(size=32, frames=4, reanimate=2, leakage_steps=1)
     a = make_scene(tmp_path / "a", seed=5, workers=1, **kw)

@@ -31,6 +31,7 @@ def small(cfg, steps):
     return cfg
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", list(PRESETS))
 def test_every_preset_trains_two_steps(name, tiny_scene, tmp_path):
     t = Trainer(small(preset(name), 2), tiny_scene, tmp_path / name, quiet=True)
@@ -57,6 +58,7 @@ def test_warp_and_appearance_codes_learn_at_their_own_rates(tiny_scene, tmp_path
     assert sorted(ids) == sorted(id(p) for p in t.model.parameters())
 
 
+@pytest.mark.slow
 def test_fast_preset_overfits_tiny_scene(tiny_scene, tmp_path):
     cfg = small(preset("fast"), 300)
     cfg.train.batch_rays = 1024

@@ -18,6 +18,8 @@ from cdp import INSTALL_HINT, Browser, find_chromium  # noqa: E402
 
 from flamenerf.cli import main as cli_main  # noqa: E402
 
+pytestmark = pytest.mark.slow  # a browser against a live viewer, end to end
+
 SLIDER = "jawOpen"
 RES = 48  # refined image height in the test (pixels)
 STATUS_JS = ("(() => { const b = document.body; const m = (b ? b.innerText : '')"
