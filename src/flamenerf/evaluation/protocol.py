@@ -290,7 +290,7 @@ def control_section(run, ds: Dataset, intr, omega0, phi0, opts: EvalOptions,
     """The control response (see module doc): the leakage sweep's renders against its ground
     truth when the dataset has one, else a sweep at the reference frame's camera."""
     from flamenerf.evaluation import control as C
-    from flamenerf.rendering.cameras import reference_position
+    from flamenerf.data.dataset import reference_position
     from flamenerf.rendering.prior import estimate_dilation, mesh_function
 
     names = run.expression_names
