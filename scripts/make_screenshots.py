@@ -38,12 +38,13 @@ def main() -> None:
 
     torch.set_num_threads(1)
     from flamenerf.training.run import load_run
-    from flamenerf.viewer.app import Viewer, ViewerOptions
+    from flamenerf.viewer.app import Viewer
+    from flamenerf.viewer.options import ViewerOptions
 
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
-    v = Viewer(load_run(args.run), ViewerOptions(port=port, height=args.resolution,
+    v = Viewer(load_run(args.run), ViewerOptions(port=port, resolution=args.resolution,
                                                  verbose=False)).start()
     w, h = args.size
     args.out.mkdir(parents=True, exist_ok=True)

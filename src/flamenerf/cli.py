@@ -1,7 +1,7 @@
 """The `flamenerf` command: one subcommand per pipeline step.
 
 Each subcommand is a typed function in `flamenerf.commands.<name>` whose docstring is its
-`--help`; where the library has an options dataclass (render, preprocess, bench) the
+`--help`; where the library has an options dataclass (render, preprocess, view, bench) the
 function takes it whole and its fields are the flags. Heavy libraries are imported inside
 the functions so `--help` stays fast.
 """

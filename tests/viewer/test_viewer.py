@@ -47,10 +47,11 @@ def chromium():
 @pytest.fixture
 def viewer(tiny_run):
     from flamenerf.training.run import load_run
-    from flamenerf.viewer.app import Viewer, ViewerOptions
+    from flamenerf.viewer.app import Viewer
+    from flamenerf.viewer.options import ViewerOptions
 
     run = load_run(tiny_run, device="cpu")
-    v = Viewer(run, ViewerOptions(port=_free_port(), height=RES, verbose=False)).start()
+    v = Viewer(run, ViewerOptions(port=_free_port(), resolution=RES, verbose=False)).start()
     yield v
     v.stop()
 

@@ -130,7 +130,8 @@ def test_viewer_controls_without_a_browser(tiny_run, tmp_path):
     import time
 
     from flamenerf.training.run import load_run
-    from flamenerf.viewer.app import Viewer, ViewerOptions
+    from flamenerf.viewer.app import Viewer
+    from flamenerf.viewer.options import ViewerOptions
 
     run = load_run(tiny_run, device="cpu")
     names = run.expression_names
@@ -140,7 +141,7 @@ def test_viewer_controls_without_a_browser(tiny_run, tmp_path):
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
-    v = Viewer(run, ViewerOptions(port=port, height=16, tracks=(drive,), verbose=False))
+    v = Viewer(run, ViewerOptions(port=port, resolution=16, track=(drive,), verbose=False))
     v.start()
     try:
         assert v.tracks[0].name.startswith("file drive.json")

@@ -7,16 +7,12 @@ from typing import Annotated
 
 import tyro
 
+from flamenerf.viewer.options import ViewerOptions
+
 
 def view(
     run: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="RUN")],
-    port: int = 8080,
-    host: str = "127.0.0.1",
-    track: Annotated[tuple[Path, ...], tyro.conf.UseAppendAction] = (),
-    resolution: int = 0,
-    max_resolution: int = 1024,
-    progressive: bool = True,
-    dataset: Path | None = None,
+    opts: Annotated[ViewerOptions, tyro.conf.OmitArgPrefixes, tyro.conf.arg(name="")],
     device: str = "auto",
     threads: int = 0,
 ) -> None:
@@ -37,13 +33,6 @@ def view(
 
     Args:
         run: Run directory made by `flamenerf train`.
-        port: TCP port to serve on.
-        host: Address to listen on (default: this machine only).
-        track: Expression track JSON from `flamenerf track` (repeat for several).
-        resolution: Height in pixels of the refined image (0: the run's training height).
-        max_resolution: Upper end of the resolution slider.
-        progressive: Render coarse first while the view changes, refine when still.
-        dataset: Dataset to read cameras, face mesh and tracks from (default: the run's).
         device: `auto` (CUDA when present), `cpu` or `cuda`.
         threads: CPU threads for torch (0 = torch's default).
     """
@@ -56,12 +45,12 @@ def view(
     if not (run / "config.json").exists():
         raise UserError(f"{run}: not a trained run (no config.json; make one with "
                         f"`flamenerf train`)")
-    if resolution < 0 or max_resolution < 8:
+    if opts.resolution < 0 or opts.max_resolution < 8:
         raise UserError("--resolution must be >= 0 and --max-resolution >= 8")
 
-    from flamenerf.viewer.app import ViewerOptions, check_port_free
+    from flamenerf.viewer.app import check_port_free
 
-    check_port_free(host, port)  # before the slow model load
+    check_port_free(opts.host, opts.port)  # before the slow model load
 
     from flamenerf.runtime import set_threads
 
@@ -71,14 +60,11 @@ def view(
     from flamenerf.viewer.app import Viewer
 
     r = load_run(run, device=device)
-    opts = ViewerOptions(host=host, port=port, height=resolution,
-                         max_height=max_resolution, progressive=progressive,
-                         tracks=tuple(track), dataset=dataset, verbose=False)
     viewer = Viewer(r, opts).start()
     print(f"flamenerf view: {r.run_dir} (step {r.step}, {len(r.expression_names)} "
           f"expression controls) at {viewer.url}  (Ctrl-C to stop)", flush=True)
-    if host not in ("127.0.0.1", "localhost", "::1"):
-        print(f"flamenerf view: listening on {host}: reachable from other machines",
+    if opts.host not in ("127.0.0.1", "localhost", "::1"):
+        print(f"flamenerf view: listening on {opts.host}: reachable from other machines",
               flush=True)
     try:
         while True:

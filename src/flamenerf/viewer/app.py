@@ -10,31 +10,17 @@ import io
 import socket
 import threading
 import time
-from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
 from flamenerf.errors import UserError
 from flamenerf.viewer.camera import c2w_from_viser, home_camera
 from flamenerf.viewer.mask import FaceMasker
+from flamenerf.viewer.options import ViewerOptions
 from flamenerf.viewer.renderer import Frame, RenderWorker
 from flamenerf.viewer.tracks import Track, dataset_tracks, load_track_file, slider_range
 
 STATUS_PREFIX = "Render"
-
-
-@dataclass
-class ViewerOptions:
-    host: str = "127.0.0.1"
-    port: int = 8080
-    height: int = 0  # refined image height in pixels; 0 = the run's training height
-    max_height: int = 1024
-    progressive: bool = True
-    tracks: tuple[Path, ...] = ()
-    dataset: Path | None = None
-    settle_s: float = 0.25
-    verbose: bool = True
 
 
 def check_port_free(host: str, port: int) -> None:
@@ -77,10 +63,10 @@ class Viewer:
         fi = self.ds.frames[self.home.frame_position]
         self.frame0_expression = np.clip(fi.expression, self.lo, self.hi).astype(np.float32)
         self.neutral = np.clip(np.zeros(len(self.names), np.float32), self.lo, self.hi)
-        self.tracks: list[Track] = [load_track_file(p, self.names) for p in opts.tracks]
+        self.tracks: list[Track] = [load_track_file(p, self.names) for p in opts.track]
         self.tracks += dataset_tracks(self.ds)
-        h = opts.height or run.train_intrinsics(self.ds).h
-        self.height = int(min(max(8, round(h / 8) * 8), opts.max_height))
+        h = opts.resolution or run.train_intrinsics(self.ds).h
+        self.height = int(min(max(8, round(h / 8) * 8), opts.max_resolution))
         omega, phi = run.frame_codes(0)
         self.worker = RenderWorker(run.model, omega, phi, self.masker, self.neutral,
                                    self._display, height=self.height, settle_s=opts.settle_s,
@@ -157,7 +143,7 @@ class Viewer:
             self.g_mode = gui.add_dropdown("Show", ["RGB", "Depth"], initial_value="RGB",
                                            hint="Colour, or the expected depth (near = warm).")
             self.g_height = gui.add_slider(
-                "Resolution", min=8, max=self.opts.max_height, step=8,
+                "Resolution", min=8, max=self.opts.max_resolution, step=8,
                 initial_value=self.height,
                 hint="Height in pixels of the refined image (the window's aspect ratio "
                      "sets the width).")
