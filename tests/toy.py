@@ -13,7 +13,7 @@ import numpy as np
 from flamenerf.config import Config, ExpressionMode, preset
 from flamenerf.data.dataset import DatasetWriter, Intrinsics
 from flamenerf.geometry import look_at
-from flamenerf.tracking.silhouette import rasterize_silhouette
+from flamenerf.data.prior import rasterize_silhouette
 
 TOY_NAMES = ["jawOpen", "mouthSmileLeft", "browInnerUp"]
 
@@ -48,7 +48,8 @@ def make_toy_dataset(out: str | Path, size: int = 16, overwrite: bool = True) ->
     sweep = [("neutral", 0.0, np.zeros(E)), ("jawOpen", 1.0, np.eye(E)[0]),
              ("mouthSmileLeft", 1.0, np.eye(E)[1])]
     with DatasetWriter(out, intr, 0.5, 1.6, TOY_NAMES, "synthetic",
-                       source={"name": "flamenerf toy"}, overwrite=overwrite) as w:
+                       source={"name": "flamenerf toy"}, overwrite=overwrite,
+                       prior_dilation_px=1) as w:
         for k, (split, fi, c2w, e) in enumerate(specs):
             m = rasterize_silhouette(verts, faces, intr, c2w, 1)
             w.add_frame(_image(intr, m, e, k), m, c2w, e, fi, split, verts=verts)

@@ -9,7 +9,7 @@ from flamenerf.commands.render import render
 from flamenerf.rendering.videos import RenderOptions
 from flamenerf.data.dataset import load_dataset
 from flamenerf.errors import UserError
-from flamenerf.rendering.prior import estimate_dilation, prior_mask
+from flamenerf.data.prior import estimate_dilation, prior_mask
 from flamenerf.data.video import read_frames
 
 

@@ -11,7 +11,8 @@ from flamenerf.data.dataset import load_dataset
 from flamenerf.errors import UserError
 from flamenerf.synthetic.render import mask_dilation
 from flamenerf.viewer.camera import c2w_from_viser, home_camera, view_intrinsics
-from flamenerf.viewer.mask import FaceMasker, estimate_dilation
+from flamenerf.data.prior import dataset_dilation, estimate_dilation
+from flamenerf.viewer.mask import FaceMasker
 from flamenerf.viewer.renderer import RenderWorker
 from flamenerf.viewer.tracks import dataset_tracks, load_track_file, slider_range
 
@@ -38,6 +39,8 @@ def test_home_camera_is_frame_0(tiny_scene):
     stored = ds.load_mask(f0)
     assert np.mean(m != stored) < 0.01
     # ... grown by the dilation the scene was made with
+    assert dataset_dilation(ds) == mask_dilation(ds.intrinsics)
+    # a stored mask says the same, for datasets written before the dilation was stored
     assert estimate_dilation(ds, h.frame_position) == mask_dilation(ds.intrinsics)
 
 

@@ -331,6 +331,7 @@ class DatasetWriter:
         expression_info: dict[str, Any] | None = None,
         source: dict[str, Any] | None = None,
         overwrite: bool = False,
+        prior_dilation_px: int | None = None,
     ):
         self.out = Path(out)
         if self.out.exists() and not overwrite:
@@ -359,6 +360,10 @@ class DatasetWriter:
                 **(expression_info or {}),
             },
             "source": source or {},
+            # the dilation of the silhouette masks (data/prior.py makes every other mask
+            # the same way from it)
+            **({} if prior_dilation_px is None else
+               {"prior": {"dilation_px": int(prior_dilation_px)}}),
             "splits": {},
             "frames": [],
         }

@@ -7,6 +7,7 @@ import torch
 
 from flamenerf.data.dataset import Dataset, Frame, Intrinsics
 from flamenerf.data.rays import pixel_directions
+from flamenerf.data.prior import training_mask
 from flamenerf.images import resize_image
 from flamenerf.meshes import fit_expression_model
 
@@ -53,8 +54,7 @@ class FrameSet:
         n = len(frames)
         if load_images:
             imgs = [resize_image(ds.load_image(f), intr.w, intr.h) for f in frames]
-            masks = [resize_image(ds.load_mask(f)[..., None].astype(np.float32), intr.w,
-                                  intr.h)[..., 0] > 0.5 for f in frames]
+            masks = [training_mask(ds.load_mask(f), intr.w, intr.h) for f in frames]
             self.images = torch.from_numpy(np.stack(imgs)).float()
             self.masks = torch.from_numpy(np.stack(masks))
         self.c2w = torch.from_numpy(np.stack([f.c2w for f in frames])).float()

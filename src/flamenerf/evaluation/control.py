@@ -29,7 +29,7 @@ from flamenerf.data.scene import FrameSet
 from flamenerf.evaluation import metrics as M
 from flamenerf.model.flame_nerf import FlameNeRF
 from flamenerf.model.render_image import render_image
-from flamenerf.rendering.prior import prior_mask
+from flamenerf.data.prior import prior_mask
 
 
 def expressive_faces(ds: Dataset, fraction: float = 0.2) -> np.ndarray:

@@ -291,7 +291,7 @@ def control_section(run, ds: Dataset, intr, omega0, phi0, opts: EvalOptions,
     truth when the dataset has one, else a sweep at the reference frame's camera."""
     from flamenerf.evaluation import control as C
     from flamenerf.data.dataset import reference_position
-    from flamenerf.rendering.prior import estimate_dilation, mesh_function
+    from flamenerf.data.prior import dataset_dilation, mesh_function
 
     names = run.expression_names
     train_e = ds.expression_matrix(ds.split("train"))
@@ -303,7 +303,7 @@ def control_section(run, ds: Dataset, intr, omega0, phi0, opts: EvalOptions,
         pos = reference_position(ds)
         fr = ds.frames[pos]
         render = C.model_renderer(run.model, ds, intr, fr.c2w, omega0, phi0,
-                                  mesh_function(run.model, ds), estimate_dilation(ds),
+                                  mesh_function(run.model, ds), dataset_dilation(ds),
                                   opts.chunk)
         res = C.control_response(render, names, ds.expression_matrix([fr])[0], train_e, track,
                                  opts.control_steps)

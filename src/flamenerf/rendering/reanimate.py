@@ -13,7 +13,7 @@ import torch
 from flamenerf.data.dataset import Dataset, Intrinsics
 from flamenerf.model.flame_nerf import FlameNeRF
 from flamenerf.model.render_image import render_image
-from flamenerf.rendering.prior import prior_mask
+from flamenerf.data.prior import prior_mask
 
 
 @dataclass

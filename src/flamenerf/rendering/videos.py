@@ -225,7 +225,7 @@ def write_videos(run, ds: Dataset, intr: Intrinsics, poses: np.ndarray, values: 
 
 def render_videos(opts: RenderOptions, log=print) -> RenderSummary:
     """The whole of `flamenerf render` (see its --help)."""
-    from flamenerf.rendering.prior import estimate_dilation, mesh_function
+    from flamenerf.data.prior import dataset_dilation, mesh_function
     from flamenerf.runtime import set_threads
     from flamenerf.training.run import load_run
 
@@ -250,7 +250,7 @@ def render_videos(opts: RenderOptions, log=print) -> RenderSummary:
     else:  # the prior's silhouette follows the driven expression's mesh, not frame 0's
         mesh_of = mesh_function(run.model, ds)
         verts = np.stack([mesh_of(v) for v in values])
-    dil = estimate_dilation(ds) if opts.dilate_px is None else opts.dilate_px
+    dil = dataset_dilation(ds) if opts.dilate_px is None else opts.dilate_px
     fps = opts.fps or seq.fps or 30.0
 
     paths = output_paths(opts, seq.label, cam_label)

@@ -27,7 +27,7 @@ from flamenerf.synthetic.background import Backdrop, sway_pose
 from flamenerf.synthetic.cameras import intrinsics
 from flamenerf.synthetic.head import (CONTROLS, R_INNER, R_OUTER, TEX_STEP, Head, HeadState,
                                       mesh_layout)
-from flamenerf.tracking.silhouette import rasterize_silhouette
+from flamenerf.data.prior import rasterize_silhouette
 
 LIGHT = tuple(float(x) for x in np.array([-0.5, 0.6, 0.65]) / np.linalg.norm([-0.5, 0.6, 0.65]))
 AMBIENT, KEY, SKY = 0.30, 0.72, 0.10

@@ -170,8 +170,11 @@ def make_scene(out: str | os.PathLike, seed: int = 0, size: int = 256, frames: i
               "leakage_steps": int(leakage_steps)}
     info = {"description": "synthetic face rig; controls named after ARKit blendshapes, "
                            "each in [0, 1] ('Left' = the subject's left, +x)"}
+    from flamenerf.synthetic.render import mask_dilation
+
     writer = DatasetWriter(out, intr, 0.1, 10.0, list(CONTROLS), "synthetic",
-                           expression_info=info, source=source, overwrite=overwrite)
+                           expression_info=info, source=source, overwrite=overwrite,
+                           prior_dilation_px=mask_dilation(intr))
     try:
         lo, hi = np.inf, 0.0
         for i, (spec, (rgb, depth, mask, verts)) in enumerate(

@@ -201,7 +201,7 @@ def write_dataset(video: Path, out: Path, opts: PreprocessOptions, clip, sol, fa
     from flamenerf.data.video import VideoWriter, iter_frames
     from flamenerf.tracking import qa
     from flamenerf.tracking import report as R
-    from flamenerf.tracking.silhouette import rasterize_silhouette
+    from flamenerf.data.prior import rasterize_silhouette
 
     info, N = clip.info, len(clip.frames)
     expressions, names, kind = face.expressions, face.names, face.kind
@@ -215,7 +215,7 @@ def write_dataset(video: Path, out: Path, opts: PreprocessOptions, clip, sol, fa
         "options": jsonable(asdict(opts)),
     }
     writer = DatasetWriter(out, intr, near, far, names, kind, face.info, source,
-                           overwrite=opts.overwrite)
+                           overwrite=opts.overwrite, prior_dilation_px=opts.dilate)
     sheet_pos = set(np.round(np.linspace(0, N - 1, min(12, N))).astype(int).tolist())
     sheet_frames: list[np.ndarray] = []
     per_frame: list[dict] = []

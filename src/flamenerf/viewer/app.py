@@ -58,7 +58,7 @@ class Viewer:
         self.ds = run.dataset(opts.dataset)
         self.names = run.expression_names
         self.home = home_camera(self.ds)
-        self.masker = FaceMasker(self.ds, self.home.frame_position)
+        self.masker = FaceMasker(self.ds, self.home.frame_position, run.model)
         self.lo, self.hi = slider_range(self.ds)
         fi = self.ds.frames[self.home.frame_position]
         self.frame0_expression = np.clip(fi.expression, self.lo, self.hi).astype(np.float32)

@@ -1,4 +1,5 @@
-"""The spatial prior's mask for any viewer camera: frame 0's face mesh rasterised into it."""
+"""The spatial prior's mask for a viewer camera and the slider expression: the silhouette
+of that expression's face mesh (data/prior.py), remembered for the last few views."""
 
 from __future__ import annotations
 
@@ -7,55 +8,32 @@ import threading
 import numpy as np
 
 from flamenerf.data.dataset import Dataset, Intrinsics
-from flamenerf.tracking.silhouette import rasterize_silhouette
-
-
-def estimate_dilation(ds: Dataset, position: int, max_px: int = 12) -> int:
-    """Pixels (at the dataset's resolution) by which the dataset's stored masks grow the
-    raw mesh silhouette, found by matching frame `position`'s stored mask; 0 when the
-    mask cannot be read."""
-    try:
-        stored = ds.load_mask(ds.frames[position])
-    except Exception:  # noqa: BLE001 - a missing mask only costs the estimate
-        return 0
-    from scipy import ndimage
-
-    fr = ds.frames[position]
-    raw = rasterize_silhouette(ds.face_vertices[position], ds.faces, ds.intrinsics, fr.c2w, 0)
-    best, best_err = 0, int(np.count_nonzero(raw != stored))
-    cur = raw
-    for k in range(1, max_px + 1):
-        cur = ndimage.binary_dilation(cur)
-        err = int(np.count_nonzero(cur != stored))
-        if err < best_err:
-            best, best_err = k, err
-        elif err > best_err:
-            break
-    return best
+from flamenerf.data.prior import dataset_dilation, mesh_function, prior_mask
 
 
 class FaceMasker:
-    """Rasterises frame 0's face mesh for a camera; grows it as the dataset's masks were
-    grown (scaled to the render's resolution). Remembers the last few results."""
+    """masker(intr, c2w, expression) -> (H, W) bool: the prior's mask exactly as render and
+    eval make it. Without an expression, the reference frame's own mesh is used."""
 
-    def __init__(self, ds: Dataset, position: int, dilate_px: int | None = None):
+    def __init__(self, ds: Dataset, position: int, model=None, dilate_px: int | None = None):
+        self.ds = ds
         self.vertices = np.asarray(ds.face_vertices[position], np.float64)
-        self.faces = np.asarray(ds.faces)
-        self.ref_height = ds.intrinsics.h
-        self.dilate_px = estimate_dilation(ds, position) if dilate_px is None else dilate_px
+        self.mesh_of = mesh_function(model, ds)
+        self.dilate_px = dataset_dilation(ds) if dilate_px is None else dilate_px
         self._cache: dict[tuple, np.ndarray] = {}
         self._lock = threading.Lock()
 
-    def dilation_for(self, intr: Intrinsics) -> int:
-        return int(round(self.dilate_px * intr.h / self.ref_height))
-
-    def __call__(self, intr: Intrinsics, c2w: np.ndarray) -> np.ndarray:
-        key = (intr.w, intr.h, round(intr.fy, 6), np.round(c2w, 7).tobytes())
+    def __call__(self, intr: Intrinsics, c2w: np.ndarray,
+                 expression: np.ndarray | None = None) -> np.ndarray:
+        e = None if expression is None else np.asarray(expression, np.float32)
+        key = (intr.w, intr.h, round(intr.fy, 6), np.round(c2w, 7).tobytes(),
+               None if e is None else np.round(e, 4).tobytes())
         with self._lock:
             hit = self._cache.get(key)
         if hit is not None:
             return hit
-        m = rasterize_silhouette(self.vertices, self.faces, intr, c2w, self.dilation_for(intr))
+        verts = self.vertices if e is None else self.mesh_of(e)
+        m = prior_mask(self.ds, verts, c2w, intr, self.dilate_px)
         with self._lock:
             if len(self._cache) > 8:
                 self._cache.pop(next(iter(self._cache)))

@@ -280,7 +280,7 @@ class RenderWorker:
         t0 = time.perf_counter()
         intr = view_intrinsics(snap["fov_y"], snap["aspect"], snap["height"])
         c2w = snap["c2w"]
-        mask = self.masker(intr, c2w)
+        mask = self.masker(intr, c2w, snap["expression"])
         expr = torch.from_numpy(snap["expression"])
         rows = max(1, self.band_rays // intr.w)
         rgb = np.zeros((intr.h, intr.w, 3), np.float32)
