@@ -16,6 +16,8 @@ def eval(  # noqa: A001 - the subcommand's name
     fit_lr: float = 1e-2,
     split: str = "val",
     leakage_dilate_px: int = 3,
+    control: bool = True,
+    control_steps: int = 5,
     images: int = 3,
     out: Path | None = None,
     device: str = "auto",
@@ -26,7 +28,9 @@ def eval(  # noqa: A001 - the subcommand's name
 
     Held-out frames (`val`): the model is frozen and only each frame's deformation code ω
     is optimised, from frame 0's, with frame 0's appearance code (the paper runs 2000
-    steps); then MSE, PSNR, SSIM and PSNR inside/outside the face mask. On the built-in
+    steps); then MSE, PSNR, SSIM and PSNR inside/outside the face mask. What a
+    re-animation gets: the same frames with frame 0's codes and their own β, nothing fitted
+    (driven), and the re-tracked response of renders to commanded controls. On the built-in
     scene also: re-animation PSNR/SSIM against ground truth (frame 0's codes, novel
     expressions and cameras) and background leakage (mean |change| in 0-255 outside the
     dilated face mask while the expression sweeps at a fixed camera). Everything at the
@@ -45,6 +49,10 @@ def eval(  # noqa: A001 - the subcommand's name
         split: The held-out split (frames with their own codes).
         leakage_dilate_px: Grow the face masks by this many pixels before measuring
             background change outside them.
+        control: Measure the control response: renders re-tracked with MediaPipe's face
+            landmarker, gain and correlation of re-tracked vs commanded controls.
+        control_steps: Values per control in the control sweep (datasets without a
+            leakage split).
         images: Number of held-out and re-animation frames saved as PNGs.
         out: Output directory (default: RUN/eval).
         device: `auto` (CUDA when present), `cpu` or `cuda`.
@@ -61,6 +69,8 @@ def eval(  # noqa: A001 - the subcommand's name
     set_threads(threads)
     if fit_batch_rays <= 0:
         raise UserError(f"--fit-batch-rays {fit_batch_rays}: must be positive")
+    if control_steps < 2:
+        raise UserError(f"--control-steps {control_steps}: must be at least 2")
     for name, v in (("--fit-steps", fit_steps), ("--images", images),
                     ("--leakage-dilate-px", leakage_dilate_px)):
         if v is not None and v < 0:
@@ -71,7 +81,7 @@ def eval(  # noqa: A001 - the subcommand's name
         fit_steps = 2000 if r.device.type == "cuda" else 300
     opts = EvalOptions(split=split, fit_steps=fit_steps, fit_batch_rays=fit_batch_rays,
                        fit_lr=fit_lr, seed=seed, leakage_dilate_px=leakage_dilate_px,
-                       num_images=images)
+                       num_images=images, control=control, control_steps=control_steps)
     out_dir = out if out is not None else Path(run) / "eval"
     res = evaluate_run(r, ds, opts, out_dir)
     print()
