@@ -66,9 +66,9 @@ def main() -> None:
     a = ap.parse_args()
 
     from flamenerf.data.dataset import load_dataset
-    from flamenerf.evaluation.protocol import EvalOptions, evaluate_run, jsonable
+    from flamenerf.evaluation.protocol import EvalOptions, evaluate_run
+    from flamenerf.io import atomic_write_text, jsonable
     from flamenerf.synthetic.scene import make_scene
-    from flamenerf.training.checkpoint import atomic_write_text
     from flamenerf.training.run import load_run
     from flamenerf.training.trainer import train
 
