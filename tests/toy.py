@@ -71,7 +71,6 @@ def toy_config(mode: ExpressionMode = "masked", steps: int = 2) -> Config:
     f.hash_levels, f.hash_log2_size, f.hash_base_res, f.hash_max_res = 4, 10, 4, 64
     f.head_width, f.geo_features, f.appearance_dim = 16, 7, 4
     s = cfg.model.sampler
-    s.num_steps, s.grid_res, s.warmup_samples, s.grid_warmup = 16, 8, 16, 1000
     s.num_proposal, s.num_main, s.proposal_levels, s.proposal_log2_size = 16, 8, 3, 10
     s.proposal_max_res, s.proposal_width = 64, 8
     s.num_coarse, s.num_fine = 8, 8

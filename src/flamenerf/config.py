@@ -29,8 +29,9 @@ class WarpConfig:
     skips: tuple[int, ...] = (4,)
     num_freqs: int = 8
     """Positional-encoding frequencies of x, annealed coarse-to-fine."""
-    anneal_steps: int = 50_000
-    """N of the c2f window: all frequency bands are on after N steps (paper: 50k)."""
+    anneal_fraction: float = 1 / 3
+    """The c2f window opens every frequency band after this fraction of the run (the paper:
+    50k of 150k steps), so `--steps` shortens or lengthens it with the run."""
     init_scale: float = 1e-4
     """Output layers start near zero so the warp starts as the identity (as in Nerfies)."""
 
@@ -68,10 +69,9 @@ class FieldConfig:
 
 @dataclass
 class SamplerConfig:
-    kind: Literal["hierarchical", "proposal", "occupancy"] = "hierarchical"
+    kind: Literal["hierarchical", "proposal"] = "hierarchical"
     """`hierarchical`: coarse + fine networks (NeRF); `proposal`: a tiny density-only hash
-    field proposes where the main field samples (mip-NeRF 360); `occupancy`: uniform
-    samples thinned by an occupancy grid (instant-ngp/nerfacc)."""
+    field proposes where the main field samples (mip-NeRF 360)."""
     num_coarse: int = 64
     num_fine: int = 64
     fine_reuses_coarse: bool = True
@@ -84,17 +84,6 @@ class SamplerConfig:
     proposal_log2_size: int = 15
     proposal_max_res: int = 256
     proposal_width: int = 16
-    num_steps: int = 256
-    """occupancy: uniform positions per ray before skipping empty ones."""
-    grid_res: int = 64
-    grid_threshold: float = 0.01
-    grid_update_every: int = 16
-    grid_warmup: int = 100
-    """occupancy: steps before the first grid update; meanwhile `warmup_samples` stratified
-    samples per ray are all evaluated."""
-    warmup_samples: int = 48
-    grid_dilate: int = 1
-    """Cells of dilation so that small deformations never leave the occupied region."""
 
 
 @dataclass
@@ -187,7 +176,7 @@ def _no_prior() -> Config:
 def _fast() -> Config:
     cfg = Config(preset="fast")
     cfg.model.warp = WarpConfig(code_dim=16, width=64, depth=4, skips=(), num_freqs=6,
-                                anneal_steps=340)
+                                anneal_fraction=0.5)
     cfg.model.field = FieldConfig(kind="hash", appearance_dim=8, dir_freqs=4, hash_levels=12,
                                   hash_log2_size=19, hash_max_res=512)
     cfg.model.sampler = SamplerConfig(kind="proposal", num_proposal=48, num_main=32,
@@ -201,12 +190,22 @@ def _fast() -> Config:
     return cfg
 
 
+def _demo() -> Config:
+    cfg = _fast()
+    cfg.preset = "demo"
+    # `flamenerf demo`: a few CPU minutes at 64 px; c2f over the first 40 % of the run
+    cfg.model.warp.anneal_fraction = 0.4
+    cfg.train.steps, cfg.train.batch_rays = 300, 2048
+    return cfg
+
+
 PRESETS: dict[str, tuple[str, Any]] = {
     "flame-in-nerf": ("the paper: SE(3) warp 6x128, NeRF 8x256, 64+64 samples, 150k steps",
                       _paper),
     "nerfies": ("Nerfies baseline: as flame-in-nerf without the expression input", _nerfies),
     "no-prior": ("ablation: as flame-in-nerf with β reaching every sample point", _no_prior),
-    "fast": ("CPU-friendly: hash-grid field, small warp on occupied samples only", _fast),
+    "fast": ("CPU-friendly: hash-grid field, proposal sampler, small warp", _fast),
+    "demo": ("`flamenerf demo`'s: fast, 300 steps of 2048 rays", _demo),
 }
 
 

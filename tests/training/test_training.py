@@ -63,7 +63,7 @@ def test_fast_preset_overfits_tiny_scene(tiny_scene, tmp_path):
     cfg = small(preset("fast"), 300)
     cfg.train.batch_rays = 1024
     cfg.train.lr_warmup = 20
-    cfg.model.warp.anneal_steps = 150
+    cfg.model.warp.anneal_fraction = 0.5
     cfg.model.sampler.num_main, cfg.model.sampler.num_proposal = 32, 64
     t = Trainer(cfg, tiny_scene, tmp_path / "run", quiet=True)
     t.fit()

@@ -45,10 +45,9 @@ def demo(
         synth(scene, seed=seed, size=size, frames=frames, overwrite=True)
     else:
         print(f"[1/3] reusing {scene}")
-    cfg = preset("fast")
+    cfg = preset("demo")
     cfg.train.downscale = size / train_size
     cfg.train.batch_rays = batch_rays
-    cfg.model.warp.anneal_steps = max(1, int(steps * 0.4))  # c2f over the first 40%
     ck = latest_checkpoint(run)
     print(f"[2/3] training the fast preset for {steps} steps into {run}")
     train(scene, run, cfg, resume=ck is not None, steps=steps)

@@ -7,7 +7,9 @@ from typing import Annotated, Literal
 
 import tyro
 
-PresetName = Literal["flame-in-nerf", "nerfies", "no-prior", "fast"]
+from flamenerf.config import PRESETS
+
+PresetName = Literal[tuple(PRESETS)]  # the CLI's choices are the presets, whatever they are
 
 
 def train(

@@ -1,7 +1,7 @@
 """FLAME-in-NeRF: a deformable NeRF conditioned on masked expression parameters.
 
 One class for every preset; the config picks the field (`mlp`/`hash`), the sampler
-(`hierarchical`/`occupancy`) and the expression mode (`masked`/`none`/`everywhere`).
+(`hierarchical`/`proposal`) and the expression mode (`masked`/`none`/`everywhere`).
 """
 
 from __future__ import annotations
@@ -78,13 +78,8 @@ class FlameNeRF(nn.Module):
         elif s.kind == "proposal":
             self.proposal = ProposalField(s.proposal_levels, s.proposal_log2_size,
                                           s.proposal_max_res, s.proposal_width, field_expr)
-        elif s.kind == "occupancy":
-            r = s.grid_res
-            self.register_buffer("occ_value", torch.zeros(r, r, r))
-            self.register_buffer("occ_mask", torch.ones(r, r, r, dtype=torch.bool))
         else:
             raise ValueError(f"unknown sampler {s.kind!r}")
-        self.grid_warming_up = False
 
     # ---------------------------------------------------------------- expression mesh
     def set_expression_model(self, neutral: Tensor, basis: Tensor, faces: Tensor) -> None:
@@ -131,13 +126,13 @@ class FlameNeRF(nn.Module):
         return out
 
     # ---------------------------------------------------------------- conditioning
-    def update_to_step(self, step: int) -> None:
-        """Set step-dependent state: the c2f window α(t) = m·t/N, and whether the
-        occupancy grid is still warming up (then every sample is evaluated)."""
-        self.grid_warming_up = step < self.cfg.sampler.grid_warmup
+    def update_to_step(self, step: int, total_steps: int) -> None:
+        """Set step-dependent state: the c2f window α(t) = m·t/N with N the run's
+        `anneal_fraction` of `total_steps`."""
         if self.warp is not None:
             w = self.cfg.warp
-            self.warp.set_alpha(min(w.num_freqs * step / max(w.anneal_steps, 1), w.num_freqs))
+            n = max(w.anneal_fraction * total_steps, 1.0)
+            self.warp.set_alpha(min(w.num_freqs * step / n, w.num_freqs))
 
     def codes(self, frame_index: Tensor) -> tuple[Tensor, Tensor]:
         """frame_index (R,) long -> ω (R, code_dim), φ (R, appearance_dim)."""
@@ -196,9 +191,7 @@ class FlameNeRF(nn.Module):
         kind = self.cfg.sampler.kind
         if kind == "hierarchical":
             return self._forward_hierarchical(rays, expr, jitter, generator)
-        if kind == "proposal":
-            return self._forward_proposal(rays, expr, jitter, generator)
-        return self._forward_occupancy(rays, expr, jitter, generator)
+        return self._forward_proposal(rays, expr, jitter, generator)
 
     def _forward_hierarchical(self, rays, expr, jitter, generator):
         s = self.cfg.sampler
@@ -240,82 +233,3 @@ class FlameNeRF(nn.Module):
             out["interlevel"] = interlevel_loss(edges_m, w_m, edges_p, w_p)
         out["num_samples"] = torch.tensor(R * s.num_main)
         return out
-
-    def _forward_occupancy(self, rays, expr, jitter, generator):
-        s = self.cfg.sampler
-        R = len(rays)
-        num = s.warmup_samples if self.grid_warming_up else s.num_steps
-        t = stratified_samples(self.near, self.far, R, num, jitter,
-                               rays.origins.device, generator)
-        xn = self.normalize(rays.origins[:, None] + t[..., None] * rays.dirs[:, None])
-        if self.grid_warming_up:  # the grid knows nothing yet: evaluate every sample
-            ri, si = torch.ones_like(t, dtype=torch.bool).nonzero(as_tuple=True)
-        else:
-            ri, si = self._occupied(xn).nonzero(as_tuple=True)
-        dn = F.normalize(rays.dirs, dim=-1)
-        sig_p, rgb_p = self._query(
-            self.field, xn[ri, si], dn[ri], rays.deform_code[ri], rays.appearance_code[ri],
-            None if expr is None else expr[ri])
-        sigma = torch.zeros(R, num, dtype=sig_p.dtype, device=t.device)
-        sigma = sigma.index_put((ri, si), sig_p)
-        rgb = torch.zeros(R, num, 3, dtype=rgb_p.dtype, device=t.device)
-        rgb = rgb.index_put((ri, si), rgb_p)
-        step = (self.far - self.near) / num
-        deltas = torch.full_like(t, step) * (rays.dirs.norm(dim=-1, keepdim=True) / self.half_extent)
-        out = composite(render_weights(sigma, deltas), rgb, t)
-        out["num_samples"] = torch.tensor(int(ri.numel()))
-        return out
-
-    # ---------------------------------------------------------------- occupancy grid
-    def _cell_index(self, xn: Tensor) -> tuple[Tensor, Tensor]:
-        r = self.cfg.sampler.grid_res
-        ijk = torch.floor((xn + 1) * 0.5 * r).to(torch.int64)
-        inside = ((ijk >= 0) & (ijk < r)).all(-1)
-        ijk = ijk.clamp(0, r - 1)
-        return (ijk[..., 0] * r + ijk[..., 1]) * r + ijk[..., 2], inside
-
-    def _occupied(self, xn: Tensor) -> Tensor:
-        flat, inside = self._cell_index(xn)
-        return self.occ_mask.view(-1)[flat] & inside
-
-    @torch.no_grad()
-    def update_occupancy(self, expressions: Tensor, fraction: float = 1.0, decay: float = 0.95,
-                         generator: torch.Generator | None = None) -> float:
-        """Re-estimate which cells hold density: σ at a jittered point of each (or a random
-        `fraction` of) cell, maximised over β = 0 and a few training expressions, because
-        the grid must hold every expression's geometry. Returns the occupied fraction."""
-        s = self.cfg.sampler
-        r = s.grid_res
-        dev = self.occ_value.device
-        n = r**3
-        if fraction < 1.0:
-            cells = torch.randperm(n, device=dev, generator=generator)[: max(1, int(n * fraction))]
-            cells = torch.unique(torch.cat([cells, self.occ_mask.view(-1).nonzero()[:, 0]]))
-        else:
-            cells = torch.arange(n, device=dev)
-        k = cells
-        ijk = torch.stack([k // (r * r), (k // r) % r, k % r], -1).to(torch.float32)
-        jit = torch.rand(ijk.shape, device=dev, generator=generator)
-        xn = (ijk + jit) / r * 2 - 1
-        betas = [None] if self.cfg.expression_mode == "none" else [
-            torch.zeros(self.expr_dim, device=dev),
-            expressions[int(torch.randint(len(expressions), (1,), generator=generator))]]
-        sigma = torch.zeros(len(cells), device=dev)
-        for start in range(0, len(cells), 1 << 16):
-            sl = slice(start, start + (1 << 16))
-            x = xn[sl]
-            for b in betas:
-                e = None if b is None else (b * self.cfg.expression_scale).expand(len(x), -1)
-                sigma[sl] = torch.maximum(sigma[sl], self.field.density(x, e))
-        step = (self.far - self.near) / s.num_steps / float(self.half_extent)
-        flat = self.occ_value.view(-1)
-        flat[cells] = torch.maximum(flat[cells] * decay, sigma * step)
-        # nerfacc's rule: a cell is occupied above the threshold or the mean, whichever is
-        # lower, so a young field whose density is still uniform keeps every cell
-        thresh = min(s.grid_threshold, float(self.occ_value.mean()))
-        occ = (self.occ_value >= thresh).float()
-        if s.grid_dilate > 0:
-            k = 2 * s.grid_dilate + 1
-            occ = F.max_pool3d(occ[None, None], k, stride=1, padding=s.grid_dilate)[0, 0]
-        self.occ_mask.copy_(occ > 0)
-        return float(self.occ_mask.float().mean())

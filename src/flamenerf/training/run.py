@@ -64,5 +64,5 @@ def load_run(run_dir: str | Path, device: str = "auto") -> Run:
     model = FlameNeRF(cfg.model, **state["model_args"])
     load_model_state(model, state["model"], ck)
     model.to(dev).eval()
-    model.update_to_step(int(state["step"]))
+    model.update_to_step(int(state["step"]), cfg.train.steps)
     return Run(run_dir, cfg, meta, model, int(state["step"]), dev)

@@ -159,15 +159,9 @@ class Trainer:
     def train_step(self) -> dict[str, float]:
         cfg, model, ts = self.cfg.train, self.model, self.train_set
         model.train()
-        model.update_to_step(self.step)
+        model.update_to_step(self.step, cfg.steps)
         for g in self.opt.param_groups:
             g["lr"] = learning_rate(self.step, cfg) * g["lr_scale"]
-        sc = model.cfg.sampler
-        if (sc.kind == "occupancy" and self.step >= sc.grid_warmup
-                and (self.step - sc.grid_warmup) % sc.grid_update_every == 0):
-            frac = 1.0 if self.step == sc.grid_warmup else 0.25
-            model.update_occupancy(ts.expressions.to(self.device), fraction=frac,
-                                   generator=self.gen)
         fi, ys, xs = ts.sample_pixels(cfg.batch_rays, self.gen)
         o, d = ts.rays(fi, ys, xs)
         code_idx = ts.frame_index[fi].to(self.device)

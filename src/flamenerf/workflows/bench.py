@@ -122,8 +122,7 @@ def git_commit() -> str | None:
 def method_configs(machinery: str, steps: int | None, batch_rays: int | None,
                    downscale: float) -> dict[str, Config]:
     """The three methods' configs with equal budgets (steps, rays per step, resolution).
-    When `steps` differs from the preset's, the warp's coarse-to-fine schedule is scaled
-    with it, so that it opens at the same fraction of training."""
+    The warp's coarse-to-fine schedule is a fraction of the run, so it scales with `steps`."""
     cfgs = {}
     for name, mode, paper_preset in METHODS:
         if machinery == "paper":
@@ -131,9 +130,7 @@ def method_configs(machinery: str, steps: int | None, batch_rays: int | None,
         else:
             cfg = preset("fast")
             cfg.model.expression_mode = mode
-        if steps is not None and steps != cfg.train.steps:
-            w = cfg.model.warp
-            w.anneal_steps = max(1, round(w.anneal_steps * steps / cfg.train.steps))
+        if steps is not None:
             cfg.train.steps = steps
         if batch_rays is not None:
             cfg.train.batch_rays = batch_rays
