@@ -9,7 +9,8 @@ import flamenerf
 
 # Lowest first; a module may import its own layer and the layers below it.
 LAYERS = [
-    {"__init__", "__main__", "errors", "io", "images", "geometry", "meshes", "runtime", "config"},
+    {"__init__", "__main__", "errors", "io", "outdir", "images", "geometry", "meshes", "runtime",
+     "config"},
     {"data"},
     {"tracking"},
     {"synthetic", "model"},

@@ -9,11 +9,12 @@ the functions so `--help` stays fast.
 from __future__ import annotations
 
 import importlib
+import os
 import sys
 
 # Order shown in --help: the pipeline, then tools.
 COMMANDS = ["demo", "synth", "preprocess", "track", "train", "eval", "compare", "render",
-            "view", "bench"]
+            "view", "bench", "convert"]
 
 
 def _tune_allocator() -> None:
@@ -38,7 +39,7 @@ def available_commands() -> dict:
 def main(argv: list[str] | None = None) -> int:
     import tyro
 
-    from flamenerf.errors import UserError
+    from flamenerf.errors import Interrupted, UserError
 
     if argv is None and any(a in sys.argv[1:2] for a in ("train", "bench", "demo", "eval")):
         _tune_allocator()
@@ -50,9 +51,20 @@ def main(argv: list[str] | None = None) -> int:
     except UserError as e:
         print(f"flamenerf: error: {e}", file=sys.stderr)
         return 2
+    except Interrupted as e:
+        print(f"flamenerf: interrupted: {e}", file=sys.stderr)
+        return 130
     except KeyboardInterrupt:
         print("flamenerf: interrupted", file=sys.stderr)
         return 130
+    except OSError as e:
+        # the machine said no (full disk, read-only or vanished folder): one line naming
+        # the file; FLAMENERF_DEBUG=1 shows the traceback
+        if os.environ.get("FLAMENERF_DEBUG"):
+            raise
+        where = f"{e.filename}: " if e.filename else ""
+        print(f"flamenerf: error: {where}{e.strerror or e}", file=sys.stderr)
+        return 1
     return 0
 
 

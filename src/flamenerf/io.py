@@ -2,6 +2,10 @@
 
 Every output is written to a temporary file in its directory and renamed over the target,
 so a crash or Ctrl-C never leaves a half-written file where a reader expects a whole one.
+Every temporary file or folder flamenerf makes is a hidden sibling named
+`.NAME.flamenerf-PID-XXXXXXXX` (NAME: the final name; PID: the writing process; see
+`temp_prefix`), so one whose process is gone, left by a kill -9 or a crash, can be recognised
+and removed (flamenerf.outdir.clean_stale_temps).
 """
 
 from __future__ import annotations
@@ -9,6 +13,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 import tempfile
 from pathlib import Path
 from typing import Any, BinaryIO, Callable
@@ -18,11 +23,20 @@ import numpy as np
 from flamenerf.errors import UserError
 
 
+def temp_prefix(name: str) -> str:
+    """Prefix for mkstemp/mkdtemp of a temporary that becomes `name` (module docstring)."""
+    return f".{name}.flamenerf-{os.getpid()}-"
+
+
+# what mkstemp/mkdtemp make with `temp_prefix`: the final name, the PID, 8 random characters
+TEMP_NAME = re.compile(r"^\.(?P<name>.+)\.flamenerf-(?P<pid>\d+)-[a-z0-9_]{8}$")
+
+
 def atomic_write_bytes(path: str | os.PathLike, write: Callable[[BinaryIO], object]) -> None:
     """Call `write(f)` on a temporary file in `path`'s directory, then rename it over `path`."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    fd, tmp = tempfile.mkstemp(prefix=temp_prefix(path.name), dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as f:
             write(f)

@@ -31,12 +31,28 @@ def reexec_with_tuned_allocator(python_args: list[str]) -> None:
 
 
 def pick_device(device: str = "auto") -> torch.device:
-    """`auto` -> CUDA when present, else CPU; anything else is passed to torch.device."""
+    """`auto` -> CUDA when present, else CPU; `cpu`, `cuda` or `cuda:N` when this machine has
+    it; anything else is a one-line UserError naming --device."""
     import torch
+
+    from flamenerf.errors import UserError
 
     if device == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    return torch.device(device)
+    try:
+        dev = torch.device(device)
+    except RuntimeError:
+        raise UserError(f"--device {device}: not a device (auto, cpu, cuda or cuda:N)") from None
+    if dev.type == "cuda":
+        if not torch.cuda.is_available():
+            raise UserError(f"--device {device}: CUDA is not available on this machine "
+                            "(use --device cpu or auto)")
+        if dev.index is not None and dev.index >= torch.cuda.device_count():
+            raise UserError(f"--device {device}: this machine has "
+                            f"{torch.cuda.device_count()} CUDA device(s)")
+    elif dev.type != "cpu":
+        raise UserError(f"--device {device}: not supported (auto, cpu, cuda or cuda:N)")
+    return dev
 
 
 def set_threads(threads: int) -> None:

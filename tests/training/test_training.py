@@ -95,20 +95,22 @@ def test_resume_reproduces_uninterrupted_run(tiny_scene, tmp_path):
 
 
 def test_ctrl_c_saves_a_resumable_checkpoint(tiny_scene, tmp_path, monkeypatch):
+    import signal
+
     t = Trainer(small(preset("fast"), 50), tiny_scene, tmp_path / "run", quiet=True)
     real = t.train_step
 
     def step():
         if t.step == 4:
-            raise KeyboardInterrupt
+            signal.raise_signal(signal.SIGINT)  # Ctrl-C while step 5 is computed
         return real()
 
     monkeypatch.setattr(t, "train_step", step)
     res = t.fit()
-    assert res.interrupted and res.step == 4
-    assert latest_checkpoint(tmp_path / "run").name == "step-000000004.ckpt"
+    assert res.interrupted and res.step == 5  # the step in flight completes
+    assert latest_checkpoint(tmp_path / "run").name == "step-000000005.ckpt"
     assert Trainer(small(preset("fast"), 50), tiny_scene, tmp_path / "run", resume=True,
-                   quiet=True).step == 4
+                   quiet=True).step == 5
 
 
 def test_existing_run_without_resume_is_refused(tiny_scene, tmp_path):

@@ -50,7 +50,10 @@ def demo(
     cfg.train.batch_rays = batch_rays
     ck = latest_checkpoint(run)
     print(f"[2/3] training the fast preset for {steps} steps into {run}")
-    train(scene, run, cfg, resume=ck is not None, steps=steps)
+    if train(scene, run, cfg, resume=ck is not None, steps=steps).interrupted:
+        from flamenerf.errors import Interrupted
+
+        raise Interrupted(f"run saved in {run}; the same `flamenerf demo` command resumes it")
     print("[3/3] rendering the re-animation video")
     render(RenderOptions(run, out=out / "reanimation.mp4", split="reanimate", camera="orbit",
                          depth=True, side_by_side=True, overwrite=True))

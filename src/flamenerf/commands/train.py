@@ -55,7 +55,7 @@ def train(
     """
     from flamenerf.config import preset as get_preset
     from flamenerf.data.dataset import load_dataset
-    from flamenerf.errors import UserError
+    from flamenerf.errors import Interrupted, UserError
     from flamenerf.training.trainer import train as run_train
 
     cfg = get_preset(preset)
@@ -78,5 +78,7 @@ def train(
         cfg.model.expression_mode = expression_mode
     cfg.train.num_threads = threads
     res = run_train(dataset, out, cfg, resume=resume, device=device, steps=steps)
-    state = "interrupted" if res.interrupted else "finished"
-    print(f"{state} at step {res.step} in {res.seconds:.0f} s; run saved in {res.run_dir}")
+    if res.interrupted:  # exit status 130, so that `train && eval` stops here
+        raise Interrupted(f"run saved at step {res.step} in {res.run_dir}; continue it with "
+                          f"`flamenerf train {dataset} --out {out} --resume`")
+    print(f"finished at step {res.step} in {res.seconds:.0f} s; run saved in {res.run_dir}")

@@ -1,42 +1,174 @@
-"""Checkpoints: one dict per `step-000001000.ckpt`, written atomically, last K kept."""
+"""Checkpoints: one dict per `step-000001000.ckpt`, written atomically, last K kept.
+
+A checkpoint holds tensors and plain Python values only (numbers, strings, lists, dicts),
+so it loads with `torch.load(weights_only=True)`, which cannot run code: runs are shared
+between people, and a pickle can do anything when loaded. Checkpoints of flamenerf 0.1
+pickled NumPy's and Python's RNG states; they are refused with a line naming
+`flamenerf convert`, which rewrites them for a user who trusts their source.
+"""
 
 from __future__ import annotations
 
+import pickle
+import random
 import re
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 
-from flamenerf.errors import UserError
+from flamenerf.errors import UserError, warn
 from flamenerf.io import atomic_write_bytes
 
 _PAT = re.compile(r"step-(\d{9})\.ckpt$")
+# what an older flamenerf left after a kill -9 (no PID in the name): `.step-...ckpt.XXXXXXXX`
+LEGACY_TEMP = re.compile(r"\.step-\d{9}\.ckpt\.[a-z0-9_]{8}")
+FORMAT = 2  # 1: flamenerf 0.1, RNG states pickled
+REQUIRED = ("step", "model", "model_args", "optimizer", "generator", "torch_rng",
+            "numpy_rng", "python_rng")
+
+
+# ----------------------------------------------------------------------------- RNG state
+
+
+def rng_states(gen: torch.Generator) -> dict[str, Any]:
+    """Every random stream training draws from, as tensors and plain values."""
+    kind, keys, pos, has_gauss, gauss = np.random.get_state()
+    version, mt, gauss_next = random.getstate()
+    return {
+        "generator": gen.get_state(),
+        "torch_rng": torch.get_rng_state(),
+        "numpy_rng": {"kind": str(kind), "keys": torch.from_numpy(keys.astype(np.int64)),
+                      "pos": int(pos), "has_gauss": int(has_gauss), "gauss": float(gauss)},
+        "python_rng": {"version": int(version), "state": torch.tensor(mt, dtype=torch.int64),
+                       "gauss_next": gauss_next},
+    }
+
+
+def set_rng_states(st: dict[str, Any], gen: torch.Generator) -> None:
+    gen.set_state(st["generator"])
+    torch.set_rng_state(st["torch_rng"])
+    n = st["numpy_rng"]
+    np.random.set_state((n["kind"], n["keys"].numpy().astype(np.uint32), n["pos"],
+                         n["has_gauss"], n["gauss"]))
+    p = st["python_rng"]
+    random.setstate((p["version"], tuple(p["state"].tolist()), p["gauss_next"]))
+
+
+# ----------------------------------------------------------------------------- files
+
+
+def checkpoints(run_dir: Path) -> list[Path]:
+    """The run's checkpoints, oldest first."""
+    ckdir = Path(run_dir) / "checkpoints"
+    if not ckdir.is_dir():
+        return []
+    return sorted(p for p in ckdir.iterdir() if _PAT.fullmatch(p.name))
+
+
+def checkpoint_step(path: Path) -> int:
+    return int(_PAT.search(path.name).group(1))
+
+
+def latest_checkpoint(run_dir: Path) -> Path | None:
+    cks = checkpoints(run_dir)
+    return cks[-1] if cks else None
 
 
 def save_checkpoint(run_dir: Path, step: int, state: dict[str, Any], keep: int = 2) -> Path:
+    """Write step-STEP.ckpt atomically, then drop all but the `keep` newest. A failed write
+    (full disk, Ctrl-C) leaves the earlier checkpoints as they were."""
     ckdir = Path(run_dir) / "checkpoints"
     path = ckdir / f"step-{step:09d}.ckpt"
-    atomic_write_bytes(path, lambda f: torch.save(state, f))
-    old = sorted(p for p in ckdir.iterdir() if _PAT.search(p.name))[:-keep] if keep > 0 else []
-    for p in old:
+    try:
+        atomic_write_bytes(path, lambda f: torch.save({"format": FORMAT, **state}, f))
+    except OSError as e:
+        prev = latest_checkpoint(run_dir)
+        kept = f"the last good one is {prev}" if prev else "there is no earlier checkpoint"
+        raise UserError(f"{path}: could not save the checkpoint ({e.strerror or e}); "
+                        f"{kept}") from None
+    cks = checkpoints(run_dir)
+    # newer steps than this one belong to a history abandoned on resuming from an earlier
+    # checkpoint (the newest was unreadable): they would otherwise shadow this one
+    stale = [p for p in cks if checkpoint_step(p) > step]
+    older = [p for p in cks if checkpoint_step(p) <= step]
+    for p in stale + (older[:-keep] if keep > 0 else []):
         p.unlink(missing_ok=True)
     return path
 
 
-def latest_checkpoint(run_dir: Path) -> Path | None:
-    ckdir = Path(run_dir) / "checkpoints"
-    if not ckdir.is_dir():
-        return None
-    cks = sorted(p for p in ckdir.iterdir() if _PAT.search(p.name))
-    return cks[-1] if cks else None
+class LegacyCheckpoint(UserError):
+    """A checkpoint that only loads with pickle (flamenerf 0.1, or tampered with)."""
 
 
 def load_checkpoint(path: Path) -> dict[str, Any]:
+    """Load with weights_only=True; one-line errors for unreadable and pickle-needing
+    files."""
+    path = Path(path)
     try:
-        return torch.load(path, map_location="cpu", weights_only=False)
+        st = torch.load(path, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as e:
+        # torch words it "Unsupported global: GLOBAL x.y" or "unsupported GLOBAL x.y whose
+        # module x is blocked"
+        m = re.search(r"GLOBAL ([\w.]+)", str(e))
+        if m is None:
+            raise UserError(f"{path}: not a readable checkpoint (UnpicklingError)") from None
+        run = path.parent.parent
+        raise LegacyCheckpoint(
+            f"{path}: not loaded: it needs pickle (for {m.group(1)}), which can run any code; "
+            f"if you trust where this run came from, rewrite it in the safe format with "
+            f"`flamenerf convert {run} --trust`") from None
     except Exception as e:  # noqa: BLE001
-        raise UserError(f"{path}: not a readable checkpoint ({type(e).__name__}: {e})") from None
+        first = str(e).split(".")[0].strip() or type(e).__name__
+        raise UserError(f"{path}: not a readable checkpoint ({type(e).__name__}: "
+                        f"{first})") from None
+    missing = [k for k in REQUIRED if not isinstance(st, dict) or k not in st]
+    if missing:
+        raise UserError(f"{path}: not a readable checkpoint (no {', '.join(missing)})")
+    return st
+
+
+def load_latest(run_dir: Path) -> tuple[Path, dict[str, Any]] | None:
+    """The newest checkpoint that loads, falling back past unreadable ones (a disk error,
+    a copy cut short) with a warning that names both files. None when there is none."""
+    cks = checkpoints(run_dir)
+    bad: list[tuple[Path, UserError]] = []
+    for p in reversed(cks):
+        try:
+            st = load_checkpoint(p)
+        except LegacyCheckpoint:
+            raise
+        except UserError as e:
+            bad.append((p, e))
+            continue
+        for _, e in bad:
+            warn(f"{e}; using {p.name} instead")
+        return p, st
+    if bad:
+        raise bad[0][1]
+    return None
+
+
+def convert_legacy(path: Path) -> bool:
+    """Rewrite a flamenerf 0.1 checkpoint in the weights_only format. Loads it with pickle:
+    only for files the user trusts. Returns False when it needed no conversion."""
+    try:
+        load_checkpoint(path)
+        return False
+    except LegacyCheckpoint:
+        pass
+    st = torch.load(path, map_location="cpu", weights_only=False)
+    kind, keys, pos, has_gauss, gauss = st["numpy_rng"]
+    version, mt, gauss_next = st["python_rng"]
+    st["numpy_rng"] = {"kind": str(kind), "keys": torch.from_numpy(keys.astype(np.int64)),
+                       "pos": int(pos), "has_gauss": int(has_gauss), "gauss": float(gauss)}
+    st["python_rng"] = {"version": int(version), "state": torch.tensor(mt, dtype=torch.int64),
+                        "gauss_next": gauss_next}
+    st["format"] = FORMAT
+    atomic_write_bytes(Path(path), lambda f: torch.save(st, f))
+    load_checkpoint(path)  # what we wrote must pass the safe loader
+    return True
 
 
 def load_model_state(model: torch.nn.Module, state: dict[str, Any], path: Path) -> None:

@@ -14,7 +14,7 @@ from flamenerf.errors import UserError
 from flamenerf.model.flame_nerf import FlameNeRF
 from flamenerf.io import read_json
 from flamenerf.runtime import pick_device
-from flamenerf.training.checkpoint import latest_checkpoint, load_checkpoint, load_model_state
+from flamenerf.training.checkpoint import load_latest, load_model_state
 
 
 @dataclass
@@ -52,13 +52,16 @@ class Run:
 def load_run(run_dir: str | Path, device: str = "auto") -> Run:
 
     run_dir = Path(run_dir)
+    if run_dir.exists() and not run_dir.is_dir():
+        raise UserError(f"{run_dir}: is a file; give the run directory made by `flamenerf "
+                        "train` (the folder holding config.json)")
     if not run_dir.is_dir():
         raise UserError(f"{run_dir}: run directory does not exist")
     meta = read_json(run_dir / "config.json")
-    ck = latest_checkpoint(run_dir)
-    if ck is None:
+    found = load_latest(run_dir)  # skips an unreadable newest checkpoint, with a warning
+    if found is None:
         raise UserError(f"{run_dir}: no checkpoint in {run_dir / 'checkpoints'} (not a trained run?)")
-    state = load_checkpoint(ck)
+    ck, state = found
     cfg = from_dict(meta["config"])
     dev = pick_device(device)
     model = FlameNeRF(cfg.model, **state["model_args"])

@@ -2,24 +2,26 @@
 
 from __future__ import annotations
 
-import random
+import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
 import torch
 
 from flamenerf import __version__
 from flamenerf.config import Config, from_dict
 from flamenerf.data.dataset import Dataset, load_dataset
 from flamenerf.data.scene import FrameSet, fit_dataset_expression_model, scene_box
-from flamenerf.errors import UserError
+from flamenerf.errors import Interrupted, UserError, warn
 from flamenerf.io import atomic_write_text, read_json
 from flamenerf.model.flame_nerf import FlameNeRF, RayBatch
+from flamenerf.outdir import clean_stale_temps, writable_dir
 from flamenerf.runtime import pick_device
-from flamenerf.training.checkpoint import (latest_checkpoint, load_checkpoint, load_model_state,
-                                           save_checkpoint)
+from flamenerf.training.checkpoint import (LEGACY_TEMP, latest_checkpoint, load_latest,
+                                           load_model_state, rng_states, save_checkpoint,
+                                           set_rng_states)
+from flamenerf.training.interrupt import StopRequest
 from flamenerf.training.losses import face_region_loss, psnr_from_mse
 
 
@@ -89,10 +91,15 @@ class Trainer:
             cfg = from_dict(saved["config"])  # a resumed run keeps its own config
         if steps is not None:
             cfg.train.steps = steps
+        for flag, v in (("--steps", cfg.train.steps), ("--batch-rays", cfg.train.batch_rays)):
+            if v < 1:
+                raise UserError(f"{flag} {v}: must be at least 1")
         self.cfg = cfg
         if cfg.train.num_threads > 0:
             torch.set_num_threads(cfg.train.num_threads)
         self.ds = load_dataset(dataset)
+        writable_dir(self.run_dir, "run")  # before the slow part, not at the first save
+        self._clean_temps()
         self.intr = train_resolution(self.ds, cfg)
         torch.manual_seed(cfg.train.seed)
         self.model = build_for_dataset(cfg, self.ds).to(self.device)
@@ -103,11 +110,20 @@ class Trainer:
                                     eps=eps, fused=fused)
         self.gen = torch.Generator().manual_seed(cfg.train.seed)
         self.step = 0
+        self._saved_step: int | None = None  # the step of the newest checkpoint on disk
         if resume and ck is not None:
-            self._load(ck)
+            self._load()
         self._write_config()
 
     # --------------------------------------------------------------- persistence
+    def _clean_temps(self) -> None:
+        """Partial files that a killed run of this folder left (a checkpoint is ~100 MB)."""
+        gone = (clean_stale_temps(self.run_dir / "checkpoints", legacy=LEGACY_TEMP)
+                + clean_stale_temps(self.run_dir) + clean_stale_temps(self.run_dir / "images"))
+        if gone:
+            warn(f"{self.run_dir}: removed {len(gone)} partial file(s) left by an interrupted "
+                 "run")
+
     def _write_config(self) -> None:
         self.run_dir.mkdir(parents=True, exist_ok=True)
         meta = {
@@ -130,30 +146,32 @@ class Trainer:
             "model": self.model.state_dict(),
             "model_args": self.model.init_args,
             "optimizer": self.opt.state_dict(),
-            "generator": self.gen.get_state(),
-            "torch_rng": torch.get_rng_state(),
-            "numpy_rng": np.random.get_state(),
-            "python_rng": random.getstate(),
+            **rng_states(self.gen),
             "config": self.cfg.to_dict(),
             "version": __version__,
         }
 
     def save(self) -> Path:
-        return save_checkpoint(self.run_dir, self.step, self.state(), self.cfg.train.keep_checkpoints)
+        path = save_checkpoint(self.run_dir, self.step, self.state(),
+                               self.cfg.train.keep_checkpoints)
+        self._saved_step = self.step
+        return path
 
-    def _load(self, path: Path) -> None:
-        st = load_checkpoint(path)
+    def _kept(self) -> str:
+        ck = latest_checkpoint(self.run_dir)
+        return f"the run resumes from {ck}" if ck else "no checkpoint was saved"
+
+    def _load(self) -> None:
+        path, st = load_latest(self.run_dir)
         load_model_state(self.model, st["model"], path)
         try:
             self.opt.load_state_dict(st["optimizer"])
         except ValueError as e:  # a checkpoint from before the per-group learning rates
             raise UserError(f"{path}: optimiser state does not match this version's "
                             f"parameter groups ({e}); start a new run") from None
-        self.gen.set_state(st["generator"])
-        torch.set_rng_state(st["torch_rng"])
-        np.random.set_state(st["numpy_rng"])
-        random.setstate(st["python_rng"])
+        set_rng_states(st, self.gen)
         self.step = int(st["step"])
+        self._saved_step = self.step
 
     # --------------------------------------------------------------- one step
     def train_step(self) -> dict[str, float]:
@@ -229,33 +247,51 @@ class Trainer:
         bar = tqdm(total=total, initial=self.step, desc=f"train {self.cfg.preset}",
                    unit="step", disable=self.quiet, dynamic_ncols=True)
         t0 = time.perf_counter()
-        interrupted, psnr, rays_done, t_last = False, float("nan"), 0, time.perf_counter()
-        try:
-            while self.step < total:
-                logs = self.train_step()
-                rays_done += cfg.batch_rays
-                psnr = logs["metrics/psnr"]
-                if self.step % cfg.log_every == 0 or self.step == total:
-                    now = time.perf_counter()
-                    rps = rays_done / max(now - t_last, 1e-9)
-                    logs["perf/rays_per_s"] = rps
-                    for k, v in logs.items():
-                        writer.add_scalar(k, v, self.step)
-                    bar.set_postfix(loss=f"{logs['loss/total']:.4f}", psnr=f"{psnr:.2f}",
-                                    rays_s=f"{rps:,.0f}")
-                    rays_done, t_last = 0, now
-                bar.update(1)
-                if self.step % cfg.checkpoint_every == 0 and self.step < total:
+        psnr, rays_done, t_last = float("nan"), 0, time.perf_counter()
+        # Ctrl-C only asks to stop: the step in flight completes, so the checkpoint saved
+        # below is an exact resume point (training/interrupt.py)
+        with StopRequest() as stop:
+            try:
+                while self.step < total and not stop.requested:
+                    logs = self.train_step()
+                    if not math.isfinite(logs["loss/total"]):
+                        raise UserError(
+                            f"{self.run_dir}: training diverged (loss {logs['loss/total']} at "
+                            f"step {self.step}; check the dataset's cameras and scale, or lower "
+                            f"the learning rate); stopped without saving: {self._kept()}")
+                    rays_done += cfg.batch_rays
+                    psnr = logs["metrics/psnr"]
+                    if self.step % cfg.log_every == 0 or self.step == total:
+                        now = time.perf_counter()
+                        rps = rays_done / max(now - t_last, 1e-9)
+                        logs["perf/rays_per_s"] = rps
+                        for k, v in logs.items():
+                            writer.add_scalar(k, v, self.step)
+                        bar.set_postfix(loss=f"{logs['loss/total']:.4f}", psnr=f"{psnr:.2f}",
+                                        rays_s=f"{rps:,.0f}")
+                        rays_done, t_last = 0, now
+                    bar.update(1)
+                    if self.step % cfg.checkpoint_every == 0 and self.step < total:
+                        stop.what = f"saving the checkpoint of step {self.step}"
+                        self.save()
+                        stop.what = "the current step"
+                    if cfg.image_every and self.step % cfg.image_every == 0:
+                        self.preview(writer)
+                if stop.requested:
+                    bar.write(f"interrupted at step {self.step}: saving a checkpoint to resume "
+                              "from")
+                stop.what = f"saving the checkpoint of step {self.step}"
+                if self._saved_step != self.step:
                     self.save()
-                if cfg.image_every and self.step % cfg.image_every == 0:
-                    self.preview(writer)
-        except KeyboardInterrupt:
-            interrupted = True
-            bar.write(f"interrupted at step {self.step}: saving a checkpoint to resume from")
-        finally:
-            bar.close()
-        self.save()
-        writer.close()
+            except KeyboardInterrupt:
+                # not through the flag (a third Ctrl-C, or outside the main thread): the step
+                # or save in flight is abandoned, never saved half done
+                raise Interrupted(f"gave up {stop.what} (nothing half done is saved); "
+                                  f"{self._kept()}") from None
+            finally:
+                bar.close()
+                writer.close()
+        interrupted = stop.requested
         return TrainResult(self.run_dir, self.step, interrupted, time.perf_counter() - t0, psnr)
 
 

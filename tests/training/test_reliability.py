@@ -1,0 +1,268 @@
+"""Checkpoints that cannot run code, exact resume after Ctrl-C, saves that survive a second
+Ctrl-C or a full disk, and fall-backs past damaged files (docs/reliability.md)."""
+
+import errno
+import os
+import signal
+import subprocess
+import sys
+
+import pytest
+import torch
+from test_training import small
+
+from flamenerf.config import preset
+from flamenerf.errors import Interrupted, UserError
+from flamenerf.training import checkpoint as ckpt
+from flamenerf.training.checkpoint import checkpoints, latest_checkpoint
+from flamenerf.training.run import load_run
+from flamenerf.training.trainer import Trainer
+
+
+def trainer(scene, run, steps, resume=False, every=1000):
+    cfg = small(preset("fast"), steps)
+    cfg.train.checkpoint_every = every
+    # a resumed run keeps its saved config, except the number of steps
+    return Trainer(cfg, scene, run, resume=resume, quiet=True, steps=steps if resume else None)
+
+
+def ctrl_c_at(t, monkeypatch, step, where="opt"):
+    """Press Ctrl-C inside step `step` + 1, just before the optimiser update: the moment at
+    which an interrupt used to leave a half-done step behind."""
+    real = t.opt.step
+
+    def opt_step(*a, **k):
+        if t.step == step:
+            signal.raise_signal(signal.SIGINT)
+        return real(*a, **k)
+
+    monkeypatch.setattr(t.opt, "step", opt_step)
+
+
+def same_params(a, b):
+    sa, sb = a.model.state_dict(), b.model.state_dict()
+    return all(torch.equal(sa[k], sb[k]) for k in sa)
+
+
+# ----------------------------------------------------------------------------- no pickle
+
+
+def test_checkpoint_loads_without_pickle(tiny_scene, tmp_path):
+    trainer(tiny_scene, tmp_path / "run", 1).fit()
+    st = torch.load(latest_checkpoint(tmp_path / "run"), weights_only=True)
+    assert st["format"] == ckpt.FORMAT and st["step"] == 1
+
+
+class Payload:
+    """What a tampered checkpoint could carry: code run at unpickling (here: make a file)."""
+
+    def __init__(self, marker):
+        self.marker = str(marker)
+
+    def __reduce__(self):
+        return (os.mkdir, (self.marker,))
+
+
+def test_checkpoint_that_needs_pickle_is_refused_and_runs_nothing(tiny_scene, tmp_path):
+    run = tmp_path / "run"
+    trainer(tiny_scene, run, 1).fit()
+    ck = latest_checkpoint(run)
+    st = torch.load(ck, weights_only=True)
+    st["extra"] = Payload(tmp_path / "pwned")
+    torch.save(st, ck)
+    for load in (lambda: load_run(run), lambda: trainer(tiny_scene, run, 2, resume=True)):
+        with pytest.raises(UserError, match="flamenerf convert") as e:
+            load()
+        assert "\n" not in str(e.value) and "posix.mkdir" in str(e.value)
+    assert not (tmp_path / "pwned").exists()
+
+
+def test_old_checkpoint_converts_on_request_and_resumes_exactly(tiny_scene, tmp_path):
+    """A flamenerf 0.1 checkpoint (NumPy/Python RNG states pickled) is refused with the
+    command that converts it; after `convert --trust` the run resumes as if never stopped."""
+    import random
+
+    import numpy as np
+
+    from flamenerf.cli import main
+
+    a = trainer(tiny_scene, tmp_path / "a", 4)
+    a.fit()
+    b = trainer(tiny_scene, tmp_path / "b", 4)
+    b.fit(steps=2)
+    ck = latest_checkpoint(tmp_path / "b")
+    st = torch.load(ck, weights_only=True)
+    ckpt.set_rng_states(st, torch.Generator())
+    st["numpy_rng"], st["python_rng"] = np.random.get_state(), random.getstate()
+    del st["format"]
+    torch.save(st, ck)  # what flamenerf 0.1 wrote
+    with pytest.raises(UserError, match="convert"):
+        load_run(tmp_path / "b")
+    assert main(["convert", str(tmp_path / "b")]) == 2  # --trust is required
+    assert main(["convert", str(tmp_path / "b"), "--trust"]) == 0
+    torch.load(ck, weights_only=True)
+    b2 = trainer(tiny_scene, tmp_path / "b", 4, resume=True)
+    b2.fit()
+    assert same_params(a, b2)
+
+
+# ----------------------------------------------------------------------------- Ctrl-C
+
+
+def test_ctrl_c_inside_a_step_resumes_bit_exactly(tiny_scene, tmp_path, monkeypatch):
+    a = trainer(tiny_scene, tmp_path / "a", 6)
+    a.fit()
+    before = signal.getsignal(signal.SIGINT)
+    b = trainer(tiny_scene, tmp_path / "b", 6)
+    ctrl_c_at(b, monkeypatch, 2)
+    res = b.fit()
+    assert res.interrupted and res.step == 3
+    assert signal.getsignal(signal.SIGINT) is before  # default handling is back
+    assert latest_checkpoint(tmp_path / "b").name == "step-000000003.ckpt"
+    b2 = trainer(tiny_scene, tmp_path / "b", 6, resume=True)
+    assert b2.step == 3
+    b2.fit()
+    assert same_params(a, b2)
+
+
+def fail_saves(monkeypatch, effect):
+    """Make torch.save write some bytes, then `effect()` (a Ctrl-C, a full disk)."""
+    real = torch.save
+
+    def save(obj, f, *a, **k):
+        f.write(b"partial")
+        effect()
+        f.seek(0)
+        f.truncate()
+        return real(obj, f, *a, **k)
+
+    monkeypatch.setattr(torch, "save", save)
+
+
+def test_second_ctrl_c_during_the_save_still_saves(tiny_scene, tmp_path, monkeypatch):
+    t = trainer(tiny_scene, tmp_path / "run", 6)
+    ctrl_c_at(t, monkeypatch, 2)
+    fail_saves(monkeypatch, lambda: signal.raise_signal(signal.SIGINT))
+    res = t.fit()
+    assert res.interrupted and res.step == 3
+    monkeypatch.undo()
+    assert load_run(tmp_path / "run").step == 3
+
+
+def test_third_ctrl_c_gives_up_the_save_and_keeps_the_last_checkpoint(tiny_scene, tmp_path,
+                                                                     monkeypatch):
+    t = trainer(tiny_scene, tmp_path / "run", 6, every=2)
+    ctrl_c_at(t, monkeypatch, 2)
+    t.fit(steps=2)  # the periodic checkpoint of step 2 (no Ctrl-C yet)
+    t.cfg.train.steps = 6
+
+    def two_presses():
+        signal.raise_signal(signal.SIGINT)
+        signal.raise_signal(signal.SIGINT)
+
+    fail_saves(monkeypatch, two_presses)
+    before = signal.getsignal(signal.SIGINT)
+    with pytest.raises(Interrupted, match="step-000000002.ckpt") as e:
+        t.fit()
+    assert "\n" not in str(e.value)
+    assert signal.getsignal(signal.SIGINT) is before
+    monkeypatch.undo()
+    assert [p.name for p in (tmp_path / "run" / "checkpoints").iterdir()] == [
+        "step-000000002.ckpt"]  # and no partial file beside it
+    assert load_run(tmp_path / "run").step == 2
+
+
+def test_full_disk_at_the_final_save_is_one_line_and_keeps_the_last_checkpoint(
+        tiny_scene, tmp_path, monkeypatch):
+    t = trainer(tiny_scene, tmp_path / "run", 3, every=2)
+
+    def full():
+        if t.step == 3:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    fail_saves(monkeypatch, full)
+    with pytest.raises(UserError, match="No space left on device") as e:
+        t.fit()
+    assert "\n" not in str(e.value) and "step-000000002.ckpt" in str(e.value)
+    monkeypatch.undo()
+    assert [p.name for p in (tmp_path / "run" / "checkpoints").iterdir()] == [
+        "step-000000002.ckpt"]
+    assert load_run(tmp_path / "run").step == 2
+
+
+def test_non_finite_loss_stops_and_keeps_the_last_good_checkpoint(tiny_scene, tmp_path,
+                                                                 monkeypatch):
+    t = trainer(tiny_scene, tmp_path / "run", 6, every=2)
+    real = t.train_step
+
+    def step():
+        if t.step == 3:
+            with torch.no_grad():
+                t.model.field.grid.tables[0].fill_(float("nan"))
+        return real()
+
+    monkeypatch.setattr(t, "train_step", step)
+    with pytest.raises(UserError, match="diverged") as e:
+        t.fit()
+    assert "\n" not in str(e.value) and "step-000000002.ckpt" in str(e.value)
+    r = load_run(tmp_path / "run")
+    assert r.step == 2
+    assert all(torch.isfinite(v).all() for v in r.model.state_dict().values()
+               if v.is_floating_point())
+
+
+def test_interrupted_train_exits_130_with_one_line(tiny_scene, tmp_path, monkeypatch, capsys):
+    from flamenerf.cli import main
+
+    real = Trainer.train_step
+
+    def step(self):
+        if self.step == 1:
+            signal.raise_signal(signal.SIGINT)
+        return real(self)
+
+    monkeypatch.setattr(Trainer, "train_step", step)
+    rc = main(["train", str(tiny_scene), "--out", str(tmp_path / "run"), "--steps", "5",
+               "--batch-rays", "64"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 130
+    assert err[-1].startswith("flamenerf: interrupted: run saved at step 2")
+    assert "--resume" in err[-1]
+    assert latest_checkpoint(tmp_path / "run").name == "step-000000002.ckpt"
+
+
+# ----------------------------------------------------------------------------- leftovers
+
+
+def test_stale_partial_checkpoints_are_removed_on_the_next_start(tiny_scene, tmp_path):
+    run = tmp_path / "run"
+    trainer(tiny_scene, run, 1).fit()
+    ckdir = run / "checkpoints"
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
+                          capture_output=True, text=True).stdout.strip()
+    stale = [ckdir / f".step-000000002.ckpt.flamenerf-{dead}-abcd1234",
+             ckdir / ".step-000000002.ckpt.k2j3h4g5",  # an older flamenerf's naming
+             run / f".config.json.flamenerf-{dead}-zz_99xyz"]
+    alive = ckdir / f".step-000000002.ckpt.flamenerf-{os.getppid()}-abcd1234"
+    theirs = ckdir / ".notes"
+    for p in [*stale, alive, theirs]:
+        p.write_bytes(b"x")
+    trainer(tiny_scene, run, 2, resume=True)
+    assert not any(p.exists() for p in stale)
+    assert alive.exists() and theirs.exists()
+
+
+def test_corrupt_latest_checkpoint_falls_back_to_the_previous(tiny_scene, tmp_path, capsys):
+    run = tmp_path / "run"
+    trainer(tiny_scene, run, 4, every=2).fit()
+    assert [p.name for p in checkpoints(run)] == ["step-000000002.ckpt", "step-000000004.ckpt"]
+    newest = checkpoints(run)[-1]
+    newest.write_bytes(newest.read_bytes()[:100_000])  # a copy cut short
+    assert load_run(run).step == 2
+    err = capsys.readouterr().err
+    assert "step-000000004.ckpt" in err and "step-000000002.ckpt" in err
+    t = trainer(tiny_scene, run, 6, resume=True, every=2)
+    assert t.step == 2
+    t.fit()
+    assert [p.name for p in checkpoints(run)] == ["step-000000004.ckpt", "step-000000006.ckpt"]
+    assert load_run(run).step == 6
