@@ -75,6 +75,11 @@ def eval(  # noqa: A001 - the subcommand's name
                     ("--leakage-dilate-px", leakage_dilate_px)):
         if v is not None and v < 0:
             raise UserError(f"{name} {v}: must be >= 0")
+    out_dir = out if out is not None else Path(run) / "eval"
+    if Path(run).is_dir():  # else load_run says what is wrong with RUN
+        from flamenerf.outdir import writable_dir
+
+        writable_dir(out_dir, "evaluation")  # before minutes of fitting, not after
     r = load_run(run, device)
     ds = r.dataset(dataset)
     if fit_steps is None:
@@ -82,7 +87,6 @@ def eval(  # noqa: A001 - the subcommand's name
     opts = EvalOptions(split=split, fit_steps=fit_steps, fit_batch_rays=fit_batch_rays,
                        fit_lr=fit_lr, seed=seed, leakage_dilate_px=leakage_dilate_px,
                        num_images=images, control=control, control_steps=control_steps)
-    out_dir = out if out is not None else Path(run) / "eval"
     res = evaluate_run(r, ds, opts, out_dir)
     print()
     print(compare_markdown([res]), end="")

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import tempfile
 from dataclasses import dataclass, field
@@ -182,6 +183,25 @@ def _require(obj: dict, key: str, where: str, kinds: type | tuple[type, ...]) ->
     return val
 
 
+def _numbers(values: list, dtype) -> np.ndarray | None:
+    """A JSON list as an array, or None when it holds non-numbers or rows of unequal
+    length (numpy would raise, or make an object array of strings)."""
+    if any(isinstance(v, (str, bool, dict)) or v is None for v in _flat(values)):
+        return None
+    try:
+        return np.asarray(values, dtype=dtype)
+    except (ValueError, TypeError):
+        return None
+
+
+def _flat(values):
+    for v in values:
+        if isinstance(v, list):
+            yield from _flat(v)
+        else:
+            yield v
+
+
 def load_dataset(root: str | os.PathLike, check_files: bool = True) -> Dataset:
     """Read and validate a dataset; any problem becomes one DatasetError naming the file."""
     root = Path(root)
@@ -206,9 +226,16 @@ def load_dataset(root: str | os.PathLike, check_files: bool = True) -> Dataset:
         cx=float(_require(meta, "cx", where, num)),
         cy=float(_require(meta, "cy", where, num)),
     )
+    if intr.w <= 0 or intr.h <= 0:
+        raise DatasetError(f"{where}: image size w={intr.w}, h={intr.h} must be positive")
+    if not (np.isfinite([intr.fx, intr.fy]).all() and intr.fx > 0 and intr.fy > 0):
+        raise DatasetError(f"{where}: focal lengths fl_x={intr.fx}, fl_y={intr.fy} must be "
+                           "positive")
+    if not np.isfinite([intr.cx, intr.cy]).all():
+        raise DatasetError(f"{where}: principal point cx={intr.cx}, cy={intr.cy} must be finite")
     near = float(_require(meta, "near", where, num))
     far = float(_require(meta, "far", where, num))
-    if not (0 <= near < far):
+    if not (0 <= near < far < np.inf):
         raise DatasetError(f"{where}: need 0 <= near < far, got near={near}, far={far}")
     em = _require(meta, "expression_model", where, dict)
     names = _require(em, "names", f"{where} expression_model", list)
@@ -222,10 +249,12 @@ def load_dataset(root: str | os.PathLike, check_files: bool = True) -> Dataset:
         w = f"{where} frames[{i}]"
         if not isinstance(fr, dict):
             raise DatasetError(f"{w}: must be an object")
-        c2w = np.asarray(_require(fr, "transform_matrix", w, list), dtype=np.float64)
-        if c2w.shape != (4, 4) or not np.all(np.isfinite(c2w)):
-            raise DatasetError(f"{w}: transform_matrix must be a finite 4x4 matrix")
-        expr = np.asarray(_require(fr, "expression", w, list), dtype=np.float32)
+        c2w = _numbers(_require(fr, "transform_matrix", w, list), np.float64)
+        if c2w is None or c2w.shape != (4, 4) or not np.all(np.isfinite(c2w)):
+            raise DatasetError(f"{w}: transform_matrix must be a finite 4x4 matrix of numbers")
+        expr = _numbers(_require(fr, "expression", w, list), np.float32)
+        if expr is None:
+            raise DatasetError(f"{w}: expression must be a flat list of numbers")
         if expr.shape != (dim,) or not np.all(np.isfinite(expr)):
             raise DatasetError(
                 f"{w}: expression has {expr.size} values, expression_model names {dim}"
@@ -333,11 +362,16 @@ class DatasetWriter:
         overwrite: bool = False,
         prior_dilation_px: int | None = None,
     ):
+        from flamenerf.io import temp_prefix
+        from flamenerf.outdir import check_replaceable, clean_stale_temps, writable_dir
+
         self.out = Path(out)
         if self.out.exists() and not overwrite:
             raise DatasetError(f"{self.out}: already exists (pass --overwrite to replace it)")
-        self.out.parent.mkdir(parents=True, exist_ok=True)
-        self.tmp = Path(tempfile.mkdtemp(prefix=f".{self.out.name}.", dir=self.out.parent))
+        check_replaceable(self.out, "dataset")
+        writable_dir(self.out.parent, "dataset")
+        clean_stale_temps(self.out.parent, re.escape(self.out.name))  # a killed writer's
+        self.tmp = Path(tempfile.mkdtemp(prefix=temp_prefix(self.out.name), dir=self.out.parent))
         os.chmod(self.tmp, 0o755)  # mkdtemp makes 0700; a dataset is an ordinary folder
         for sub in ("images", "masks"):
             (self.tmp / sub).mkdir()
@@ -424,9 +458,9 @@ class DatasetWriter:
             self.tmp / "face_mesh.npz", faces=self.faces, vertices=np.stack(self.verts)
         )
         (self.tmp / "transforms.json").write_text(json.dumps(self.meta, indent=1))
-        if self.out.exists():
-            shutil.rmtree(self.out)
-        os.replace(self.tmp, self.out)
+        from flamenerf.outdir import replace_dir
+
+        replace_dir(self.tmp, self.out, "dataset")
         return self.out
 
     def abort(self) -> None:

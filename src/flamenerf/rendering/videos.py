@@ -184,6 +184,8 @@ def output_paths(opts: RenderOptions, source: str, camera: str) -> dict[str, Pat
     for p in paths.values():
         if p.exists() and not opts.overwrite:
             raise UserError(f"{p}: already exists (pass --overwrite to replace it)")
+        if p.is_dir():
+            raise UserError(f"{p}: is a folder, not a video file")
     return paths
 
 
@@ -226,11 +228,14 @@ def write_videos(run, ds: Dataset, intr: Intrinsics, poses: np.ndarray, values: 
 def render_videos(opts: RenderOptions, log=print) -> RenderSummary:
     """The whole of `flamenerf render` (see its --help)."""
     from flamenerf.data.prior import dataset_dilation, mesh_function
+    from flamenerf.outdir import writable_dir
     from flamenerf.runtime import set_threads
     from flamenerf.training.run import load_run
 
     opts.check()
     set_threads(opts.threads)
+    if opts.out is not None:  # fail before loading and tracking, not after rendering
+        writable_dir(opts.out.parent, "video")
     run = load_run(opts.run, opts.device)
     ds = run.dataset(opts.dataset)
     names = run.expression_names
@@ -254,5 +259,6 @@ def render_videos(opts: RenderOptions, log=print) -> RenderSummary:
     fps = opts.fps or seq.fps or 30.0
 
     paths = output_paths(opts, seq.label, cam_label)
+    writable_dir(paths["rgb"].parent, "video")
     write_videos(run, ds, intr, poses, values, verts, dil, opts.chunk, fps, paths, seq, names)
     return RenderSummary(paths, n, intr.w, intr.h, fps, seq.label, cam_label, dil)

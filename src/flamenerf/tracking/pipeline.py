@@ -108,6 +108,10 @@ def preprocess_video(video: str | os.PathLike, out: str | os.PathLike,
     check_options(opts)
     if out.exists() and not opts.overwrite:
         raise DatasetError(f"{out}: already exists (pass --overwrite to replace it)")
+    from flamenerf.outdir import check_replaceable, writable_dir
+
+    check_replaceable(out, "dataset")  # before the slow part, as DatasetWriter checks again
+    writable_dir(out.parent, "dataset")
     flame = None
     if opts.face_model == "flame":
         from flamenerf.tracking.flame import load_flame_dir

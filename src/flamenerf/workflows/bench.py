@@ -186,6 +186,9 @@ def _train(name: str, cfg: Config, scene: Path, o: BenchOptions, log) -> dict[st
             if not o.overwrite:
                 raise UserError(f"{run_dir}: holds a run with other settings; pass --overwrite "
                                 "to retrain it, or another --work")
+            from flamenerf.outdir import check_replaceable
+
+            check_replaceable(run_dir, "run")  # --overwrite removes only what we wrote
             shutil.rmtree(run_dir)
         elif timing_file.exists():
             prev = float(json.loads(timing_file.read_text()).get("train_seconds", 0.0))

@@ -1,0 +1,223 @@
+"""One line, naming the file, for every bad input or unusable output; `--overwrite` replaces
+only what flamenerf wrote (docs/reliability.md). In-process through `cli.main`, so that a
+traceback fails the test as an exception."""
+
+import errno
+import json
+import os
+import shutil
+import subprocess
+import sys
+
+import pytest
+
+from flamenerf.cli import main
+from flamenerf.data.dataset import DatasetError, load_dataset
+
+
+def run_cli(capsys, *args):
+    rc = main([str(a) for a in args])
+    err = capsys.readouterr().err.strip()
+    return rc, err
+
+
+def one_line(err, *words):
+    lines = [ln for ln in err.splitlines() if ln.startswith("flamenerf: ")]
+    assert len(lines) == 1 and "Traceback" not in err, err
+    for w in words:
+        assert w in lines[0], (w, lines[0])
+    return lines[0]
+
+
+# ----------------------------------------------------------------------------- train
+
+
+@pytest.mark.parametrize("args, words", [
+    (["--out", "/proc/x"], ["/proc/x", "cannot write"]),
+    (["--out", "{tmp}/afile"], ["afile", "is a file"]),
+    (["--batch-rays", "0"], ["--batch-rays 0", "at least 1"]),
+    (["--batch-rays", "-3"], ["--batch-rays -3"]),
+    (["--steps", "-5"], ["--steps -5", "at least 1"]),
+    (["--device", "cuda"], ["--device cuda", "CUDA is not available"]),
+    (["--device", "banana"], ["--device banana"]),
+])
+def test_train_bad_option_or_output_is_one_line(args, words, toy_dataset, tmp_path, capsys,
+                                                monkeypatch):
+    import torch
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    (tmp_path / "afile").write_text("mine")
+    args = [a.format(tmp=tmp_path) for a in args]
+    if "--out" not in args:
+        args += ["--out", str(tmp_path / "run")]
+    rc, err = run_cli(capsys, "train", toy_dataset, *args)
+    assert rc == 2
+    one_line(err, "flamenerf: error:", *words)
+    assert (tmp_path / "afile").read_text() == "mine"
+    assert not (tmp_path / "run" / "checkpoints").exists()
+
+
+# ----------------------------------------------------------------------------- datasets
+
+
+def edited(toy_dataset, tmp_path, edit):
+    ds = tmp_path / "ds"
+    shutil.copytree(toy_dataset, ds)
+    meta = json.loads((ds / "transforms.json").read_text())
+    edit(meta)
+    (ds / "transforms.json").write_text(json.dumps(meta))
+    return ds
+
+
+def _set(key, value):
+    return lambda m: m.__setitem__(key, value)
+
+
+def _frame0(key, value):
+    return lambda m: m["frames"][0].__setitem__(key, value)
+
+
+@pytest.mark.parametrize("edit, words", [
+    (_set("w", 0), ["w=0", "positive"]),
+    (_set("h", -2), ["h=-2", "positive"]),
+    (_set("fl_x", 0), ["fl_x=0", "positive"]),
+    (_frame0("transform_matrix", [[1, 0, 0, 0], [0, 1, 0], [0, 0, 1, 0], [0, 0, 0, 1]]),
+     ["frames[0]", "transform_matrix", "4x4"]),
+    (_frame0("transform_matrix", [["1", 0, 0, 0]] * 4), ["frames[0]", "transform_matrix"]),
+    (_frame0("expression", ["x"] * 14), ["frames[0]", "expression", "numbers"]),
+    (_frame0("expression", [[0.0, 1.0], [0.0]]), ["frames[0]", "expression", "numbers"]),
+])
+def test_bad_numbers_in_transforms_json_are_one_line(edit, words, toy_dataset, tmp_path):
+    ds = edited(toy_dataset, tmp_path, edit)
+    with pytest.raises(DatasetError) as e:
+        load_dataset(ds)
+    msg = str(e.value)
+    assert "\n" not in msg and msg.startswith(str(ds / "transforms.json"))
+    for w in words:
+        assert w in msg, (w, msg)
+
+
+def test_zero_width_through_the_cli(toy_dataset, tmp_path, capsys):
+    ds = edited(toy_dataset, tmp_path, _set("w", 0))
+    rc, err = run_cli(capsys, "train", ds, "--out", tmp_path / "run", "--size", "8")
+    assert rc == 2
+    one_line(err, "transforms.json", "w=0")
+
+
+# ----------------------------------------------------------------------------- eval / render
+
+
+def test_eval_on_a_file_says_it_is_a_file(toy_run, capsys):
+    rc, err = run_cli(capsys, "eval", toy_run / "config.json")
+    assert rc == 2
+    one_line(err, "config.json: is a file", "run directory")
+
+
+def test_eval_output_that_is_a_file_fails_before_the_fit(toy_run, tmp_path, capsys,
+                                                        monkeypatch):
+    import flamenerf.evaluation.protocol as protocol
+
+    monkeypatch.setattr(protocol, "evaluate_run", lambda *a, **k: pytest.fail("evaluated"))
+    (tmp_path / "afile").write_text("mine")
+    rc, err = run_cli(capsys, "eval", toy_run, "--out", tmp_path / "afile")
+    assert rc == 2
+    one_line(err, "afile: is a file")
+
+
+@pytest.mark.parametrize("out, words", [("/proc/x/v.mp4", ["/proc/x", "cannot write"]),
+                                        ("{tmp}/afile/v.mp4", ["afile", "is a file"])])
+def test_render_checks_the_output_folder_before_rendering(out, words, toy_run, tmp_path,
+                                                          capsys, monkeypatch):
+    import flamenerf.rendering.reanimate as reanimate
+
+    monkeypatch.setattr(reanimate, "render_sequence", lambda *a, **k: pytest.fail("rendered"))
+    (tmp_path / "afile").write_text("mine")
+    rc, err = run_cli(capsys, "render", toy_run, "--out", out.format(tmp=tmp_path),
+                      "--frames", "2")
+    assert rc == 2
+    one_line(err, *words)
+
+
+# ----------------------------------------------------------------------------- synth
+
+
+SYNTH = ["--size", "16", "--frames", "2", "--reanimate", "0", "--leakage-steps", "0",
+         "--workers", "1"]
+
+
+def test_overwrite_refuses_a_folder_flamenerf_did_not_write(tmp_path, capsys):
+    mine = tmp_path / "important"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("keep me")
+    rc, err = run_cli(capsys, "synth", mine, *SYNTH, "--overwrite")
+    assert rc == 2
+    one_line(err, str(mine), "not a dataset made by flamenerf")
+    assert (mine / "notes.txt").read_text() == "keep me"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["important"]  # no leftovers
+
+
+def test_overwrite_replaces_our_dataset_but_not_files_added_to_it(tmp_path, capsys):
+    ds = tmp_path / "sk"
+    assert run_cli(capsys, "synth", ds, *SYNTH)[0] == 0
+    (ds / "transforms.json").write_text((ds / "transforms.json").read_text() + " ")
+    assert run_cli(capsys, "synth", ds, *SYNTH, "--overwrite")[0] == 0
+    assert load_dataset(ds).intrinsics.w == 16
+    assert not (ds / "transforms.json").read_text().endswith(" ")  # replaced
+    (ds / "notes.txt").write_text("mine")
+    rc, err = run_cli(capsys, "synth", ds, *SYNTH, "--overwrite")
+    assert rc == 2
+    one_line(err, "notes.txt", "did not write")
+    assert (ds / "notes.txt").exists()
+
+
+def test_overwrite_refuses_a_file(tmp_path, capsys):
+    (tmp_path / "afile").write_text("mine")
+    rc, err = run_cli(capsys, "synth", tmp_path / "afile", *SYNTH, "--overwrite")
+    assert rc == 2
+    one_line(err, "afile", "not a folder")
+    assert (tmp_path / "afile").read_text() == "mine"
+
+
+def test_run_folder_with_foreign_files_is_not_replaceable(toy_run, tmp_path):
+    from flamenerf.errors import UserError
+    from flamenerf.outdir import check_replaceable
+
+    check_replaceable(toy_run, "run")  # ours: fine
+    run = tmp_path / "run"
+    shutil.copytree(toy_run, run)
+    (run / "thesis.tex").write_text("mine")
+    with pytest.raises(UserError, match="thesis.tex"):
+        check_replaceable(run, "run")
+
+
+def test_synth_with_out_in_an_unwritable_place_is_one_line(capsys):
+    rc, err = run_cli(capsys, "synth", "/proc/x", *SYNTH)
+    assert rc == 2
+    one_line(err, "/proc", "cannot write")
+
+
+def test_full_disk_is_one_line_and_leaves_nothing(tmp_path, capsys, monkeypatch):
+    import imageio.v3 as iio
+
+    def full(path, *a, **k):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
+
+    monkeypatch.setattr(iio, "imwrite", full)
+    rc, err = run_cli(capsys, "synth", tmp_path / "sk", *SYNTH)
+    assert rc == 1
+    one_line(err, "000000.png", "No space left on device")
+    assert list(tmp_path.iterdir()) == []  # the temporary folder is gone too
+
+
+def test_stale_synth_folders_are_removed_on_the_next_start(tmp_path, capsys):
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
+                          capture_output=True, text=True).stdout.strip()
+    stale = tmp_path / f".sk.flamenerf-{dead}-abcd1234"
+    (stale / "images").mkdir(parents=True)
+    other = tmp_path / f".other.flamenerf-{dead}-abcd1234"  # another output's: not ours to
+    other.mkdir()                                            # judge from this command
+    theirs = tmp_path / ".sk.backup12"
+    theirs.mkdir()
+    assert run_cli(capsys, "synth", tmp_path / "sk", *SYNTH)[0] == 0
+    assert not stale.exists()
+    assert other.exists() and theirs.exists()
