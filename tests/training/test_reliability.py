@@ -53,6 +53,32 @@ def test_checkpoint_loads_without_pickle(tiny_scene, tmp_path):
     assert st["format"] == ckpt.FORMAT and st["step"] == 1
 
 
+def bits(t):
+    return t.reshape(-1).view(torch.uint8)
+
+
+def test_adam_moments_of_untouched_table_rows_are_not_stored(tiny_scene, tmp_path):
+    trainer(tiny_scene, tmp_path / "run", 1).fit()
+    raw = torch.load(latest_checkpoint(tmp_path / "run"), weights_only=True)
+    sparse = [s for s in raw["optimizer"]["state"].values() if "sparse_rows" in s]
+    assert sparse and all(s["exp_avg"].shape[0] < s["num_rows"] for s in sparse)
+
+
+def test_sparse_moments_round_trip_bit_exactly():
+    m, v = torch.zeros(4096, 2), torch.zeros(4096, 2)
+    m[5] = torch.tensor([1.5, 2.0])
+    v[7, 1] = float("nan")
+    m[9, 0] = -0.0  # equal to 0.0, but not the same bits
+    st = {"state": {0: {"step": torch.tensor(3.0), "exp_avg": m, "exp_avg_sq": v}},
+          "param_groups": [{"params": [0]}]}
+    packed = ckpt.pack_moments(st)
+    assert packed["state"][0]["exp_avg"].shape[0] == 3
+    back = ckpt.unpack_moments(packed)["state"][0]
+    for k in ("exp_avg", "exp_avg_sq"):
+        assert torch.equal(bits(back[k]), bits(st["state"][0][k])), k
+    assert torch.equal(back["step"], torch.tensor(3.0))
+
+
 class Payload:
     """What a tampered checkpoint could carry: code run at unpickling (here: make a file)."""
 

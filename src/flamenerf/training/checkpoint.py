@@ -56,6 +56,54 @@ def set_rng_states(st: dict[str, Any], gen: torch.Generator) -> None:
     random.setstate((p["version"], tuple(p["state"].tolist()), p["gauss_next"]))
 
 
+# ----------------------------------------------------------------------------- sparse moments
+
+# Adam's two moments are as large as the parameters, and for a hash table most of them are
+# exactly zero: rows (table entries) that no sample point has reached yet. Only rows with a
+# nonzero bit in either moment are stored, with a bit mask of which; loading puts back zeros,
+# so the state is bit-identical. Measured on the `fast` preset (2^19-entry tables), 32 px
+# scene: 62% of the rows touched after 20-60 steps, the checkpoint 97.6 -> 74 MB.
+SPARSE_MIN_ROWS = 1024  # smaller tensors are not worth a mask
+
+
+def _nonzero_rows(t: torch.Tensor) -> torch.Tensor:
+    """Rows with any nonzero bit (so -0.0 and NaN count as nonzero: exact round trip)."""
+    return (t.detach().contiguous().view(torch.uint8).reshape(t.shape[0], -1) != 0).any(1)
+
+
+def pack_moments(opt_state: dict[str, Any]) -> dict[str, Any]:
+    state = {}
+    for i, s in opt_state["state"].items():
+        m, v = s.get("exp_avg"), s.get("exp_avg_sq")
+        if m is None or v is None or m.dim() < 2 or m.shape[0] < SPARSE_MIN_ROWS:
+            state[i] = s
+            continue
+        keep = _nonzero_rows(m) | _nonzero_rows(v)
+        bits = np.packbits(keep.cpu().numpy())
+        state[i] = {**s, "exp_avg": m[keep], "exp_avg_sq": v[keep],
+                    "sparse_rows": torch.from_numpy(bits), "num_rows": int(m.shape[0])}
+    return {**opt_state, "state": state}
+
+
+def unpack_moments(opt_state: dict[str, Any]) -> dict[str, Any]:
+    state = {}
+    for i, s in opt_state["state"].items():
+        if "sparse_rows" not in s:
+            state[i] = s
+            continue
+        s = dict(s)
+        n = s.pop("num_rows")
+        keep = torch.from_numpy(np.unpackbits(s.pop("sparse_rows").numpy(), count=n)
+                                .astype(bool))
+        for k in ("exp_avg", "exp_avg_sq"):
+            rows = s[k]
+            full = torch.zeros((n, *rows.shape[1:]), dtype=rows.dtype)
+            full[keep] = rows
+            s[k] = full
+        state[i] = s
+    return {**opt_state, "state": state}
+
+
 # ----------------------------------------------------------------------------- files
 
 
@@ -82,7 +130,8 @@ def save_checkpoint(run_dir: Path, step: int, state: dict[str, Any], keep: int =
     ckdir = Path(run_dir) / "checkpoints"
     path = ckdir / f"step-{step:09d}.ckpt"
     try:
-        atomic_write_bytes(path, lambda f: torch.save({"format": FORMAT, **state}, f))
+        state = {"format": FORMAT, **state, "optimizer": pack_moments(state["optimizer"])}
+        atomic_write_bytes(path, lambda f: torch.save(state, f))
     except OSError as e:
         prev = latest_checkpoint(run_dir)
         kept = f"the last good one is {prev}" if prev else "there is no earlier checkpoint"
@@ -126,6 +175,11 @@ def load_checkpoint(path: Path) -> dict[str, Any]:
     missing = [k for k in REQUIRED if not isinstance(st, dict) or k not in st]
     if missing:
         raise UserError(f"{path}: not a readable checkpoint (no {', '.join(missing)})")
+    try:
+        st["optimizer"] = unpack_moments(st["optimizer"])
+    except (KeyError, TypeError, ValueError, RuntimeError, IndexError) as e:
+        raise UserError(f"{path}: not a readable checkpoint (optimiser state: "
+                        f"{type(e).__name__})") from None
     return st
 
 
