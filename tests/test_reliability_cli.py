@@ -107,8 +107,9 @@ def test_zero_width_through_the_cli(toy_dataset, tmp_path, capsys):
 # ----------------------------------------------------------------------------- eval / render
 
 
-def test_eval_on_a_file_says_it_is_a_file(toy_run, capsys):
-    rc, err = run_cli(capsys, "eval", toy_run / "config.json")
+@pytest.mark.parametrize("command", ["eval", "render", "view"])
+def test_a_file_given_as_the_run_is_named_as_a_file(command, toy_run, capsys):
+    rc, err = run_cli(capsys, command, toy_run / "config.json")
     assert rc == 2
     one_line(err, "config.json: is a file", "run directory")
 

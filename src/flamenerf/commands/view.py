@@ -40,6 +40,8 @@ def view(
 
     from flamenerf.errors import UserError
 
+    if run.exists() and not run.is_dir():
+        raise UserError(f"{run}: is a file; give the run directory made by `flamenerf train`")
     if not run.is_dir():
         raise UserError(f"{run}: run directory does not exist")
     if not (run / "config.json").exists():

@@ -128,7 +128,7 @@ class Dataset:
             return None
         path = self.root / frame.depth_path
         try:
-            d = np.load(path)
+            d = np.load(path, allow_pickle=False)  # a .npy of objects could run code
         except FileNotFoundError:
             raise DatasetError(f"{path}: file is missing") from None
         except Exception as e:  # noqa: BLE001 - any parse failure is the file's fault
@@ -297,7 +297,7 @@ def load_dataset(root: str | os.PathLike, check_files: bool = True) -> Dataset:
     if not mesh_path.exists():
         raise DatasetError(f"{mesh_path}: file is missing")
     try:
-        with np.load(mesh_path) as z:
+        with np.load(mesh_path, allow_pickle=False) as z:
             faces = z["faces"].astype(np.int32)
             verts = z["vertices"].astype(np.float32)
     except KeyError as e:

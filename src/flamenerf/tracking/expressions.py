@@ -60,15 +60,11 @@ class ExpressionTrack:
 
 
 def save_expressions(path: str | os.PathLike, track: ExpressionTrack) -> Path:
-    """Write atomically (temp file + rename)."""
+    """Write atomically (flamenerf.io: temp file + rename)."""
+    from flamenerf.io import atomic_write_text
+
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        tmp.write_text(json.dumps(track.to_json(), indent=None, separators=(",", ":")))
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
+    atomic_write_text(path, json.dumps(track.to_json(), indent=None, separators=(",", ":")))
     return path
 
 

