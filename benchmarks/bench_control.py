@@ -67,7 +67,6 @@ def main() -> None:
 
     from flamenerf.data.dataset import load_dataset
     from flamenerf.evaluation.protocol import EvalOptions, evaluate_run
-    from flamenerf.io import atomic_write_text, jsonable
     from flamenerf.synthetic.scene import make_scene
     from flamenerf.training.run import load_run
     from flamenerf.training.trainer import train
@@ -89,10 +88,9 @@ def main() -> None:
         cfg.train.num_threads = a.threads
         run = a.runs / name
         t0 = time.perf_counter()
-        if not (run / "checkpoints").exists():
-            print(f"[{name}] training {cfg.preset} (expression {cfg.model.expression_mode}, "
-                  f"mesh guide {cfg.model.mesh_guide.enabled})")
-            train(a.scene, run, cfg, steps=a.steps)
+        print(f"[{name}] training {cfg.preset} (expression {cfg.model.expression_mode}, "
+              f"mesh guide {cfg.model.mesh_guide.enabled}); an existing run is resumed")
+        train(a.scene, run, cfg, steps=a.steps, resume=(run / "checkpoints").exists())
         train_s = time.perf_counter() - t0
         r = load_run(run)
         res = evaluate_run(r, ds, EvalOptions(fit_steps=a.fit_steps), out_dir=run / "eval",
@@ -100,6 +98,7 @@ def main() -> None:
         res["train_seconds_this_invocation"] = train_s
         results["variants"][name] = {"spec": spec, "eval": res}
         print(summary_line(name, res))
+        write(a.json, results)  # after every variant: a long benchmark keeps what it has
     v = results["variants"]
     if "fast" in v and "nerfies" in v:
         f, n = v["fast"]["eval"], v["nerfies"]["eval"]
@@ -109,9 +108,15 @@ def main() -> None:
         print(f"fast - nerfies: re-animation face {results['gaps']['reanimate_face_db']:+.2f} "
               f"dB, driven face {results['gaps']['driven_face_db']:+.2f} dB")
     print(TARGETS)
-    a.json.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(a.json, json.dumps(jsonable(results), indent=1))
+    write(a.json, results)
     print(f"wrote {a.json}")
+
+
+def write(path: Path, results: dict) -> None:
+    from flamenerf.io import atomic_write_text, jsonable
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(path, json.dumps(jsonable(results), indent=1))
 
 
 def summary_line(name: str, res: dict) -> str:
