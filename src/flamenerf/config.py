@@ -132,6 +132,9 @@ class TrainConfig:
     face_reg_weight: float = 1.0
     """Weight of ‖D(x_3DMM; ω_i) − x_3DMM‖ (paper's runs: 0.1 to 10)."""
     face_reg_points: int = 1024
+    face_ray_fraction: float = 0.0
+    """Share of each batch's rays drawn from pixels inside the face silhouettes (0: all
+    uniform over the image)."""
     interlevel_weight: float = 1.0
     """Weight of the proposal sampler's interlevel loss."""
     checkpoint_every: int = 5000

@@ -177,3 +177,15 @@ def test_mesh_guided_training_carries_the_expression_model(synth_scene, tmp_path
     assert moved[:-1].max() > 0.01 and moved[-1] == 0
     # and with β masked to zero (a ray outside the prior's silhouette) nothing moves
     assert torch.equal(m.guide_points(x, torch.zeros(len(x), ds.expression_dim)), x)
+
+
+def test_face_ray_fraction_draws_that_share_from_the_silhouettes(tiny_scene):
+    ds = load_dataset(tiny_scene)
+    fs = FrameSet(ds, ds.split("train"), ds.intrinsics)
+    g = torch.Generator().manual_seed(0)
+    uniform = fs.masks[fs.sample_pixels(4000, g)].float().mean()
+    fi, ys, xs = fs.sample_pixels(4000, g, face_fraction=0.5)
+    assert len(fi) == len(ys) == len(xs) == 4000
+    on_face = fs.masks[fi, ys, xs].float()
+    assert on_face[2000:].min() == 1  # the face half is all face
+    assert abs(on_face.mean() - (0.5 + 0.5 * uniform)) < 0.05

@@ -72,11 +72,24 @@ class FrameSet:
         R = self.c2w[fi, :3, :3]
         return self.c2w[fi, :3, 3], (R @ d[..., None])[..., 0]
 
-    def sample_pixels(self, batch: int, generator: torch.Generator):
-        fi = torch.randint(self.n, (batch,), generator=generator)
-        ys = torch.randint(self.intr.h, (batch,), generator=generator)
-        xs = torch.randint(self.intr.w, (batch,), generator=generator)
-        return fi, ys, xs
+    def sample_pixels(self, batch: int, generator: torch.Generator, face_fraction: float = 0.0):
+        """Uniformly random pixels of random frames -> fi, ys, xs, each (batch,) long. With
+        `face_fraction` > 0 that share of the batch is drawn from the face silhouettes'
+        pixels instead (the face is a small part of the image but all of what β controls)."""
+        k = int(round(batch * face_fraction)) if face_fraction > 0 else 0
+        fi = torch.randint(self.n, (batch - k,), generator=generator)
+        ys = torch.randint(self.intr.h, (batch - k,), generator=generator)
+        xs = torch.randint(self.intr.w, (batch - k,), generator=generator)
+        if k == 0:
+            return fi, ys, xs
+        if getattr(self, "_face_pixels", None) is None:
+            self._face_pixels = self.masks.reshape(-1).nonzero()[:, 0]
+        if len(self._face_pixels) == 0:
+            return self.sample_pixels(batch, generator)
+        flat = self._face_pixels[torch.randint(len(self._face_pixels), (k,), generator=generator)]
+        hw = self.intr.h * self.intr.w
+        return (torch.cat([fi, flat // hw]), torch.cat([ys, (flat % hw) // self.intr.w]),
+                torch.cat([xs, flat % self.intr.w]))
 
     def face_points(self, fi: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
         """One uniformly random point on the face mesh of each frame in fi. -> (B, 3) world."""

@@ -180,7 +180,7 @@ class Trainer:
         model.update_to_step(self.step, cfg.steps)
         for g in self.opt.param_groups:
             g["lr"] = learning_rate(self.step, cfg) * g["lr_scale"]
-        fi, ys, xs = ts.sample_pixels(cfg.batch_rays, self.gen)
+        fi, ys, xs = ts.sample_pixels(cfg.batch_rays, self.gen, cfg.face_ray_fraction)
         o, d = ts.rays(fi, ys, xs)
         code_idx = ts.frame_index[fi].to(self.device)
         omega, phi = model.codes(code_idx)
