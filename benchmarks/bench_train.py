@@ -33,7 +33,6 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
 import torch
 
 
@@ -43,21 +42,14 @@ def sync() -> None:
 
 
 def heldout_psnr(model, ds, intr, frames, fit_steps, batch_rays):
+    """The paper's held-out protocol exactly as `flamenerf eval` runs it (PSNR averaged over
+    frames) -> (mean MSE, mean PSNR)."""
     from flamenerf.data.scene import FrameSet
-    from flamenerf.evaluation.heldout import fit_deformation_codes
-    from flamenerf.evaluation.metrics import mse
-    from flamenerf.model.render_image import render_image
+    from flamenerf.evaluation.protocol import EvalOptions, heldout
 
-    fs = FrameSet(ds, frames, intr)
-    omega, phi = fit_deformation_codes(model, fs, steps=fit_steps, batch_rays=batch_rays,
-                                       quiet=True)
-    errs = []
-    for i in range(fs.n):
-        out = render_image(model, intr, fs.c2w[i], omega[i], phi[i], fs.expressions[i],
-                           fs.masks[i])
-        errs.append(mse(out["rgb"].numpy(), fs.images[i].numpy()))
-    m = float(np.mean(errs))
-    return m, -10 * np.log10(m)
+    res, _ = heldout(model, FrameSet(ds, frames, intr),
+                     EvalOptions(fit_steps=fit_steps, fit_batch_rays=batch_rays))
+    return res["mse"], res["psnr"]
 
 
 def quality_run(args, scene: Path, log) -> dict:

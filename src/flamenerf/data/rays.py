@@ -3,8 +3,11 @@ equals z-depth (the dataset's depth convention); normalise them before encoding.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 import torch
+from torch import Tensor
 
 from flamenerf.data.dataset import Intrinsics
 
@@ -30,3 +33,24 @@ def camera_rays(
     dirs = d_cam @ c2w[:3, :3].T
     origins = c2w[:3, 3].expand_as(dirs)
     return origins, dirs
+
+
+@dataclass
+class RayBatch:
+    """R rays with everything the field is conditioned on."""
+
+    origins: Tensor  # (R, 3) world
+    dirs: Tensor  # (R, 3) world, unit -z component in camera space (t = z-depth)
+    deform_code: Tensor  # (R, code_dim) ω
+    appearance_code: Tensor  # (R, appearance_dim) φ
+    expression: Tensor  # (R, E) β
+    face_ray: Tensor  # (R,) bool: the ray passes through the face silhouette
+
+    def __getitem__(self, s) -> "RayBatch":
+        return RayBatch(*(getattr(self, k)[s] for k in self.__dataclass_fields__))
+
+    def __len__(self) -> int:
+        return self.origins.shape[0]
+
+    def to(self, device) -> "RayBatch":
+        return RayBatch(*(getattr(self, k).to(device) for k in self.__dataclass_fields__))

@@ -6,7 +6,7 @@ import numpy as np
 import torch
 
 from flamenerf.data.dataset import Dataset, Frame, Intrinsics
-from flamenerf.data.rays import pixel_directions
+from flamenerf.data.rays import RayBatch, pixel_directions
 from flamenerf.data.prior import training_mask
 from flamenerf.images import resize_image
 from flamenerf.meshes import fit_expression_model
@@ -90,6 +90,17 @@ class FrameSet:
         hw = self.intr.h * self.intr.w
         return (torch.cat([fi, flat // hw]), torch.cat([ys, (flat % hw) // self.intr.w]),
                 torch.cat([xs, flat % self.intr.w]))
+
+    def ray_batch(self, fi: torch.Tensor, ys: torch.Tensor, xs: torch.Tensor,
+                  deform_code: torch.Tensor, appearance_code: torch.Tensor,
+                  device: torch.device | str = "cpu") -> tuple[RayBatch, torch.Tensor]:
+        """The rays of pixels (fi, ys, xs) (each (B,) long) with per-ray codes ω (B, D) and
+        φ (B, A), their frames' β and prior mask, and their pixels' colours.
+        -> (RayBatch on `device`, target rgb (B, 3))."""
+        o, d = self.rays(fi, ys, xs)
+        rays = RayBatch(o.to(device), d.to(device), deform_code, appearance_code,
+                        self.expressions[fi].to(device), self.masks[fi, ys, xs].to(device))
+        return rays, self.images[fi, ys, xs].to(device)
 
     def face_points(self, fi: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
         """One uniformly random point on the face mesh of each frame in fi. -> (B, 3) world."""

@@ -7,7 +7,7 @@ import torch
 from tqdm import tqdm
 
 from flamenerf.data.scene import FrameSet
-from flamenerf.model.flame_nerf import FlameNeRF, RayBatch
+from flamenerf.model.flame_nerf import FlameNeRF
 
 
 def fit_deformation_codes(model: FlameNeRF, frames: FrameSet, steps: int = 200,
@@ -35,12 +35,10 @@ def fit_deformation_codes(model: FlameNeRF, frames: FrameSet, steps: int = 200,
     gen = torch.Generator().manual_seed(seed)
     for _ in tqdm(range(steps), desc="fit ω (held-out)", disable=quiet, leave=False):
         fi, ys, xs = frames.sample_pixels(batch_rays, gen)
-        o, d = frames.rays(fi, ys, xs)
         fi_d = fi.to(dev)
-        rays = RayBatch(o.to(dev), d.to(dev), omega[fi_d], phi[fi_d],
-                        frames.expressions[fi].to(dev), frames.masks[fi, ys, xs].to(dev))
+        rays, target = frames.ray_batch(fi, ys, xs, omega[fi_d], phi[fi_d], dev)
         out = model(rays, jitter=True, generator=gen if dev.type == "cpu" else None)
-        loss = torch.mean((out["rgb"] - frames.images[fi, ys, xs].to(dev)) ** 2)
+        loss = model.loss_dict(out, target)["photo"]
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()

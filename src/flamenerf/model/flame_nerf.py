@@ -6,39 +6,17 @@ One class for every preset; the config picks the field (`mlp`/`hash`), the sampl
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
 from flamenerf.config import ModelConfig
+from flamenerf.data.rays import RayBatch  # noqa: F401 - the model's input, re-exported
 from flamenerf.meshes import expression_mesh, mesh_displacement, surface_points
 from flamenerf.model.field import ProposalField, make_field
 from flamenerf.model.render import (composite, interlevel_loss, render_weights, sample_pdf,
                                     stratified_samples)
 from flamenerf.model.warp import SE3Field
-
-
-@dataclass
-class RayBatch:
-    """R rays with everything the field is conditioned on."""
-
-    origins: Tensor  # (R, 3) world
-    dirs: Tensor  # (R, 3) world, unit -z component in camera space (t = z-depth)
-    deform_code: Tensor  # (R, code_dim) ω
-    appearance_code: Tensor  # (R, appearance_dim) φ
-    expression: Tensor  # (R, E) β
-    face_ray: Tensor  # (R,) bool: the ray passes through the face silhouette
-
-    def __getitem__(self, s) -> "RayBatch":
-        return RayBatch(*(getattr(self, k)[s] for k in self.__dataclass_fields__))
-
-    def __len__(self) -> int:
-        return self.origins.shape[0]
-
-    def to(self, device) -> "RayBatch":
-        return RayBatch(*(getattr(self, k).to(device) for k in self.__dataclass_fields__))
 
 
 class FlameNeRF(nn.Module):
@@ -181,6 +159,23 @@ class FlameNeRF(nn.Module):
         """Distances between samples in normalised units. t (R, S) -> (R, S)."""
         dt = torch.cat([t[:, 1:] - t[:, :-1], torch.full_like(t[:, :1], last)], -1)
         return dt * (dirs.norm(dim=-1, keepdim=True) / self.half_extent)
+
+    # ---------------------------------------------------------------- loss
+    def loss_dict(self, out: dict[str, Tensor], target: Tensor, interlevel_weight: float = 1.0
+                  ) -> dict[str, Tensor]:
+        """The photometric terms of a forward pass against target rgb (R, 3): `photo`, and
+        `photo_coarse` / `interlevel` where the sampler produces them; `total` is their
+        weighted sum (what the trainer adds its regularisers to)."""
+        losses = {"photo": torch.mean((out["rgb"] - target) ** 2)}
+        total = losses["photo"]
+        if "rgb_coarse" in out:
+            losses["photo_coarse"] = torch.mean((out["rgb_coarse"] - target) ** 2)
+            total = total + losses["photo_coarse"]
+        if "interlevel" in out:
+            losses["interlevel"] = out["interlevel"]
+            total = total + interlevel_weight * out["interlevel"]
+        losses["total"] = total
+        return losses
 
     # ---------------------------------------------------------------- rendering
     def forward(self, rays: RayBatch, jitter: bool = False,

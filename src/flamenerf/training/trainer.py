@@ -15,7 +15,7 @@ from flamenerf.data.dataset import Dataset, load_dataset
 from flamenerf.data.scene import FrameSet, fit_dataset_expression_model, scene_box
 from flamenerf.errors import Interrupted, UserError, warn
 from flamenerf.io import atomic_write_text, read_json
-from flamenerf.model.flame_nerf import FlameNeRF, RayBatch
+from flamenerf.model.flame_nerf import FlameNeRF
 from flamenerf.outdir import clean_stale_temps, writable_dir
 from flamenerf.runtime import pick_device
 from flamenerf.training.checkpoint import (LEGACY_TEMP, latest_checkpoint, load_latest,
@@ -181,23 +181,12 @@ class Trainer:
         for g in self.opt.param_groups:
             g["lr"] = learning_rate(self.step, cfg) * g["lr_scale"]
         fi, ys, xs = ts.sample_pixels(cfg.batch_rays, self.gen, cfg.face_ray_fraction)
-        o, d = ts.rays(fi, ys, xs)
-        code_idx = ts.frame_index[fi].to(self.device)
-        omega, phi = model.codes(code_idx)
-        rays = RayBatch(o.to(self.device), d.to(self.device), omega, phi,
-                        ts.expressions[fi].to(self.device), ts.masks[fi, ys, xs].to(self.device))
-        target = ts.images[fi, ys, xs].to(self.device)
+        omega, phi = model.codes(ts.frame_index[fi].to(self.device))
+        rays, target = ts.ray_batch(fi, ys, xs, omega, phi, self.device)
         out = model(rays, jitter=True, generator=self.gen if self.device.type == "cpu" else None)
-        mse = torch.mean((out["rgb"] - target) ** 2)
-        loss = mse
-        logs = {"loss/photo": mse.item()}
-        if "rgb_coarse" in out:
-            mse_c = torch.mean((out["rgb_coarse"] - target) ** 2)
-            loss = loss + mse_c
-            logs["loss/photo_coarse"] = mse_c.item()
-        if "interlevel" in out:
-            loss = loss + cfg.interlevel_weight * out["interlevel"]
-            logs["loss/interlevel"] = out["interlevel"].item()
+        losses = model.loss_dict(out, target, cfg.interlevel_weight)
+        mse, loss = losses["photo"], losses["total"]
+        logs = {f"loss/{k}": v.item() for k, v in losses.items() if k != "total"}
         if cfg.face_reg_weight > 0 and model.warp is not None:
             pfi = torch.randint(ts.n, (cfg.face_reg_points,), generator=self.gen)
             if model.mesh_guided:  # the face is carried to the neutral mesh before the warp
