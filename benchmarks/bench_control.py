@@ -30,26 +30,13 @@ variant; the paper protocol's held-out PSNR within 0.5 dB of 29.2 dB."""
 
 
 def parse_variant(spec: str):
-    from flamenerf.config import preset
+    from flamenerf.config import override, preset
 
     name, _, sets = spec.partition(":")
     cfg = preset("fast")
     if name == "nerfies":
         cfg.model.expression_mode = "none"
-    for kv in filter(None, sets.split(",")):
-        key, val = kv.split("=")
-        obj, parts = cfg, key.split(".")
-        for p in parts[:-1]:
-            obj = getattr(obj, p)
-        old = getattr(obj, parts[-1])
-        if isinstance(old, bool):
-            new = val.lower() in ("1", "true", "yes")
-        elif isinstance(old, str):
-            new = val
-        else:
-            new = type(old)(float(val))
-        setattr(obj, parts[-1], new)
-    return name, cfg
+    return name, override(cfg, dict(kv.split("=") for kv in filter(None, sets.split(","))))
 
 
 def main() -> None:

@@ -34,3 +34,18 @@ def test_unknown_keys_are_ignored_and_missing_ones_default():
 def test_unknown_preset_is_a_user_error_naming_the_choices():
     with pytest.raises(UserError, match="unknown preset 'nope'.*fast"):
         preset("nope")
+
+
+def test_override_sets_dotted_fields_and_skips_none():
+    from flamenerf.config import override, preset
+    from flamenerf.errors import UserError
+
+    cfg = override(preset("fast"), {"train.batch_rays": 512, "train.steps": None,
+                                    "model.mesh_guide.enabled": "true",
+                                    "train.face_ray_fraction": "0.25"})
+    assert cfg.train.batch_rays == 512 and cfg.train.steps == preset("fast").train.steps
+    assert cfg.model.mesh_guide.enabled is True and cfg.train.face_ray_fraction == 0.25
+    import pytest
+
+    with pytest.raises(UserError, match="train.nope"):
+        override(cfg, {"train.nope": 1})

@@ -220,6 +220,29 @@ def preset(name: str) -> Config:
     return PRESETS[name][1]()
 
 
+def override(cfg: Config, values: dict[str, Any]) -> Config:
+    """Set dotted fields of `cfg` in place (`{"train.batch_rays": 2048}`); None values are
+    skipped, so a command can pass its optional flags as they are. Strings given for
+    numeric or boolean fields are converted ("true"/"1"/"yes" for booleans). -> cfg."""
+    from flamenerf.errors import UserError
+
+    for key, val in values.items():
+        if val is None:
+            continue
+        obj, parts = cfg, key.split(".")
+        try:
+            for p in parts[:-1]:
+                obj = getattr(obj, p)
+            old = getattr(obj, parts[-1])
+        except AttributeError:
+            raise UserError(f"{key}: no such configuration field") from None
+        if isinstance(val, str) and not isinstance(old, str):
+            val = (val.lower() in ("1", "true", "yes") if isinstance(old, bool)
+                   else type(old)(float(val)))
+        setattr(obj, parts[-1], val)
+    return cfg
+
+
 def from_dict(d: dict[str, Any]) -> Config:
     """Inverse of Config.to_dict; unknown keys are ignored so old runs stay loadable."""
 

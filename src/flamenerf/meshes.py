@@ -15,12 +15,14 @@ import torch
 from torch import Tensor
 
 
-def surface_points(vertices: Tensor, faces: Tensor, tri: Tensor, uv: Tensor) -> Tensor:
+def surface_points(vertices: Tensor, faces: Tensor, tri: Tensor, uv: Tensor,
+                   which: Tensor | None = None) -> Tensor:
     """Points on triangles by barycentric coordinates.
 
-    vertices (..., V, 3) or (V, 3); faces (F, 3) long; tri (B,) long triangle ids; uv (B, 2)
-    uniform in [0, 1]^2 (folded into the triangle here). With batched vertices (B, V, 3) each
-    point uses its own mesh. -> (B, 3).
+    vertices (V, 3), or (M, V, 3) several meshes of one topology with `which` (B,) long
+    saying whose mesh each point is on (default: the i-th point on mesh i); faces (F, 3)
+    long; tri (B,) long triangle ids; uv (B, 2) uniform in [0, 1]^2 (folded into the
+    triangle here). -> (B, 3).
     """
     u = uv.clone()
     flip = u.sum(-1) > 1
@@ -29,7 +31,9 @@ def surface_points(vertices: Tensor, faces: Tensor, tri: Tensor, uv: Tensor) -> 
     if vertices.dim() == 2:
         v = vertices[idx]  # (B, 3, 3)
     else:
-        v = vertices[torch.arange(len(tri), device=vertices.device)[:, None], idx]
+        if which is None:
+            which = torch.arange(len(tri), device=vertices.device)
+        v = vertices[which[:, None], idx]
     return v[:, 0] + u[:, :1] * (v[:, 1] - v[:, 0]) + u[:, 1:] * (v[:, 2] - v[:, 0])
 
 

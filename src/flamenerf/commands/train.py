@@ -53,6 +53,7 @@ def train(
         device: `auto` (CUDA when present), `cpu` or `cuda`.
         threads: CPU threads for torch (0 = default).
     """
+    from flamenerf.config import override
     from flamenerf.config import preset as get_preset
     from flamenerf.data.dataset import load_dataset
     from flamenerf.errors import Interrupted, UserError
@@ -70,13 +71,8 @@ def train(
         if downscale < 1:
             raise UserError("--downscale must be >= 1")
         cfg.train.downscale = downscale
-    if batch_rays is not None:
-        cfg.train.batch_rays = batch_rays
-    if face_reg_weight is not None:
-        cfg.train.face_reg_weight = face_reg_weight
-    if expression_mode is not None:
-        cfg.model.expression_mode = expression_mode
-    cfg.train.num_threads = threads
+    override(cfg, {"train.batch_rays": batch_rays, "train.face_reg_weight": face_reg_weight,
+                   "model.expression_mode": expression_mode, "train.num_threads": threads})
     res = run_train(dataset, out, cfg, resume=resume, device=device, steps=steps)
     if res.interrupted:  # exit status 130, so that `train && eval` stops here
         raise Interrupted(f"run saved at step {res.step} in {res.run_dir}; continue it with "

@@ -9,7 +9,7 @@ from flamenerf.data.dataset import Dataset, Frame, Intrinsics
 from flamenerf.data.rays import RayBatch, pixel_directions
 from flamenerf.data.prior import training_mask
 from flamenerf.images import resize_image
-from flamenerf.meshes import fit_expression_model
+from flamenerf.meshes import fit_expression_model, surface_points
 
 
 def scene_box(ds: Dataset, margin: float = 0.05) -> tuple[list[float], list[float]]:
@@ -104,10 +104,6 @@ class FrameSet:
 
     def face_points(self, fi: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
         """One uniformly random point on the face mesh of each frame in fi. -> (B, 3) world."""
-        faces = self.faces
-        tri = torch.randint(len(faces), (len(fi),), generator=generator)
-        u = torch.rand(len(fi), 2, generator=generator)
-        flip = u.sum(-1) > 1
-        u[flip] = 1 - u[flip]
-        v = self.face_vertices[fi[:, None], faces[tri]]  # (B, 3, 3)
-        return v[:, 0] + u[:, :1] * (v[:, 1] - v[:, 0]) + u[:, 1:] * (v[:, 2] - v[:, 0])
+        tri = torch.randint(len(self.faces), (len(fi),), generator=generator)
+        uv = torch.rand(len(fi), 2, generator=generator)
+        return surface_points(self.face_vertices, self.faces, tri, uv, which=fi)

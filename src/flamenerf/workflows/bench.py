@@ -28,7 +28,7 @@ from typing import Annotated, Any, Literal
 
 import tyro
 
-from flamenerf.config import Config, preset
+from flamenerf.config import Config, override, preset
 from flamenerf.errors import UserError
 
 METHODS = [  # (run name, expression mode, the preset used with the paper's machinery)
@@ -130,12 +130,8 @@ def method_configs(machinery: str, steps: int | None, batch_rays: int | None,
         else:
             cfg = preset("fast")
             cfg.model.expression_mode = mode
-        if steps is not None:
-            cfg.train.steps = steps
-        if batch_rays is not None:
-            cfg.train.batch_rays = batch_rays
-        cfg.train.downscale = downscale
-        cfgs[name] = cfg
+        cfgs[name] = override(cfg, {"train.steps": steps, "train.batch_rays": batch_rays,
+                                    "train.downscale": downscale})
     return cfgs
 
 
