@@ -34,6 +34,9 @@ class WarpConfig:
     50k of 150k steps), so `--steps` shortens or lengthens it with the run."""
     init_scale: float = 1e-4
     """Output layers start near zero so the warp starts as the identity (as in Nerfies)."""
+    expression_input: bool = False
+    """Also condition the warp on the masked expression 𝕀β (next to ω): the face's motion
+    becomes a smooth function of β that a commanded β reproduces. Off in the paper."""
 
 
 @dataclass
@@ -61,6 +64,10 @@ class FieldConfig:
     """hash only: > 0 adds expression features to the canonical field, Σ_r (Aβ)_r G_r(x'):
     a hash grid G of `expr_rank` feature sets mixed by a learned projection A of 𝕀β (a
     blendshape basis of feature fields). β = 0 adds exactly nothing, so the prior holds."""
+    expr_direct: bool = True
+    """hash only: β also enters the density head directly (the paper's conditioning). With
+    `expr_rank` > 0, False leaves only the spatially local pathway Σ_r (Aβ)_r G_r(x'), so β
+    cannot act as one face-wide code."""
     expr_levels: int = 8
     expr_features: int = 2
     expr_log2_size: int = 16

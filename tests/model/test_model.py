@@ -1,15 +1,15 @@
 import pytest
 import torch
 
-from flamenerf.config import preset
+from flamenerf.config import override, preset
 from flamenerf.model.flame_nerf import FlameNeRF, RayBatch
 from flamenerf.training.losses import face_region_loss
 
 E = 5
 
 
-def tiny(name: str, kind: str = "mlp") -> FlameNeRF:
-    cfg = preset(name).model
+def tiny(name: str, kind: str = "mlp", **sets) -> FlameNeRF:
+    cfg = override(preset(name), {f"model.{k}": v for k, v in sets.items()}).model
     cfg.warp.code_dim, cfg.warp.width, cfg.warp.depth, cfg.warp.skips = 4, 16, 2, ()
     cfg.warp.init_scale = 0.1  # a warp that really moves points, so gradients flow
     if kind == "mlp":
@@ -40,9 +40,13 @@ def rays(model, n=8, face=None):
     return RayBatch(o, d, omega, phi, expr, face)
 
 
-@pytest.mark.parametrize("kind", ["mlp", "hash"])
-def test_spatial_prior_cuts_expression_outside_mask(kind):
-    m = tiny("flame-in-nerf", kind)
+@pytest.mark.parametrize("kind,sets", [
+    ("mlp", {}), ("hash", {}),
+    ("hash", {"field.expr_rank": 2, "field.expr_direct": False}),  # only the local pathway
+    ("mlp", {"warp.expression_input": True}),  # β moves points too
+])
+def test_spatial_prior_cuts_expression_outside_mask(kind, sets):
+    m = tiny("flame-in-nerf", kind, **sets)
     r = rays(m)
     out = m(r)
     (out["rgb"].sum() + out["depth"].sum()).backward()
@@ -67,6 +71,17 @@ def test_nerfies_ignores_expression(kind):
                   torch.rand_like(r.expression), r.face_ray)
     assert torch.equal(a, m(r2)["rgb"])
     assert m.field.expr_dim == 0
+
+
+def test_expression_input_warp_holds_still_at_zero_expression():
+    """The face-region regulariser sees the warp with β = 0: ω alone must not move the
+    face, while β may."""
+    m = tiny("flame-in-nerf", **{"warp.expression_input": True})
+    assert m.warp_expression
+    x, code = torch.rand(16, 3) * 2 - 1, torch.randn(16, 4)
+    zero = torch.zeros(16, E)
+    assert torch.equal(m.warp_points(x, code), m.warp_points(x, code, zero))
+    assert not torch.allclose(m.warp_points(x, code), m.warp_points(x, code, zero + 1.0))
 
 
 def test_face_region_loss_zero_for_identity_warp():

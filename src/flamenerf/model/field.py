@@ -68,7 +68,9 @@ class HashField(nn.Module):
                                       cfg.expr_log2_size, cfg.hash_base_res, cfg.expr_max_res)
             self.expr_proj = nn.Linear(expr_dim, cfg.expr_rank, bias=False)
             extra = cfg.expr_levels * cfg.expr_features
-        self.density_head = MLP(self.grid.out_dim + extra + expr_dim, cfg.head_width, 1, (),
+        self.direct = bool(expr_dim) and (cfg.expr_direct or self.expr_grid is None)
+        self.density_head = MLP(self.grid.out_dim + extra + (expr_dim if self.direct else 0),
+                                cfg.head_width, 1, (),
                                 out_dim=1 + cfg.geo_features)
         self.rgb = MLP(cfg.geo_features + pe_dim(3, cfg.dir_freqs) + cfg.appearance_dim,
                        cfg.head_width, 2, (), out_dim=3)
@@ -77,7 +79,7 @@ class HashField(nn.Module):
         h = self.grid((x.reshape(-1, 3) + 1) * 0.5).view(*x.shape[:-1], -1)
         if self.expr_grid is not None:
             h = torch.cat([h, self._expression_features(x, expr)], -1)
-        return self.density_head(h, expr if self.expr_dim else None)
+        return self.density_head(h, expr if self.direct else None)
 
     def _expression_features(self, x: Tensor, expr: Tensor) -> Tensor:
         """Σ_r (Aβ)_r G_r(x), evaluated only where β ≠ 0 (elsewhere it is exactly 0).

@@ -48,7 +48,9 @@ class FlameNeRF(nn.Module):
         self.appearance_codes = nn.Embedding(num_codes, cfg.field.appearance_dim)
         nn.init.normal_(self.deform_codes.weight, std=1e-2)
         nn.init.normal_(self.appearance_codes.weight, std=1e-2)
-        self.warp = SE3Field(cfg.warp) if cfg.warp.enabled else None
+        self.warp_expression = cfg.warp.enabled and cfg.warp.expression_input and field_expr > 0
+        self.warp = (SE3Field(cfg.warp, field_expr if self.warp_expression else 0)
+                     if cfg.warp.enabled else None)
         self.field = make_field(cfg.field, field_expr)
         s = cfg.sampler
         if s.kind == "hierarchical":
@@ -129,17 +131,23 @@ class FlameNeRF(nn.Module):
     def normalize(self, x: Tensor) -> Tensor:
         return (x - self.center) / self.half_extent
 
-    def warp_points(self, xn: Tensor, code: Tensor) -> Tensor:
-        """Normalised observation points (*bs, 3), codes (*, D) broadcastable -> canonical
-        (*bs, 3)."""
-        return xn if self.warp is None else self.warp(xn, code)
+    def warp_points(self, xn: Tensor, code: Tensor, expr: Tensor | None = None) -> Tensor:
+        """Normalised observation points (*bs, 3), codes (*, D) and masked expressions
+        (*, E) broadcastable -> canonical (*bs, 3). A warp that takes β gets β = 0 when
+        `expr` is None: the face-region regulariser holds the face still under ω alone."""
+        if self.warp is None:
+            return xn
+        if self.warp_expression:
+            e = code.new_zeros(*code.shape[:-1], self.expr_dim) if expr is None else expr
+            code = torch.cat([code, e.expand(*code.shape[:-1], -1)], -1)
+        return self.warp(xn, code)
 
     # ---------------------------------------------------------------- querying
     def _query(self, field: nn.Module, xn: Tensor, dirs: Tensor, code: Tensor, app: Tensor,
                expr: Tensor | None) -> tuple[Tensor, Tensor]:
         """Points (*bs, 3) with per-point or broadcastable conditioning -> σ (*bs),
         rgb (*bs, 3)."""
-        xc = self.warp_points(xn, code)
+        xc = self.warp_points(xn, code, expr)
         return field(xc, dirs, app, expr)
 
     def _query_rays(self, field, rays: RayBatch, t: Tensor, expr: Tensor | None):

@@ -14,10 +14,10 @@ from flamenerf.model.se3 import apply_se3
 class SE3Field(nn.Module):
     """MLP(γ_α(x), ω) -> screw axis (w, v); x' = exp([S]) x. α anneals the PE bands."""
 
-    def __init__(self, cfg: WarpConfig):
+    def __init__(self, cfg: WarpConfig, cond_dim: int = 0):
         super().__init__()
         self.cfg = cfg
-        in_dim = pe_dim(3, cfg.num_freqs) + cfg.code_dim
+        in_dim = pe_dim(3, cfg.num_freqs) + cfg.code_dim + cond_dim
         self.trunk = MLP(in_dim, cfg.width, cfg.depth, cfg.skips)
         self.rot = nn.Linear(cfg.width, 3)
         self.trans = nn.Linear(cfg.width, 3)
@@ -30,8 +30,8 @@ class SE3Field(nn.Module):
         self.alpha.fill_(alpha)
 
     def forward(self, x: Tensor, code: Tensor) -> Tensor:
-        """x (*bs, 3) normalised observation points, code (*, code_dim) per point or per ray
-        (broadcastable to *bs) -> (*bs, 3) canonical."""
+        """x (*bs, 3) normalised observation points, code (*, code_dim + cond_dim) per point
+        or per ray (broadcastable to *bs) -> (*bs, 3) canonical."""
         win = cosine_easing_window(self.cfg.num_freqs, self.alpha.item()).to(x)
         h = self.trunk(positional_encoding(x, self.cfg.num_freqs, win), code)
         return apply_se3(self.rot(h), self.trans(h), x)
