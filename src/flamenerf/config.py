@@ -69,6 +69,10 @@ class FieldConfig:
     `expr_rank` > 0, False leaves only the spatially local pathway Σ_r (Aβ)_r G_r(x'), so β
     cannot act as one face-wide code."""
     expr_levels: int = 8
+    expr_base_res: int = 16
+    """Coarsest resolution of the expression grid: a coarse level is one feature for the
+    whole face, through which β can act as a face-wide code (a tint) rather than a local
+    change."""
     expr_features: int = 2
     expr_log2_size: int = 16
     expr_max_res: int = 512
@@ -110,6 +114,22 @@ class MeshGuideConfig:
 
 
 @dataclass
+class ExpressionRegionsConfig:
+    """Per-control spatial prior: β_k reaches only points near the part of the face mesh
+    that control k moves (from the per-subject β -> mesh model fitted on the training
+    frames). A refinement of the silhouette prior inside the face: a rarely used control
+    (a blink in a few frames) cannot become a face-wide code for those frames."""
+
+    enabled: bool = False
+    threshold: float = 0.2
+    """A vertex belongs to control k's region when k moves it by more than this fraction of
+    k's largest vertex motion."""
+    radius: float = 0.05
+    """Distance (fraction of the neutral mesh's bounding-box diagonal) at which a point's
+    share of β_k has faded to 1/e away from the region's vertices."""
+
+
+@dataclass
 class ModelConfig:
     expression_mode: ExpressionMode = "masked"
     """`masked`: β only on rays through the face silhouette (the paper's spatial prior);
@@ -120,6 +140,8 @@ class ModelConfig:
     expression_scale: float = 1.0
     """β is multiplied by this before it enters the field (keeps β and PE on one scale)."""
     mesh_guide: MeshGuideConfig = _field(default_factory=MeshGuideConfig)
+    expression_regions: ExpressionRegionsConfig = _field(
+        default_factory=ExpressionRegionsConfig)
 
 
 @dataclass
@@ -189,6 +211,11 @@ def _fast() -> Config:
                                 anneal_fraction=0.5)
     cfg.model.field = FieldConfig(kind="hash", appearance_dim=8, dir_freqs=4, hash_levels=12,
                                   hash_log2_size=19, hash_max_res=512)
+    # β acts through local feature fields only, each control near the part of the face mesh
+    # it moves: through the density head's input β became a face-wide code of the few
+    # frames that show a control (docs/bench/control_exploration.md)
+    cfg.model.field.expr_rank, cfg.model.field.expr_direct = 8, False
+    cfg.model.expression_regions.enabled = True
     cfg.model.sampler = SamplerConfig(kind="proposal", num_proposal=48, num_main=32,
                                       proposal_levels=5, proposal_max_res=128)
     # 680 steps: what fits in 10 minutes on the 2-core CPU (548 s uninterrupted), so that the

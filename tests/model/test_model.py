@@ -102,3 +102,46 @@ def test_shapes_of_outputs():
         out = m(rays(m, n=6))
         assert out["rgb"].shape == (6, 3) and out["depth"].shape == (6,)
         assert out["acc"].shape == (6,)
+
+
+def regions_model() -> FlameNeRF:
+    """A hash model with the per-control prior on a two-triangle 'face': control 0 moves the
+    first triangle, control 1 the second, the others move nothing."""
+    cfg = override(preset("fast"), {"model.warp.code_dim": 4, "model.field.hash_levels": 4,
+                                    "model.field.hash_log2_size": 10,
+                                    "model.field.hash_max_res": 64,
+                                    "model.field.head_width": 16,
+                                    "model.sampler.num_proposal": 16,
+                                    "model.sampler.num_main": 8}).model
+    assert cfg.expression_regions.enabled and not cfg.field.expr_direct
+    torch.manual_seed(0)
+    m = FlameNeRF(cfg, num_codes=3, expr_dim=E, near=0.5, far=1.5, box_min=[-1, -1, -1],
+                  box_max=[1, 1, 1], mesh_vertices=6, mesh_faces=2)
+    verts = torch.tensor([[0, 0, 0], [.1, 0, 0], [0, .1, 0], [.3, .3, 0], [.4, .3, 0],
+                          [.3, .4, 0.]])
+    basis = torch.zeros(E, 6, 3)
+    basis[0, :3, 1], basis[1, 3:, 0] = 0.05, 0.02
+    m.set_expression_model(verts, basis, torch.tensor([[0, 1, 2], [3, 4, 5]]))
+    return m
+
+
+def test_expression_regions_gate_each_control_near_what_it_moves():
+    m = regions_model()
+    # at the β = 1 mesh's vertices 0 and 3 (moved by their controls), and far away
+    pts = torch.tensor([[[0.0, 0.05, 0.0], [0.32, 0.3, 0.0], [0.9, -0.9, 0.5]]])  # (1, 3, 3)
+    gates = m._region_gates(pts, torch.ones(1, E))[0]  # (3, E)
+    assert gates[0, 0] > 0.5 and gates[0, 1] == 0, "control 0 acts near its triangle only"
+    assert gates[1, 1] > 0.5 and gates[1, 0] == 0, "control 1 acts near its triangle only"
+    assert gates[2].max() < 1e-6, "far from the face no control acts"
+    assert torch.all(gates[:, 2:] == 0), "controls that move nothing reach nothing"
+    assert torch.all(m._region_gates(pts, torch.zeros(1, E)) == 0)
+
+
+def test_expression_regions_keep_the_silhouette_prior():
+    m = regions_model()
+    r = rays(m)
+    out = m(r)
+    (out["rgb"].sum() + out["depth"].sum()).backward()
+    g = r.expression.grad
+    assert torch.all(g[~r.face_ray] == 0), "β leaked to rays outside the silhouette"
+    assert torch.all(g[:, 2:] == 0), "a control without a region has no effect"

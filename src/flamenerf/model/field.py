@@ -65,7 +65,7 @@ class HashField(nn.Module):
         extra = 0
         if expr_dim and cfg.expr_rank > 0:
             self.expr_grid = HashGrid(cfg.expr_levels, cfg.expr_rank * cfg.expr_features,
-                                      cfg.expr_log2_size, cfg.hash_base_res, cfg.expr_max_res)
+                                      cfg.expr_log2_size, cfg.expr_base_res, cfg.expr_max_res)
             self.expr_proj = nn.Linear(expr_dim, cfg.expr_rank, bias=False)
             extra = cfg.expr_levels * cfg.expr_features
         self.direct = bool(expr_dim) and (cfg.expr_direct or self.expr_grid is None)

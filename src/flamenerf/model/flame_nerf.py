@@ -31,14 +31,19 @@ class FlameNeRF(nn.Module):
                               box_min=list(map(float, box_min)),
                               box_max=list(map(float, box_max)))
         self.mesh_guided = cfg.mesh_guide.enabled and cfg.expression_mode != "none"
-        if self.mesh_guided:
+        self.expression_regions = (cfg.expression_regions.enabled
+                                   and cfg.expression_mode != "none")
+        self.uses_mesh_model = self.mesh_guided or self.expression_regions
+        if self.uses_mesh_model:
             if mesh_vertices <= 0 or mesh_faces <= 0:
-                raise ValueError("mesh guidance needs the face mesh's vertex and face counts")
+                raise ValueError("the per-subject face-mesh model needs the mesh's vertex and face counts")
             self.init_args.update(mesh_vertices=int(mesh_vertices), mesh_faces=int(mesh_faces))
             # the per-subject expression model (world units), filled by set_expression_model
             self.register_buffer("mesh_neutral", torch.zeros(mesh_vertices, 3))
             self.register_buffer("mesh_basis", torch.zeros(expr_dim, mesh_vertices, 3))
             self.register_buffer("mesh_faces", torch.zeros(mesh_faces, 3, dtype=torch.long))
+            # (V, E): how much of control k's β each vertex's neighbourhood receives
+            self.register_buffer("mesh_regions", torch.zeros(mesh_vertices, expr_dim))
         bmin, bmax = torch.tensor(box_min), torch.tensor(box_max)
         self.register_buffer("center", (bmin + bmax) / 2)
         # isotropic scale, so that rigid warps in normalised space are rigid in the world
@@ -68,6 +73,13 @@ class FlameNeRF(nn.Module):
         self.mesh_neutral.copy_(neutral)
         self.mesh_basis.copy_(basis)
         self.mesh_faces.copy_(faces)
+        motion = basis.norm(dim=-1)  # (E, V)
+        top = motion.amax(-1, keepdim=True)
+        thr = self.cfg.expression_regions.threshold
+        # soft membership: 1 where the control moves a vertex by thr of its largest motion
+        # or more, fading to 0 with the motion, so that gates vary smoothly across the face
+        soft = (motion / (thr * top).clamp_min(1e-12)).clamp(max=1.0) * (top > 0)
+        self.mesh_regions.copy_(soft.T)
 
     def face_mesh(self, expression: Tensor) -> Tensor:
         """The face mesh of β in world units: (..., E) -> (..., V, 3)."""
@@ -103,6 +115,38 @@ class FlameNeRF(nn.Module):
             mesh = self.normalize(self.face_mesh(uniq[j]))
             out[r] = pts.add(mesh_displacement(pts, mesh, neutral, falloff, g.neighbours)
                              ).view(len(r), *xn.shape[1:])
+        return out
+
+    def region_expression(self, xn: Tensor, expr: Tensor | None) -> Tensor | None:
+        """Per-point masked expressions under the per-control prior: β_k fades with the
+        distance from the vertices (of the ray's own expression mesh) that control k
+        moves. xn (R, S, 3) normalised, expr (R, E) -> (R, S, E); per-ray `expr` as
+        (R, 1, E) when the prior is off."""
+        if expr is None:
+            return None
+        if not self.expression_regions:
+            return expr[:, None]
+        return self._region_gates(xn, expr.detach()) * expr[:, None]
+
+    @torch.no_grad()
+    def _region_gates(self, xn: Tensor, expr: Tensor, block: int = 1024) -> Tensor:
+        """(R, S, 3), (R, E) -> (R, S, E) in [0, 1]: each point's share of each control,
+        the membership of its nearest vertex (on the mesh of the ray's own expression) in
+        the control's region times exp(-d²/r²) of the distance d to that vertex. Rays with
+        β = 0 get 0."""
+        out = xn.new_zeros(*xn.shape[:2], expr.shape[-1])
+        beta = expr / self.cfg.expression_scale
+        rows = (beta.abs().amax(-1) > 0).nonzero()[:, 0]
+        if len(rows) == 0:
+            return out
+        neutral = self.normalize(self.mesh_neutral)
+        r2 = (self.cfg.expression_regions.radius
+              * float((neutral.amax(0) - neutral.amin(0)).norm())) ** 2
+        for s in range(0, len(rows), block):  # bounded (B, S, V) distance blocks
+            r = rows[s:s + block]
+            meshes = self.normalize(self.face_mesh(beta[r]))  # (B, V, 3)
+            d2, nn_ = torch.cdist(xn[r], meshes).min(-1)  # (B, S)
+            out[r] = self.mesh_regions[nn_] * torch.exp(-d2.square() / r2)[..., None]
         return out
 
     # ---------------------------------------------------------------- conditioning
@@ -154,6 +198,7 @@ class FlameNeRF(nn.Module):
         """Samples at depths t (R, S) along each ray -> σ (R, S), rgb (R, S, 3). The ray's
         conditioning goes in once per ray, shaped (R, 1, ·), and broadcasts over samples."""
         xn = self.normalize(rays.origins[:, None] + t[..., None] * rays.dirs[:, None])
+        expr_pts = self.region_expression(xn, expr)
         xn = self.guide_points(xn, expr)
         dn = F.normalize(rays.dirs, dim=-1)
 
@@ -161,7 +206,7 @@ class FlameNeRF(nn.Module):
             return None if v is None else v[:, None]
 
         return self._query(field, xn, per_ray(dn), per_ray(rays.deform_code),
-                           per_ray(rays.appearance_code), per_ray(expr))
+                           per_ray(rays.appearance_code), expr_pts)
 
     def _deltas(self, t: Tensor, dirs: Tensor, last: float) -> Tensor:
         """Distances between samples in normalised units. t (R, S) -> (R, S)."""

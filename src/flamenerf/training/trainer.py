@@ -60,7 +60,7 @@ def build_for_dataset(cfg: Config, ds: Dataset) -> FlameNeRF:
     model = FlameNeRF(cfg.model, num_codes=ds.num_codes, expr_dim=ds.expression_dim,
                       near=ds.near, far=ds.far, box_min=lo, box_max=hi,
                       mesh_vertices=V, mesh_faces=nf)
-    if model.mesh_guided:
+    if model.uses_mesh_model:
         neutral, basis = fit_dataset_expression_model(ds, cfg.model.mesh_guide.ridge)
         model.set_expression_model(neutral, basis, torch.from_numpy(ds.faces).long())
     return model
