@@ -9,7 +9,7 @@ import flamenerf
 
 # Lowest first; a module may import its own layer and the layers below it.
 LAYERS = [
-    {"__init__", "__main__", "errors", "io", "outdir", "images", "geometry", "meshes", "runtime",
+    {"__init__", "errors", "io", "outdir", "images", "geometry", "meshes", "runtime",
      "config"},
     {"data"},
     {"tracking"},
@@ -18,7 +18,7 @@ LAYERS = [
     {"evaluation", "rendering"},
     {"workflows", "viewer"},
     {"commands"},
-    {"cli"},
+    {"cli", "__main__"},  # `python -m flamenerf` runs the cli
 ]
 
 

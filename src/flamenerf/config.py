@@ -148,6 +148,12 @@ class ModelConfig:
 class TrainConfig:
     steps: int = 150_000
     batch_rays: int = 1024
+    """Rays per step, over all processes of a distributed run (docs/distributed.md)."""
+    accumulate: int = 1
+    """Split each process's share of the step's rays into this many micro-batches, computed
+    one after another with their gradients summed (gradient accumulation): the same step in
+    less memory. A run on N processes draws exactly the rays of one process with
+    `accumulate=N` (training/distributed.py)."""
     lr: float = 1e-3
     lr_final: float = 5e-4
     """Adam's learning rate decays exponentially from `lr` to `lr_final` (paper: 1e-3→5e-4)."""

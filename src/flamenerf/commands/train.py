@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
+import inspect
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
 import tyro
 
@@ -20,11 +21,13 @@ def train(
     size: int | None = None,
     downscale: float | None = None,
     batch_rays: int | None = None,
+    accumulate: int | None = None,
     face_reg_weight: float | None = None,
     expression_mode: Literal["masked", "none", "everywhere"] | None = None,
     resume: bool = False,
     device: str = "auto",
     threads: int = 0,
+    nproc: int = 1,
 ) -> None:
     """Train a model on a dataset.
 
@@ -37,6 +40,9 @@ def train(
     Example: flamenerf train scenes/portrait --out runs/fast --preset fast --size 128
     (the Nerfies variant of the same: add `--expression-mode none`)
 
+    On N GPUs: add `--nproc N`, or launch it yourself (also across machines) with
+    `torchrun --nproc_per_node=N -m flamenerf train ...` (docs/distributed.md).
+
     Args:
         dataset: Dataset directory (made by `flamenerf synth` or `flamenerf preprocess`).
         out: Run directory (config, checkpoints, TensorBoard logs, preview images).
@@ -44,7 +50,9 @@ def train(
         steps: Override the preset's number of training steps.
         size: Train at this width in pixels (height follows the aspect ratio).
         downscale: Train at 1/downscale of the dataset resolution (alternative to --size).
-        batch_rays: Rays per step.
+        batch_rays: Rays per step (over all processes of a distributed run).
+        accumulate: Compute each process's rays of a step in this many micro-batches
+            (gradient accumulation: the same step in less memory).
         face_reg_weight: Weight of the face-region regularisation (paper: 0.1 to 10).
         expression_mode: The ablations of any preset: `masked` (β through the spatial prior,
             FLAME-in-NeRF), `none` (no β: the Nerfies variant), `everywhere` (β at every
@@ -52,13 +60,32 @@ def train(
         resume: Continue the run in OUT from its latest checkpoint.
         device: `auto` (CUDA when present), `cpu` or `cuda`.
         threads: CPU threads for torch (0 = default).
+        nproc: Train on this many processes on this machine, one per GPU, through
+            torchrun (DistributedDataParallel; gloo between CPU processes).
     """
     from flamenerf.config import override
     from flamenerf.config import preset as get_preset
     from flamenerf.data.dataset import load_dataset
     from flamenerf.errors import Interrupted, UserError
+    from flamenerf.training.distributed import launch, launched_ranks
     from flamenerf.training.trainer import train as run_train
 
+    ranks = launched_ranks()
+    if nproc != 1:
+        if nproc < 1:
+            raise UserError(f"--nproc {nproc}: must be at least 1")
+        if ranks.distributed:
+            raise UserError("--nproc: this process is already one of a torchrun job; give "
+                            "either --nproc or torchrun's --nproc_per_node")
+        args = ["train", *_flags(locals(), skip={"nproc"})]
+        rc, pressed = launch(nproc, args)
+        if pressed:
+            raise Interrupted(f"the run is saved in {out}; continue it with `flamenerf train "
+                              f"{dataset} --out {out} --resume --nproc {nproc}`")
+        if rc != 0:
+            raise UserError(f"torchrun stopped with exit status {rc} (its output above says "
+                            "which process failed, and why)")
+        return
     cfg = get_preset(preset)
     if size is not None and downscale is not None:
         raise UserError("give either --size or --downscale, not both")
@@ -72,9 +99,33 @@ def train(
             raise UserError("--downscale must be >= 1")
         cfg.train.downscale = downscale
     override(cfg, {"train.batch_rays": batch_rays, "train.face_reg_weight": face_reg_weight,
-                   "model.expression_mode": expression_mode, "train.num_threads": threads})
+                   "model.expression_mode": expression_mode, "train.num_threads": threads,
+                   "train.accumulate": accumulate})
     res = run_train(dataset, out, cfg, resume=resume, device=device, steps=steps)
+    if not ranks.main:  # rank 0 speaks for the job
+        if res.interrupted:
+            raise SystemExit(130)
+        return
     if res.interrupted:  # exit status 130, so that `train && eval` stops here
+        again = (f"`flamenerf train {dataset} --out {out} --resume`" if not ranks.distributed
+                 else "the same launch command and --resume")
         raise Interrupted(f"run saved at step {res.step} in {res.run_dir}; continue it with "
-                          f"`flamenerf train {dataset} --out {out} --resume`")
+                          f"{again}")
     print(f"finished at step {res.step} in {res.seconds:.0f} s; run saved in {res.run_dir}")
+
+
+def _flags(values: dict[str, Any], skip: set[str]) -> list[str]:
+    """This command's arguments as command-line flags again (for the torchrun it launches):
+    the dataset, then every option that differs from its default."""
+    sig = inspect.signature(train)
+    out = [str(values["dataset"])]
+    for name, p in sig.parameters.items():
+        v = values[name]
+        if name == "dataset" or name in skip or v == p.default:
+            continue
+        flag = "--" + name.replace("_", "-")
+        if isinstance(v, bool):
+            out.append(flag if v else "--no-" + name.replace("_", "-"))
+        else:
+            out += [flag, str(v)]
+    return out

@@ -1,10 +1,13 @@
-"""The training loop: progress bar, TensorBoard, atomic checkpoints, exact resume, Ctrl-C."""
+"""The training loop: progress bar, TensorBoard, atomic checkpoints, exact resume, Ctrl-C;
+on one process or several (DistributedDataParallel under torchrun, docs/distributed.md)."""
 
 from __future__ import annotations
 
+import contextlib
 import math
 import time
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 
 import torch
@@ -17,10 +20,11 @@ from flamenerf.errors import Interrupted, UserError, warn
 from flamenerf.io import atomic_write_text, read_json
 from flamenerf.model.flame_nerf import FlameNeRF
 from flamenerf.outdir import clean_stale_temps, writable_dir
-from flamenerf.runtime import pick_device
 from flamenerf.training.checkpoint import (LEGACY_TEMP, latest_checkpoint, load_latest,
                                            load_model_state, rng_states, save_checkpoint,
                                            set_rng_states)
+from flamenerf.training.distributed import (Ranks, launched_ranks, process_device,
+                                            process_group, shard_seed, split)
 from flamenerf.training.interrupt import StopRequest
 from flamenerf.training.losses import face_region_loss, psnr_from_mse
 
@@ -67,6 +71,41 @@ def build_for_dataset(cfg: Config, ds: Dataset) -> FlameNeRF:
 
 
 @dataclass
+class Shard:
+    """One part of a step's batch (training/distributed.py): its index among all the
+    step's shards (over every process), its random stream, its rays and regulariser points."""
+
+    index: int
+    gen: torch.Generator
+    rays: int
+    points: int
+
+
+class _ShardLoss(torch.nn.Module):
+    """What DistributedDataParallel wraps. DDP all-reduces the gradients of a backward pass
+    only when the loss came out of its own forward, and a shard's loss uses more of the
+    model than `FlameNeRF.forward` (the codes, the warp regulariser): so the forward here
+    runs the whole shard loss, given as a closure."""
+
+    def __init__(self, model: FlameNeRF):
+        super().__init__()
+        self.model = model
+
+    def forward(self, loss_fn):
+        return loss_fn()
+
+
+def _weighted_sum(terms: list[tuple[torch.Tensor, float]], factor: float) -> torch.Tensor:
+    """Σ term · weight · factor; exactly Σ term where every weight · factor is 1 (one
+    process, one shard: the single-process step, bit for bit)."""
+    out = None
+    for t, w in terms:
+        t = t if w * factor == 1.0 else t * (w * factor)
+        out = t if out is None else out + t
+    return out
+
+
+@dataclass
 class TrainResult:
     run_dir: Path
     step: int
@@ -78,28 +117,41 @@ class TrainResult:
 class Trainer:
     def __init__(self, cfg: Config, dataset: str | Path, run_dir: str | Path,
                  resume: bool = False, device: str = "auto", quiet: bool = False,
-                 steps: int | None = None):
+                 steps: int | None = None, ranks: Ranks | None = None):
+        """`ranks`: this process's place in a distributed job (its process group joined,
+        `training.distributed.process_group`); None for a single process."""
         self.run_dir = Path(run_dir)
-        self.device = pick_device(device)
-        self.quiet = quiet
-        ck = latest_checkpoint(self.run_dir)
+        self.ranks = ranks = ranks or Ranks()
+        self.device = process_device(device, ranks)
+        self.quiet = quiet or not ranks.main
+        # rank 0 reads the run folder and tells the others, so that every rank starts from
+        # the same config and checkpoint (also where another node sees the folder late)
+        ck = latest_checkpoint(self.run_dir) if ranks.main else None
         if ck is not None and not resume:
             raise UserError(f"{self.run_dir}: already holds a run (pass --resume to continue "
                             "it, or choose another --out)")
         if resume and ck is not None:
             saved = read_json(self.run_dir / "config.json")
             cfg = from_dict(saved["config"])  # a resumed run keeps its own config
+        cfg, resuming = ranks.broadcast((cfg, resume and ck is not None))
         if steps is not None:
             cfg.train.steps = steps
-        for flag, v in (("--steps", cfg.train.steps), ("--batch-rays", cfg.train.batch_rays)):
+        for flag, v in (("--steps", cfg.train.steps), ("--batch-rays", cfg.train.batch_rays),
+                        ("--accumulate", cfg.train.accumulate)):
             if v < 1:
                 raise UserError(f"{flag} {v}: must be at least 1")
+        shards = ranks.world * cfg.train.accumulate
+        if cfg.train.batch_rays < shards:
+            raise UserError(f"--batch-rays {cfg.train.batch_rays}: fewer rays than the step's "
+                            f"{shards} shards ({ranks.world} process(es) x accumulate "
+                            f"{cfg.train.accumulate})")
         self.cfg = cfg
         if cfg.train.num_threads > 0:
             torch.set_num_threads(cfg.train.num_threads)
         self.ds = load_dataset(dataset)
-        writable_dir(self.run_dir, "run")  # before the slow part, not at the first save
-        self._clean_temps()
+        if ranks.main:
+            writable_dir(self.run_dir, "run")  # before the slow part, not at the first save
+            self._clean_temps()
         self.intr = train_resolution(self.ds, cfg)
         torch.manual_seed(cfg.train.seed)
         self.model = build_for_dataset(cfg, self.ds).to(self.device)
@@ -108,12 +160,33 @@ class Trainer:
         eps = 1e-15 if cfg.model.field.kind == "hash" else 1e-8
         self.opt = torch.optim.Adam(param_groups(self.model, cfg.train), lr=cfg.train.lr,
                                     eps=eps, fused=fused)
-        self.gen = torch.Generator().manual_seed(cfg.train.seed)
+        self.shards = self._make_shards()
+        self.gen = self.shards[0].gen  # on rank 0 the stream of a single-process run
         self.step = 0
         self._saved_step: int | None = None  # the step of the newest checkpoint on disk
-        if resume and ck is not None:
+        if resuming:
             self._load()
-        self._write_config()
+        if ranks.main:
+            self._write_config()
+        self.ddp = None
+        if ranks.distributed:
+            from torch.nn.parallel import DistributedDataParallel
+
+            # buffers (box, expression mesh) are the same on every rank: no broadcasts. The
+            # deformation codes only reach the loss through the warp
+            self.ddp = DistributedDataParallel(_ShardLoss(self.model), broadcast_buffers=False,
+                                               find_unused_parameters=self.model.warp is None)
+
+    def _make_shards(self) -> list[Shard]:
+        """This process's shards of every step's batch (training/distributed.py)."""
+        t, r = self.cfg.train, self.ranks
+        n = r.world * t.accumulate
+        rays, points = split(t.batch_rays, n), split(t.face_reg_points, n)
+        ids = range(r.rank * t.accumulate, (r.rank + 1) * t.accumulate)
+        if r.rank > 0 and self.device.type == "cuda":  # the sample jitter on a GPU
+            torch.cuda.manual_seed(shard_seed(t.seed, ids[0]))
+        return [Shard(s, torch.Generator().manual_seed(shard_seed(t.seed, s)), rays[s],
+                      points[s]) for s in ids]
 
     # --------------------------------------------------------------- persistence
     def _clean_temps(self) -> None:
@@ -151,9 +224,18 @@ class Trainer:
             "version": __version__,
         }
 
-    def save(self) -> Path:
-        path = save_checkpoint(self.run_dir, self.step, self.state(),
-                               self.cfg.train.keep_checkpoints)
+    def save(self) -> Path | None:
+        """Write a checkpoint (rank 0; every rank takes part, handing over its random
+        streams). -> its path on rank 0, None elsewhere."""
+        streams = [g for rank in self.ranks.gather([sh.gen.get_state() for sh in self.shards])
+                   for g in rank]
+        if not self.ranks.main:
+            self._saved_step = self.step
+            return None
+        state = self.state()
+        if len(streams) > 1:  # "generator" holds shard 0's, as in a single-process run
+            state["shard_generators"] = streams
+        path = save_checkpoint(self.run_dir, self.step, state, self.cfg.train.keep_checkpoints)
         self._saved_step = self.step
         return path
 
@@ -162,7 +244,7 @@ class Trainer:
         return f"the run resumes from {ck}" if ck else "no checkpoint was saved"
 
     def _load(self) -> None:
-        path, st = load_latest(self.run_dir)
+        path, st = self.ranks.broadcast(load_latest(self.run_dir) if self.ranks.main else None)
         load_model_state(self.model, st["model"], path)
         try:
             self.opt.load_state_dict(st["optimizer"])
@@ -172,41 +254,95 @@ class Trainer:
         set_rng_states(st, self.gen)
         self.step = int(st["step"])
         self._saved_step = self.step
+        self._restore_streams(st, path)
+
+    def _restore_streams(self, st: dict, path: Path) -> None:
+        """Each shard's random stream as saved; when the run had another number of shards
+        (processes x accumulate), the shards the checkpoint lacks start new streams."""
+        t = self.cfg.train
+        total = self.ranks.world * t.accumulate
+        saved = st.get("shard_generators") or [st["generator"]]
+        if len(saved) == total:
+            for sh in self.shards:
+                sh.gen.set_state(saved[sh.index])
+            return
+        for sh in self.shards:
+            if sh.index > 0:
+                sh.gen.manual_seed(shard_seed(t.seed + self.step, sh.index))
+        if self.ranks.main:
+            warn(f"{path}: saved by a run of {len(saved)} shard(s), resumed with {total} "
+                 f"({self.ranks.world} process(es) x accumulate {t.accumulate}): it goes on, "
+                 "with other rays than the run would have drawn")
 
     # --------------------------------------------------------------- one step
     def train_step(self) -> dict[str, float]:
-        cfg, model, ts = self.cfg.train, self.model, self.train_set
+        """One optimiser step on this process's shards of the batch. -> its logs (the loss
+        terms weighted by the shards' share of the step: the whole step's once summed over
+        the processes, `_sync`)."""
+        cfg, model = self.cfg.train, self.model
         model.train()
         model.update_to_step(self.step, cfg.steps)
         for g in self.opt.param_groups:
             g["lr"] = learning_rate(self.step, cfg) * g["lr_scale"]
-        fi, ys, xs = ts.sample_pixels(cfg.batch_rays, self.gen, cfg.face_ray_fraction)
-        omega, phi = model.codes(ts.frame_index[fi].to(self.device))
-        rays, target = ts.ray_batch(fi, ys, xs, omega, phi, self.device)
-        out = model(rays, jitter=True, generator=self.gen if self.device.type == "cpu" else None)
-        losses = model.loss_dict(out, target, cfg.interlevel_weight)
-        mse, loss = losses["photo"], losses["total"]
-        logs = {f"loss/{k}": v.item() for k, v in losses.items() if k != "total"}
-        if cfg.face_reg_weight > 0 and model.warp is not None:
-            pfi = torch.randint(ts.n, (cfg.face_reg_points,), generator=self.gen)
-            if model.mesh_guided:  # the face is carried to the neutral mesh before the warp
-                pts = model.neutral_face_points(cfg.face_reg_points, self.gen)
-            else:
-                pts = model.normalize(ts.face_points(pfi, self.gen).to(self.device))
-            omega_p, _ = model.codes(ts.frame_index[pfi].to(self.device))
-            reg = face_region_loss(model.warp_points(pts, omega_p), pts)
-            loss = loss + cfg.face_reg_weight * reg
-            logs["loss/face_reg"] = reg.item()
         self.opt.zero_grad(set_to_none=True)
-        loss.backward()
+        logs: dict[str, float] = {}
+        for j, shard in enumerate(self.shards):
+            fn = partial(self._shard_loss, shard)
+            # DDP all-reduces the summed gradients once, in the last shard's backward pass
+            last = j == len(self.shards) - 1
+            with contextlib.nullcontext() if self.ddp is None or last else self.ddp.no_sync():
+                loss, shard_logs = fn() if self.ddp is None else self.ddp(fn)
+                loss.backward()
+            for k, v in shard_logs.items():
+                logs[k] = logs.get(k, 0.0) + v
         self.opt.step()
         self.step += 1
-        logs["loss/total"] = loss.item()
-        logs["metrics/psnr"] = psnr_from_mse(mse.item())
-        logs["perf/samples"] = float(out["num_samples"])
+        logs["metrics/psnr"] = psnr_from_mse(logs["loss/photo"])
         if model.warp is not None:
             logs["params/warp_alpha"] = float(model.warp.alpha)
         return logs
+
+    def _shard_loss(self, sh: Shard) -> tuple[torch.Tensor, dict[str, float]]:
+        """One shard's loss, scaled so that the gradients summed over the step's shards
+        (DDP averages over the processes) are those of the whole batch's mean loss, and its
+        logged terms weighted by its share of the batch."""
+        cfg, model, ts, gen = self.cfg.train, self.model, self.train_set, sh.gen
+        share = sh.rays / cfg.batch_rays
+        fi, ys, xs = ts.sample_pixels(sh.rays, gen, cfg.face_ray_fraction)
+        omega, phi = model.codes(ts.frame_index[fi].to(self.device))
+        rays, target = ts.ray_batch(fi, ys, xs, omega, phi, self.device)
+        out = model(rays, jitter=True, generator=gen if self.device.type == "cpu" else None)
+        losses = model.loss_dict(out, target, cfg.interlevel_weight)
+        terms = [(losses["total"], share)]
+        logs = {f"loss/{k}": v.item() * share for k, v in losses.items() if k != "total"}
+        if cfg.face_reg_weight > 0 and model.warp is not None:
+            reg, p_share = torch.zeros((), device=self.device), 0.0
+            if sh.points > 0:
+                pfi = torch.randint(ts.n, (sh.points,), generator=gen)
+                if model.mesh_guided:  # the face is carried to the neutral mesh before the warp
+                    pts = model.neutral_face_points(sh.points, gen)
+                else:
+                    pts = model.normalize(ts.face_points(pfi, gen).to(self.device))
+                omega_p, _ = model.codes(ts.frame_index[pfi].to(self.device))
+                reg = face_region_loss(model.warp_points(pts, omega_p), pts)
+                p_share = sh.points / cfg.face_reg_points
+                terms.append((cfg.face_reg_weight * reg, p_share))
+            logs["loss/face_reg"] = reg.item() * p_share
+        loss = _weighted_sum(terms, self.ranks.world)
+        logs["loss/total"] = loss.item() / self.ranks.world
+        logs["perf/samples"] = float(out["num_samples"])
+        return loss, logs
+
+    def _sync(self, logs: dict[str, float], stop: bool) -> tuple[dict[str, float], bool]:
+        """The step's logs over every process, and whether any was asked to stop: one small
+        all-reduce, so that every rank stops, saves or gives up at the same step."""
+        if not self.ranks.distributed:
+            return logs, stop
+        keys = [k for k in logs if k.startswith(("loss/", "perf/"))]
+        *vals, stops = self.ranks.sum([logs[k] for k in keys] + [float(stop)], self.device)
+        logs = {**logs, **dict(zip(keys, vals))}
+        logs["metrics/psnr"] = psnr_from_mse(logs["loss/photo"])
+        return logs, stops > 0
 
     # --------------------------------------------------------------- loop
     def preview(self, writer=None) -> None:
@@ -230,19 +366,22 @@ class Trainer:
         from torch.utils.tensorboard import SummaryWriter
         from tqdm import tqdm
 
-        cfg = self.cfg.train
+        cfg, main = self.cfg.train, self.ranks.main
         total = steps if steps is not None else cfg.steps
-        writer = SummaryWriter(str(self.run_dir / "tb"), purge_step=self.step or None)
+        writer = (SummaryWriter(str(self.run_dir / "tb"), purge_step=self.step or None)
+                  if main else None)
         bar = tqdm(total=total, initial=self.step, desc=f"train {self.cfg.preset}",
                    unit="step", disable=self.quiet, dynamic_ncols=True)
         t0 = time.perf_counter()
         psnr, rays_done, t_last = float("nan"), 0, time.perf_counter()
+        stopping = False
         # Ctrl-C only asks to stop: the step in flight completes, so the checkpoint saved
-        # below is an exact resume point (training/interrupt.py)
+        # below is an exact resume point (training/interrupt.py). With several processes
+        # each one's request is summed into the step's logs (`_sync`): all stop together
         with StopRequest() as stop:
             try:
-                while self.step < total and not stop.requested:
-                    logs = self.train_step()
+                while self.step < total and not stopping:
+                    logs, asked = self._sync(self.train_step(), stop.requested)
                     if not math.isfinite(logs["loss/total"]):
                         raise UserError(
                             f"{self.run_dir}: training diverged (loss {logs['loss/total']} at "
@@ -254,7 +393,7 @@ class Trainer:
                         now = time.perf_counter()
                         rps = rays_done / max(now - t_last, 1e-9)
                         logs["perf/rays_per_s"] = rps
-                        for k, v in logs.items():
+                        for k, v in logs.items() if writer is not None else ():
                             writer.add_scalar(k, v, self.step)
                         bar.set_postfix(loss=f"{logs['loss/total']:.4f}", psnr=f"{psnr:.2f}",
                                         rays_s=f"{rps:,.0f}")
@@ -264,14 +403,18 @@ class Trainer:
                         stop.what = f"saving the checkpoint of step {self.step}"
                         self.save()
                         stop.what = "the current step"
-                    if cfg.image_every and self.step % cfg.image_every == 0:
+                    if cfg.image_every and self.step % cfg.image_every == 0 and main:
                         self.preview(writer)
-                if stop.requested:
+                    # one process reads its own presses up to the end of the step; several
+                    # go by what `_sync` gathered, the same on every rank
+                    stopping = asked or (not self.ranks.distributed and stop.requested)
+                if stopping and main:
                     bar.write(f"interrupted at step {self.step}: saving a checkpoint to resume "
                               "from")
                 stop.what = f"saving the checkpoint of step {self.step}"
                 if self._saved_step != self.step:
                     self.save()
+                self.ranks.barrier()  # no rank leaves (ending the job) before rank 0 saved
             except KeyboardInterrupt:
                 # not through the flag (a third Ctrl-C, or outside the main thread): the step
                 # or save in flight is abandoned, never saved half done
@@ -279,13 +422,16 @@ class Trainer:
                                   f"{self._kept()}") from None
             finally:
                 bar.close()
-                writer.close()
-        interrupted = stop.requested
-        return TrainResult(self.run_dir, self.step, interrupted, time.perf_counter() - t0, psnr)
+                if writer is not None:
+                    writer.close()
+        return TrainResult(self.run_dir, self.step, stopping, time.perf_counter() - t0, psnr)
 
 
 def train(dataset: str | Path, out: str | Path, cfg: Config, resume: bool = False,
           device: str = "auto", quiet: bool = False, steps: int | None = None) -> TrainResult:
-    trainer = Trainer(cfg, dataset, out, resume=resume, device=device, quiet=quiet,
-                      steps=steps)
-    return trainer.fit()
+    """Train on this process, or as one rank of the job torchrun started it in."""
+    ranks = launched_ranks()
+    with process_group(ranks, process_device(device, ranks)):
+        trainer = Trainer(cfg, dataset, out, resume=resume, device=device, quiet=quiet,
+                          steps=steps, ranks=ranks)
+        return trainer.fit()
