@@ -16,7 +16,7 @@ import os
 import signal
 import subprocess
 import sys
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import Any
 
@@ -73,6 +73,29 @@ class Ranks:
     def barrier(self) -> None:
         if self.distributed:
             dist.barrier()
+
+    def on_main(self, fn: Callable[[], Any]) -> Any:
+        """fn() on rank 0 (reading or writing the run folder), its result on every rank. When
+        it fails there, every rank stops: rank 0 with the error, the others quietly."""
+        if not self.distributed:
+            return fn()
+        result, error = None, None
+        if self.main:
+            try:
+                result = fn()
+            except Exception as e:  # noqa: BLE001 - re-raised below, after telling the others
+                error = e
+        failed, result = self.broadcast((error is not None, result))
+        if error is not None:
+            raise error
+        if failed:
+            raise SystemExit(2)
+        return result
+
+    def failure(self, error: BaseException) -> BaseException:
+        """What to raise for an error every rank meets at once (a diverged loss): the error
+        on rank 0, which says it for the job, a quiet exit elsewhere."""
+        return error if self.main else SystemExit(2)
 
 
 def launched_ranks() -> Ranks:

@@ -124,34 +124,36 @@ class Trainer:
         self.ranks = ranks = ranks or Ranks()
         self.device = process_device(device, ranks)
         self.quiet = quiet or not ranks.main
-        # rank 0 reads the run folder and tells the others, so that every rank starts from
-        # the same config and checkpoint (also where another node sees the folder late)
-        ck = latest_checkpoint(self.run_dir) if ranks.main else None
-        if ck is not None and not resume:
-            raise UserError(f"{self.run_dir}: already holds a run (pass --resume to continue "
-                            "it, or choose another --out)")
-        if resume and ck is not None:
-            saved = read_json(self.run_dir / "config.json")
-            cfg = from_dict(saved["config"])  # a resumed run keeps its own config
-        cfg, resuming = ranks.broadcast((cfg, resume and ck is not None))
+
+        def read_run() -> tuple[Config, bool]:
+            ck = latest_checkpoint(self.run_dir)
+            if ck is not None and not resume:
+                raise UserError(f"{self.run_dir}: already holds a run (pass --resume to "
+                                "continue it, or choose another --out)")
+            if resume and ck is not None:
+                saved = read_json(self.run_dir / "config.json")
+                return from_dict(saved["config"]), True  # a resumed run keeps its own config
+            return cfg, False
+
+        # rank 0 reads (and writes) the run folder and tells the others, so that every rank
+        # starts from the same config and checkpoint, even where a node sees it late
+        cfg, resuming = ranks.on_main(read_run)
         if steps is not None:
             cfg.train.steps = steps
         for flag, v in (("--steps", cfg.train.steps), ("--batch-rays", cfg.train.batch_rays),
                         ("--accumulate", cfg.train.accumulate)):
             if v < 1:
-                raise UserError(f"{flag} {v}: must be at least 1")
+                raise ranks.failure(UserError(f"{flag} {v}: must be at least 1"))
         shards = ranks.world * cfg.train.accumulate
         if cfg.train.batch_rays < shards:
-            raise UserError(f"--batch-rays {cfg.train.batch_rays}: fewer rays than the step's "
-                            f"{shards} shards ({ranks.world} process(es) x accumulate "
-                            f"{cfg.train.accumulate})")
+            raise ranks.failure(UserError(
+                f"--batch-rays {cfg.train.batch_rays}: fewer rays than the step's {shards} "
+                f"shards ({ranks.world} process(es) x accumulate {cfg.train.accumulate})"))
         self.cfg = cfg
         if cfg.train.num_threads > 0:
             torch.set_num_threads(cfg.train.num_threads)
         self.ds = load_dataset(dataset)
-        if ranks.main:
-            writable_dir(self.run_dir, "run")  # before the slow part, not at the first save
-            self._clean_temps()
+        ranks.on_main(self._prepare_dir)
         self.intr = train_resolution(self.ds, cfg)
         torch.manual_seed(cfg.train.seed)
         self.model = build_for_dataset(cfg, self.ds).to(self.device)
@@ -166,16 +168,16 @@ class Trainer:
         self._saved_step: int | None = None  # the step of the newest checkpoint on disk
         if resuming:
             self._load()
-        if ranks.main:
-            self._write_config()
+        ranks.on_main(self._write_config)
         self.ddp = None
         if ranks.distributed:
             from torch.nn.parallel import DistributedDataParallel
 
             # buffers (box, expression mesh) are the same on every rank: no broadcasts. The
             # deformation codes only reach the loss through the warp
-            self.ddp = DistributedDataParallel(_ShardLoss(self.model), broadcast_buffers=False,
-                                               find_unused_parameters=self.model.warp is None)
+            self.ddp = DistributedDataParallel(
+                _ShardLoss(self.model), forward_sync_buffers=False,
+                find_unused_parameters=self.model.warp is None)
 
     def _make_shards(self) -> list[Shard]:
         """This process's shards of every step's batch (training/distributed.py)."""
@@ -189,6 +191,10 @@ class Trainer:
                       points[s]) for s in ids]
 
     # --------------------------------------------------------------- persistence
+    def _prepare_dir(self) -> None:
+        writable_dir(self.run_dir, "run")  # before the slow part, not at the first save
+        self._clean_temps()
+
     def _clean_temps(self) -> None:
         """Partial files that a killed run of this folder left (a checkpoint is ~100 MB)."""
         gone = (clean_stale_temps(self.run_dir / "checkpoints", legacy=LEGACY_TEMP)
@@ -229,28 +235,33 @@ class Trainer:
         streams). -> its path on rank 0, None elsewhere."""
         streams = [g for rank in self.ranks.gather([sh.gen.get_state() for sh in self.shards])
                    for g in rank]
-        if not self.ranks.main:
-            self._saved_step = self.step
-            return None
-        state = self.state()
-        if len(streams) > 1:  # "generator" holds shard 0's, as in a single-process run
-            state["shard_generators"] = streams
-        path = save_checkpoint(self.run_dir, self.step, state, self.cfg.train.keep_checkpoints)
+
+        def write() -> Path:
+            state = self.state()
+            if len(streams) > 1:  # "generator" holds shard 0's, as in a single-process run
+                state["shard_generators"] = streams
+            return save_checkpoint(self.run_dir, self.step, state,
+                                   self.cfg.train.keep_checkpoints)
+
+        path = self.ranks.on_main(write)
         self._saved_step = self.step
-        return path
+        return path if self.ranks.main else None
 
     def _kept(self) -> str:
         ck = latest_checkpoint(self.run_dir)
         return f"the run resumes from {ck}" if ck else "no checkpoint was saved"
 
     def _load(self) -> None:
-        path, st = self.ranks.broadcast(load_latest(self.run_dir) if self.ranks.main else None)
-        load_model_state(self.model, st["model"], path)
+        path, st = self.ranks.on_main(lambda: load_latest(self.run_dir))
         try:
-            self.opt.load_state_dict(st["optimizer"])
-        except ValueError as e:  # a checkpoint from before the per-group learning rates
-            raise UserError(f"{path}: optimiser state does not match this version's "
-                            f"parameter groups ({e}); start a new run") from None
+            load_model_state(self.model, st["model"], path)
+            try:
+                self.opt.load_state_dict(st["optimizer"])
+            except ValueError as e:  # a checkpoint from before the per-group learning rates
+                raise UserError(f"{path}: optimiser state does not match this version's "
+                                f"parameter groups ({e}); start a new run") from None
+        except UserError as e:
+            raise self.ranks.failure(e) from None
         set_rng_states(st, self.gen)
         self.step = int(st["step"])
         self._saved_step = self.step
@@ -383,10 +394,10 @@ class Trainer:
                 while self.step < total and not stopping:
                     logs, asked = self._sync(self.train_step(), stop.requested)
                     if not math.isfinite(logs["loss/total"]):
-                        raise UserError(
+                        raise self.ranks.failure(UserError(
                             f"{self.run_dir}: training diverged (loss {logs['loss/total']} at "
                             f"step {self.step}; check the dataset's cameras and scale, or lower "
-                            f"the learning rate); stopped without saving: {self._kept()}")
+                            f"the learning rate); stopped without saving: {self._kept()}"))
                     rays_done += cfg.batch_rays
                     psnr = logs["metrics/psnr"]
                     if self.step % cfg.log_every == 0 or self.step == total:
