@@ -162,6 +162,16 @@ def test_every_parameter_gets_a_gradient_so_ddp_needs_no_search(toy_dataset, tmp
         assert unused == (set() if warp else {"deform_codes.weight"}), unused
 
 
+def test_train_nproc_passes_its_other_options_on():
+    import inspect
+
+    from flamenerf.commands.train import _flags, train
+
+    values = {n: p.default for n, p in inspect.signature(train).parameters.items()}
+    values.update(dataset="scene", resume=True, batch_rays=512, nproc=4)
+    assert _flags(values, skip={"nproc"}) == ["scene", "--batch-rays", "512", "--resume"]
+
+
 def test_torchrun_command_runs_the_package():
     cmd = torchrun_command(2, ["train", "scene"])
     assert cmd[1:4] == ["-m", "torch.distributed.run", "--standalone"]
