@@ -50,6 +50,8 @@ def main() -> None:
     ap.add_argument("--fit-steps", type=int, default=300)
     ap.add_argument("--threads", type=int, default=0)
     ap.add_argument("--json", type=Path, default=Path("docs/bench/control.json"))
+    ap.add_argument("--figure", type=Path, default=None,
+                    help="write the sweep picture: ground truth, then each variant")
     a = ap.parse_args()
 
     from flamenerf.data.dataset import load_dataset
@@ -94,9 +96,38 @@ def main() -> None:
             "driven_face_db": f["driven"]["psnr_face"] - n["driven"]["psnr_face"]}
         print(f"fast - nerfies: re-animation face {results['gaps']['reanimate_face_db']:+.2f} "
               f"dB, driven face {results['gaps']['driven_face_db']:+.2f} dB")
+    if a.figure is not None:
+        sweep_picture(a.scene, ds, [(name, a.runs / name) for name in results["variants"]],
+                      a.figure)
+        print(f"wrote {a.figure}")
     print(TARGETS)
     write(a.json, results)
     print(f"wrote {a.json}")
+
+
+def sweep_picture(scene: Path, ds, runs: list[tuple[str, Path]], path: Path) -> None:
+    """Frame 0's camera and codes, one control at a time at its largest sweep value: the
+    ground truth in the first row, each run below (`evaluation.protocol`'s sweep frames)."""
+    import numpy as np
+
+    from flamenerf.data.scene import FrameSet
+    from flamenerf.evaluation.protocol import pick_sweep_frames, render_frames
+    from flamenerf.images import hstack, vstack
+    from flamenerf.io import save_png
+    from flamenerf.training.run import load_run
+
+    rows, idx = [], None
+    for _, run_dir in runs:
+        r = load_run(run_dir)
+        fs = FrameSet(ds, ds.split("leakage"), r.train_intrinsics(ds))
+        if idx is None:
+            idx = pick_sweep_frames(fs, limit=6)
+            rows.append(hstack([fs.images[i].numpy() for i in idx], gap=2))
+        sub = FrameSet(ds, [fs.frames[i] for i in idx], fs.intr)
+        w0, p0 = r.frame_codes(0)
+        preds = render_frames(r.model, sub, w0.expand(sub.n, -1), p0.expand(sub.n, -1))
+        rows.append(hstack(preds, gap=2))
+    save_png(path, np.clip(vstack(rows, gap=2), 0, 1))
 
 
 def write(path: Path, results: dict) -> None:
