@@ -18,7 +18,7 @@ from flamenerf.errors import UserError
 from flamenerf.training.checkpoint import checkpoints, load_latest
 from flamenerf.training.distributed import (Ranks, launched_ranks, process_device, shard_seed,
                                             split, torchrun_command)
-from flamenerf.training.trainer import Trainer
+from flamenerf.training.trainer import Trainer, may_skip_parameters
 
 STEPS = 4
 
@@ -148,18 +148,25 @@ def test_fewer_rays_than_shards_is_a_one_line_error(toy_dataset, tmp_path):
         Trainer(c, toy_dataset, tmp_path / "run", device="cpu", quiet=True)
 
 
-def test_every_parameter_gets_a_gradient_so_ddp_needs_no_search(toy_dataset, tmp_path):
-    # DDP is built with find_unused_parameters only without a warp (the deformation codes
-    # are then unused): any other parameter left out of the loss would hang the gradient
-    # all-reduce, so check the rule on a step
-    for warp in (True, False):
+def test_ddp_searches_for_unused_parameters_exactly_when_a_step_can_skip_some(
+        toy_dataset, tmp_path):
+    # a parameter left out of the loss hangs the gradient all-reduce unless DDP was built
+    # with find_unused_parameters: check on a step that only the parameters
+    # `may_skip_parameters` allows for are ever left out
+    def expression_field(name):
+        return name.startswith(("field.expr_grid.", "field.expr_proj."))
+
+    for warp, rank in ((True, 0), (False, 0), (True, 8)):
         c = cfg()
         c.model.warp.enabled = warp
-        t = Trainer(c, toy_dataset, tmp_path / f"w{warp}", device="cpu", quiet=True)
+        c.model.field.expr_rank = rank
+        t = Trainer(c, toy_dataset, tmp_path / f"w{warp}{rank}", device="cpu", quiet=True)
         t.opt.step = lambda: None  # keep the gradients to look at them
         t.train_step()
-        unused = {n for n, p in t.model.named_parameters() if p.grad is None}
+        unused = {n for n, p in t.model.named_parameters() if p.grad is None
+                  and not (rank and expression_field(n))}
         assert unused == (set() if warp else {"deform_codes.weight"}), unused
+        assert may_skip_parameters(t.model) == (not warp or rank > 0)
 
 
 def test_train_nproc_passes_its_other_options_on():

@@ -58,6 +58,13 @@ def train_resolution(ds: Dataset, cfg: Config):
     return ds.intrinsics.scaled(1.0 / cfg.train.downscale)
 
 
+def may_skip_parameters(model: FlameNeRF) -> bool:
+    """Whether a step's loss can leave parameters out (DDP must then search the graph):
+    the deformation codes without a warp; the expression feature fields in a batch where no
+    sample gets a non-zero β (no face ray, or none near a control's region)."""
+    return model.warp is None or getattr(model.field, "expr_grid", None) is not None
+
+
 def build_for_dataset(cfg: Config, ds: Dataset) -> FlameNeRF:
     lo, hi = scene_box(ds)
     V, nf = ds.face_vertices.shape[1], len(ds.faces)
@@ -173,11 +180,10 @@ class Trainer:
         if ranks.distributed:
             from torch.nn.parallel import DistributedDataParallel
 
-            # buffers (box, expression mesh) are the same on every rank: no broadcasts. The
-            # deformation codes only reach the loss through the warp
+            # buffers (box, expression mesh) are the same on every rank: no broadcasts
             self.ddp = DistributedDataParallel(
                 _ShardLoss(self.model), forward_sync_buffers=False,
-                find_unused_parameters=self.model.warp is None)
+                find_unused_parameters=may_skip_parameters(self.model))
 
     def _make_shards(self) -> list[Shard]:
         """This process's shards of every step's batch (training/distributed.py)."""
