@@ -47,3 +47,33 @@ def test_corrupted_transforms_is_a_dataset_error_naming_the_file(dataset_dir, tm
     tj.write_text(json.dumps(meta))
     with pytest.raises(DatasetError, match="transforms.json"):
         load_dataset(bad)
+
+
+def test_head_pose_is_optional_validated_and_all_or_none(toy_dataset, tmp_path):
+    import shutil
+
+    ds = load_dataset(toy_dataset)
+    assert not ds.has_head_poses and all(f.head_pose is None for f in ds.frames)
+    posed = tmp_path / "posed"
+    shutil.copytree(toy_dataset, posed)
+    tj = posed / "transforms.json"
+    meta = json.loads(tj.read_text())
+    c, s = np.cos(0.3), np.sin(0.3)
+    pose = [[c, 0, s, 0.01], [0, 1, 0, -0.02], [-s, 0, c, 0.03], [0, 0, 0, 1]]
+    for fr in meta["frames"]:
+        fr["head_pose"] = pose
+    tj.write_text(json.dumps(meta))
+    ds = load_dataset(posed)
+    assert ds.has_head_poses and np.allclose(ds.frames[3].head_pose, pose)
+    assert "head_pose" not in ds.frames[3].extra
+    # a non-rigid matrix, a malformed one, and a dataset where only some frames have one
+    for bad, msg in ((np.diag([2.0, 1, 1, 1]).tolist(), "rigid"), ([[1, 2], [3, 4]], "4x4"),
+                     ("eye", "4x4"), (None, "frames\\[2\\] lacks a head_pose")):
+        m = json.loads(json.dumps(meta))
+        if bad is None:
+            del m["frames"][2]["head_pose"]
+        else:
+            m["frames"][2]["head_pose"] = bad
+        tj.write_text(json.dumps(m))
+        with pytest.raises(DatasetError, match=f"transforms.json.*{msg}"):
+            load_dataset(posed)

@@ -13,6 +13,9 @@ Conventions: `transform_matrix` is camera-to-world with OpenGL camera axes (x ri
 camera looks down -z). Depth is z-depth (distance along the camera's viewing axis), which is
 also what the renderer returns because its ray directions have unit -z component.
 
+A frame may carry its rigid head pose `head_pose` (4x4 world-from-head, metres): either every
+frame has one or none does; without them the head is the world (the paper's still head).
+
 Every frame of the capture (splits `train` and `val`) has an integer `frame_index` that
 selects its deformation and appearance codes. Frames of synthetic-only splits
 (`reanimate`, `leakage`) have `frame_index: null`: they are rendered with frame 0's codes.
@@ -73,6 +76,7 @@ class Frame:
     frame_index: int | None  # code index; None for frames outside the capture
     depth_path: str | None = None
     extra: dict[str, Any] = field(default_factory=dict)
+    head_pose: np.ndarray | None = None  # (4, 4) float64 world-from-head, or None
 
 
 @dataclass
@@ -93,6 +97,11 @@ class Dataset:
     @property
     def expression_dim(self) -> int:
         return len(self.expression_names)
+
+    @property
+    def has_head_poses(self) -> bool:
+        """Whether the frames carry rigid head poses (all of them do, or none)."""
+        return self.frames[0].head_pose is not None
 
     @property
     def num_codes(self) -> int:
@@ -202,6 +211,26 @@ def _flat(values):
             yield v
 
 
+HEAD_POSE_TOL = 1e-4  # how far a head pose's rotation may be from orthonormal
+
+
+def _head_pose(fr: dict, w: str) -> np.ndarray | None:
+    """A frame's optional `head_pose`, validated: a finite rigid 4x4 (rotation with det +1,
+    last row 0 0 0 1)."""
+    if "head_pose" not in fr or fr["head_pose"] is None:
+        return None
+    raw = fr["head_pose"]
+    m = _numbers(raw, np.float64) if isinstance(raw, list) else None
+    if m is None or m.shape != (4, 4) or not np.all(np.isfinite(m)):
+        raise DatasetError(f"{w}: head_pose must be a finite 4x4 matrix of numbers")
+    R = m[:3, :3]
+    if (np.abs(R.T @ R - np.eye(3)).max() > HEAD_POSE_TOL or np.linalg.det(R) < 0
+            or np.abs(m[3] - [0, 0, 0, 1]).max() > HEAD_POSE_TOL):
+        raise DatasetError(f"{w}: head_pose must be rigid (a rotation, a translation and a "
+                           "last row 0 0 0 1)")
+    return m
+
+
 def load_dataset(root: str | os.PathLike, check_files: bool = True) -> Dataset:
     """Read and validate a dataset; any problem becomes one DatasetError naming the file."""
     root = Path(root)
@@ -263,7 +292,7 @@ def load_dataset(root: str | os.PathLike, check_files: bool = True) -> Dataset:
         if fi is not None and (not isinstance(fi, int) or fi < 0):
             raise DatasetError(f"{w}: frame_index must be a non-negative integer or null")
         known = {"file_path", "mask_path", "depth_path", "transform_matrix", "expression",
-                 "frame_index"}
+                 "frame_index", "head_pose"}
         frames.append(
             Frame(
                 position=i,
@@ -274,8 +303,14 @@ def load_dataset(root: str | os.PathLike, check_files: bool = True) -> Dataset:
                 frame_index=fi,
                 depth_path=fr.get("depth_path"),
                 extra={k: v for k, v in fr.items() if k not in known},
+                head_pose=_head_pose(fr, w),
             )
         )
+    posed = [f.head_pose is not None for f in frames]
+    if any(posed) and not all(posed):
+        raise DatasetError(f"{where}: frames[{posed.index(not posed[0])}] "
+                           f"{'lacks' if posed[0] else 'has'} a head_pose that frames[0] "
+                           f"{'has' if posed[0] else 'lacks'} (give every frame one, or none)")
     splits_raw = _require(meta, "splits", where, dict)
     splits: dict[str, list[int]] = {}
     for name, idx in splits_raw.items():
@@ -416,9 +451,11 @@ class DatasetWriter:
         verts: np.ndarray,
         depth: np.ndarray | None = None,
         extra: dict[str, Any] | None = None,
+        head_pose: np.ndarray | None = None,
     ) -> int:
         """Add one frame. rgb (H, W, 3) uint8 or float in [0, 1]; mask (H, W) bool;
-        verts (V, 3) world-space face-mesh vertices. Returns the frame's position."""
+        verts (V, 3) world-space face-mesh vertices; head_pose (4, 4) world-from-head or
+        None (give it for every frame or for none). Returns the frame's position."""
         import imageio.v3 as iio
 
         pos = len(self.meta["frames"])
@@ -440,6 +477,8 @@ class DatasetWriter:
             entry["depth_path"] = f"depth/{name}.npy"
         if extra:
             entry.update(extra)
+        if head_pose is not None:
+            entry["head_pose"] = np.asarray(head_pose, np.float64).tolist()
         self.meta["frames"].append(entry)
         self.meta["splits"].setdefault(split, []).append(pos)
         self.verts.append(np.asarray(verts, np.float32))
