@@ -130,6 +130,21 @@ class ExpressionRegionsConfig:
 
 
 @dataclass
+class HeadConfig:
+    """Following a moving head (datasets with per-frame `head_pose`; docs/head_pose.md):
+    points in the head's region are taken into the head's canonical frame by the frame's
+    rigid pose before the deformation field; the background stays in the world."""
+
+    follow: bool = True
+    """Use the dataset's head poses (off: treat the head as part of the static world)."""
+    region_scale: float = 1.0
+    """Grows the head's ellipsoid (fitted around frame 0's face mesh) about its centre."""
+    band: float = 0.35
+    """Width of the blend from head motion to the static world, as a fraction of the
+    ellipsoid's radius: full head motion inside, none beyond 1 + band."""
+
+
+@dataclass
 class ModelConfig:
     expression_mode: ExpressionMode = "masked"
     """`masked`: β only on rays through the face silhouette (the paper's spatial prior);
@@ -142,6 +157,7 @@ class ModelConfig:
     mesh_guide: MeshGuideConfig = _field(default_factory=MeshGuideConfig)
     expression_regions: ExpressionRegionsConfig = _field(
         default_factory=ExpressionRegionsConfig)
+    head: HeadConfig = _field(default_factory=HeadConfig)
 
 
 @dataclass

@@ -78,6 +78,35 @@ def matrix_to_rotvec(R: np.ndarray) -> np.ndarray:
     return Rotation.from_matrix(R).as_rotvec()
 
 
+def se3_log(T: np.ndarray) -> np.ndarray:
+    """Rigid transforms (*bs, 4, 4) -> twists (*bs, 6): rotation vector ω then v, such that
+    T = exp([ω, v]) (MR eq. 3.88: p = G(ω) v with G = I + b W + c W²), so that exp(s·ξ)
+    moves along the same screw by the fraction s (model/se3.apply_se3 applies it)."""
+    T = np.asarray(T, np.float64)
+    w = matrix_to_rotvec(T[..., :3, :3])
+    theta = np.linalg.norm(w, axis=-1)[..., None, None]
+    small = theta < 1e-6
+    t = np.where(small, 1.0, theta)
+    b = np.where(small, 0.5 - theta ** 2 / 24, (1 - np.cos(t)) / t ** 2)
+    c = np.where(small, 1.0 / 6 - theta ** 2 / 120, (t - np.sin(t)) / t ** 3)
+    W = np.zeros(w.shape[:-1] + (3, 3))
+    W[..., 0, 1], W[..., 0, 2], W[..., 1, 2] = -w[..., 2], w[..., 1], -w[..., 0]
+    W = W - np.swapaxes(W, -1, -2)
+    G = np.eye(3) + b * W + c * (W @ W)
+    v = np.linalg.solve(G, T[..., :3, 3:])[..., 0]
+    return np.concatenate([w, v], -1)
+
+
+def euler_head(yaw_deg: float, pitch_deg: float, roll_deg: float) -> np.ndarray:
+    """Rotation (3, 3) of a head in its own axes (x: the subject's left, y: up, z: out of
+    the face): yaw > 0 turns the face towards +x, pitch > 0 raises the chin (looks up),
+    roll > 0 tilts the top of the head towards +x; applied roll, then pitch, then yaw."""
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_euler("YXZ", [yaw_deg, -pitch_deg, -roll_deg], degrees=True
+                               ).as_matrix()
+
+
 def quat_wxyz_to_matrix(wxyz: np.ndarray) -> np.ndarray:
     """A quaternion (w, x, y, z), any norm -> its rotation matrix (3, 3)."""
     from scipy.spatial.transform import Rotation

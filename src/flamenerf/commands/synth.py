@@ -13,7 +13,8 @@ def synth(
     seed: int = 0,
     size: int = 256,
     frames: int = 300,
-    sway: float = 1.0,
+    sway: float | None = None,
+    head_motion: bool = False,
     reanimate: int | None = None,
     leakage_steps: int = 3,
     workers: int = 0,
@@ -26,7 +27,10 @@ def synth(
     (14 expression controls named after ARKit blendshapes). Writes RGB, z-depth, face
     masks, face-mesh vertices, cameras and expressions; splits train/val (the capture),
     reanimate (novel expressions from novel cameras) and leakage (one control at a time
-    from a fixed camera). The same seed always gives the same bytes. See
+    from a fixed camera). With --head-motion the head also turns (+-25 deg yaw, +-10 deg
+    pitch) and shifts (a few cm) independently of the camera against a static room; each
+    frame records its head pose, and a novel_pose split (novel head poses x cameras x
+    expressions) is added. The same seed always gives the same bytes. See
     docs/synthetic_scene.md.
 
     Example: flamenerf synth scenes/portrait --size 128 --frames 120
@@ -37,7 +41,10 @@ def synth(
         size: Image width and height in pixels.
         frames: Number of capture frames (train + val; val is every 10th).
         sway: Body/background sway amplitude (about this many degrees, 3x this many mm);
-            0 makes everything but the face static.
+            0 makes everything but the face static (default 1; 0 with --head-motion,
+            which needs the room static).
+        head_motion: The head turns and shifts independently of the camera (ground-truth
+            head poses in transforms.json as head_pose).
         reanimate: Number of re-animation frames (default: frames / 10).
         leakage_steps: Values per control in the leakage sweep (1/steps .. 1).
         workers: Render processes (0: one per CPU core, at most 4).
@@ -48,6 +55,11 @@ def synth(
     from flamenerf.errors import UserError
     from flamenerf.synthetic.scene import frame_specs, make_scene
 
+    if sway is None:
+        sway = 0.0 if head_motion else 1.0
+    elif head_motion and sway != 0:
+        raise UserError(f"--sway {sway}: with --head-motion the room is the static world; "
+                        "leave --sway out (or give 0)")
     if size < 16 or size > 4096:
         raise UserError(f"--size {size}: must be between 16 and 4096")
     if frames < 1:
@@ -58,10 +70,10 @@ def synth(
         raise UserError(f"--leakage-steps {leakage_steps}: must be >= 0")
     if out.exists() and not overwrite:
         raise UserError(f"{out}: already exists (pass --overwrite to replace it)")
-    total = len(frame_specs(seed, frames, sway, reanimate, leakage_steps))
+    total = len(frame_specs(seed, frames, sway, reanimate, leakage_steps, head_motion))
     with tqdm(total=total, desc="synth", unit="frame") as bar:
         path = make_scene(out, seed=seed, size=size, frames=frames, sway=sway,
                           reanimate=reanimate, leakage_steps=leakage_steps,
-                          overwrite=overwrite, workers=workers,
+                          overwrite=overwrite, workers=workers, head_motion=head_motion,
                           progress=lambda n: bar.update(n - bar.n))
     print(f"wrote {path} ({total} frames)")

@@ -45,12 +45,17 @@ class RayBatch:
     appearance_code: Tensor  # (R, appearance_dim) φ
     expression: Tensor  # (R, E) β
     face_ray: Tensor  # (R,) bool: the ray passes through the face silhouette
+    # (R, 6) twist log(T) of the ray's frame's canonical-from-world head transform
+    # (data/head_pose.py); None: the head is the world (no head poses)
+    head: Tensor | None = None
 
     def __getitem__(self, s) -> "RayBatch":
-        return RayBatch(*(getattr(self, k)[s] for k in self.__dataclass_fields__))
+        return RayBatch(*(None if getattr(self, k) is None else getattr(self, k)[s]
+                          for k in self.__dataclass_fields__))
 
     def __len__(self) -> int:
         return self.origins.shape[0]
 
     def to(self, device) -> "RayBatch":
-        return RayBatch(*(getattr(self, k).to(device) for k in self.__dataclass_fields__))
+        return RayBatch(*(None if getattr(self, k) is None else getattr(self, k).to(device)
+                          for k in self.__dataclass_fields__))

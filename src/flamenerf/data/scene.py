@@ -6,6 +6,7 @@ import numpy as np
 import torch
 
 from flamenerf.data.dataset import Dataset, Frame, Intrinsics
+from flamenerf.data.head_pose import canonical_vertices, head_region, head_twists
 from flamenerf.data.rays import RayBatch, pixel_directions
 from flamenerf.data.prior import training_mask
 from flamenerf.images import resize_image
@@ -31,21 +32,31 @@ def scene_box(ds: Dataset, margin: float = 0.05) -> tuple[list[float], list[floa
     return (lo - pad).tolist(), (hi + pad).tolist()
 
 
+def model_head_region(cfg, ds: Dataset) -> dict | None:
+    """The head region a model built for `ds` with config `cfg` follows (its init argument
+    `head_region`), or None: no head poses, or `model.head.follow` off."""
+    if not (ds.has_head_poses and cfg.model.head.follow):
+        return None
+    return head_region(ds, cfg.model.head.region_scale).to_dict()
+
+
 def fit_dataset_expression_model(ds: Dataset, ridge: float = 1e-3
                                  ) -> tuple[torch.Tensor, torch.Tensor]:
-    """The subject's linear β -> mesh model fitted on the training frames' face meshes.
+    """The subject's linear β -> mesh model fitted on the training frames' face meshes, in
+    the canonical frame (the head at frame 0's pose; the world without head poses).
     -> neutral (V, 3), basis (E, V, 3) in world units."""
     train = ds.split("train") or [f for f in ds.frames if f.frame_index is not None]
     return fit_expression_model(torch.from_numpy(ds.expression_matrix(train)),
-                                torch.from_numpy(ds.face_vertices[[f.position for f in train]]),
-                                ridge)
+                                torch.from_numpy(canonical_vertices(ds, train)), ridge)
 
 
 class FrameSet:
     """Frames of a dataset held as tensors at one resolution.
 
     images (N, H, W, 3), masks (N, H, W) bool, c2w (N, 4, 4), frame_index (N,) long
-    (frames outside the capture use code 0), expressions (N, E), face_vertices (N, V, 3).
+    (frames outside the capture use code 0), expressions (N, E), face_vertices (N, V, 3)
+    world; with head poses, head (N, 6): the twists of the frames' canonical-from-world
+    head transforms (data/head_pose.py), else None.
     """
 
     def __init__(self, ds: Dataset, frames: list[Frame], intr: Intrinsics,
@@ -62,9 +73,17 @@ class FrameSet:
             [0 if f.frame_index is None else f.frame_index for f in frames], dtype=torch.long)
         self.expressions = torch.from_numpy(ds.expression_matrix(frames))
         self.face_vertices = torch.from_numpy(ds.face_vertices[[f.position for f in frames]])
+        tw = head_twists(ds, frames)
+        self.head = None if tw is None else torch.from_numpy(tw)
+        self._canonical_vertices = (self.face_vertices if tw is None else
+                                    torch.from_numpy(canonical_vertices(ds, frames)))
         self.faces = torch.from_numpy(ds.faces).long()
         self.dirs_cam = pixel_directions(intr)  # (H, W, 3)
         self.n = n
+
+    def head_of(self, i: int) -> torch.Tensor | None:
+        """Frame i's head twist (6,), or None without head poses."""
+        return None if self.head is None else self.head[i]
 
     def rays(self, fi: torch.Tensor, ys: torch.Tensor, xs: torch.Tensor):
         """Rays of pixels (fi, ys, xs), each (B,) long -> origins (B, 3), dirs (B, 3)."""
@@ -99,11 +118,14 @@ class FrameSet:
         -> (RayBatch on `device`, target rgb (B, 3))."""
         o, d = self.rays(fi, ys, xs)
         rays = RayBatch(o.to(device), d.to(device), deform_code, appearance_code,
-                        self.expressions[fi].to(device), self.masks[fi, ys, xs].to(device))
+                        self.expressions[fi].to(device), self.masks[fi, ys, xs].to(device),
+                        None if self.head is None else self.head[fi].to(device))
         return rays, self.images[fi, ys, xs].to(device)
 
     def face_points(self, fi: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
-        """One uniformly random point on the face mesh of each frame in fi. -> (B, 3) world."""
+        """One uniformly random point on the face mesh of each frame in fi, in the canonical
+        frame (where the deformation field sees it; the world without head poses).
+        -> (B, 3)."""
         tri = torch.randint(len(self.faces), (len(fi),), generator=generator)
         uv = torch.rand(len(fi), 2, generator=generator)
-        return surface_points(self.face_vertices, self.faces, tri, uv, which=fi)
+        return surface_points(self._canonical_vertices, self.faces, tri, uv, which=fi)

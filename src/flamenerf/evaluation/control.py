@@ -34,11 +34,13 @@ from flamenerf.data.prior import prior_mask
 
 def expressive_faces(ds: Dataset, fraction: float = 0.2) -> np.ndarray:
     """Triangles of the face mesh that move with the expression: those with a vertex whose
-    motion over the training frames (RMS distance from its mean position, the rigid sway
-    removed by subtracting each frame's mesh centroid) exceeds `fraction` of the largest.
-    -> (F', 3) int."""
-    train = [f.position for f in ds.split("train")] or [f.position for f in ds.frames]
-    v = ds.face_vertices[train].astype(np.float64)
+    motion over the training frames (RMS distance from its mean position, in the head's
+    canonical frame, the rigid sway removed by subtracting each frame's mesh centroid)
+    exceeds `fraction` of the largest. -> (F', 3) int."""
+    from flamenerf.data.head_pose import canonical_vertices
+
+    train = ds.split("train") or [f for f in ds.frames if f.frame_index is not None]
+    v = canonical_vertices(ds, train).astype(np.float64)
     v = v - v.mean(1, keepdims=True)
     motion = np.sqrt(((v - v.mean(0)) ** 2).sum(-1).mean(0))  # (V,)
     moving = motion > fraction * motion.max()
@@ -75,7 +77,7 @@ def driven(model: FlameNeRF, ds: Dataset, fs: FrameSet, omega0: torch.Tensor,
     rows, preds = [], []
     for i in range(fs.n):
         out = render_image(model, fs.intr, fs.c2w[i], omega0, phi0, fs.expressions[i],
-                           fs.masks[i], chunk=chunk)
+                           fs.masks[i], chunk=chunk, head=fs.head_of(i))
         pred = out["rgb"].numpy()
         preds.append(pred)
         row = {"position": fs.frames[i].position}

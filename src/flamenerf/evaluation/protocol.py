@@ -14,6 +14,8 @@ control           re-tracked response of the renders to commanded controls (cont
                   ground truth; elsewhere a sweep over each control's training range.
 reanimate         the built-in scene only: frame 0's codes, the split's expressions, novel
                   cameras and masks, compared with the rendered ground truth.
+novel_pose        the built-in scene with --head-motion only: as reanimate, with novel head
+                  poses too (each frame's ground-truth pose as the head-pose control).
 leakage           the built-in scene only: frame 0's camera and codes while the expression
                   sweeps one control at a time. Leakage = mean absolute per-pixel change
                   (0-255) outside the dilated union of the sweep's face masks, relative to
@@ -93,7 +95,7 @@ def render_frames(model: FlameNeRF, fs: FrameSet, omega: torch.Tensor, phi: torc
     out = []
     for i in range(fs.n):
         r = render_image(model, fs.intr, fs.c2w[i], omega[i], phi[i], fs.expressions[i],
-                         fs.masks[i], chunk=chunk)
+                         fs.masks[i], chunk=chunk, head=fs.head_of(i))
         out.append(r["rgb"].numpy())
     return out
 
@@ -229,7 +231,8 @@ def evaluate_run(run, ds: Dataset, opts: EvalOptions, out_dir: Path | None = Non
         "resolution": [intr.w, intr.h],
         "device": str(run.device),
         "protocol": asdict(opts),
-        "heldout": None, "driven": None, "reanimate": None, "leakage": None, "control": None,
+        "heldout": None, "driven": None, "reanimate": None, "novel_pose": None,
+        "leakage": None, "control": None,
     }
     images: dict[str, np.ndarray] = {}
     frames = ds.split(opts.split)
@@ -269,6 +272,13 @@ def evaluate_run(run, ds: Dataset, opts: EvalOptions, out_dir: Path | None = Non
         res["reanimate"], preds = reanimation(model, fs, omega0, phi0, opts.chunk)
         for k in range(min(opts.num_images, fs.n)):
             images[f"reanimate_{k:02d}.png"] = _triptych(fs, k, preds[k])
+    if ds.splits.get("novel_pose"):
+        fs = FrameSet(ds, ds.split("novel_pose"), intr)
+        log(f"novel-pose re-animation: {fs.n} frames (novel head poses, cameras and "
+            "expressions)")
+        res["novel_pose"], preds = reanimation(model, fs, omega0, phi0, opts.chunk)
+        for k in range(min(opts.num_images, fs.n)):
+            images[f"novel_pose_{k:02d}.png"] = _triptych(fs, k, preds[k])
     if ds.splits.get("leakage") and len(ds.splits["leakage"]) >= 2:
         fs = FrameSet(ds, ds.split("leakage"), intr)
         log(f"leakage: {fs.n} frames (expression sweep, fixed camera)")

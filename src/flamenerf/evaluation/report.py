@@ -146,7 +146,9 @@ def eval_markdown(res: dict[str, Any]) -> str:
          "| split | frames | MSE ↓ | PSNR ↑ | SSIM ↑ | PSNR face ↑ | PSNR background ↑ |",
          "|---|--:|--:|--:|--:|--:|--:|"]
     for key, title in (("heldout", f"{p.get('split', 'val')} (held-out, ω fitted)"),
-                       ("reanimate", "reanimate (ω_0, φ_0; novel expressions and cameras)")):
+                       ("reanimate", "reanimate (ω_0, φ_0; novel expressions and cameras)"),
+                       ("novel_pose", "novel_pose (ω_0, φ_0; novel head poses, expressions "
+                                      "and cameras)")):
         s = res.get(key)
         if s:
             L.append(f"| {title} | {s['num_frames']} | {fmt_mse(s.get('mse'))} | "

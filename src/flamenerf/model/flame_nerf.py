@@ -2,6 +2,10 @@
 
 One class for every preset; the config picks the field (`mlp`/`hash`), the sampler
 (`hierarchical`/`proposal`) and the expression mode (`masked`/`none`/`everywhere`).
+
+A model built with a `head_region` (datasets with head poses, `model.head.follow`) takes
+points into the head's canonical frame before anything else sees them (`head_points`);
+without one, or for rays without a head transform, points are exactly as before.
 """
 
 from __future__ import annotations
@@ -16,13 +20,14 @@ from flamenerf.meshes import expression_mesh, mesh_displacement, surface_points
 from flamenerf.model.field import ProposalField, make_field
 from flamenerf.model.render import (composite, interlevel_loss, render_weights, sample_pdf,
                                     stratified_samples)
+from flamenerf.model.se3 import apply_se3
 from flamenerf.model.warp import SE3Field
 
 
 class FlameNeRF(nn.Module):
     def __init__(self, cfg: ModelConfig, num_codes: int, expr_dim: int, near: float,
                  far: float, box_min: list[float], box_max: list[float],
-                 mesh_vertices: int = 0, mesh_faces: int = 0):
+                 mesh_vertices: int = 0, mesh_faces: int = 0, head_region: dict | None = None):
         super().__init__()
         self.cfg = cfg
         self.near, self.far = float(near), float(far)
@@ -44,6 +49,16 @@ class FlameNeRF(nn.Module):
             self.register_buffer("mesh_faces", torch.zeros(mesh_faces, 3, dtype=torch.long))
             # (V, E): how much of control k's β each vertex's neighbourhood receives
             self.register_buffer("mesh_regions", torch.zeros(mesh_vertices, expr_dim))
+        # the head's ellipsoid (data/head_pose.HeadRegion.to_dict, world units), kept in
+        # init_args so that a loaded run rebuilds it; buffers for the device only
+        self.follows_head = head_region is not None and cfg.head.follow
+        if self.follows_head:
+            self.init_args["head_region"] = {k: [list(map(float, r)) if isinstance(r, list)
+                                                 else float(r) for r in v]
+                                             for k, v in head_region.items()}
+            for k in ("centre", "axes", "radii"):
+                self.register_buffer(f"head_{k}", torch.tensor(head_region[k]).float(),
+                                     persistent=False)
         bmin, bmax = torch.tensor(box_min), torch.tensor(box_max)
         self.register_buffer("center", (bmin + bmax) / 2)
         # isotropic scale, so that rigid warps in normalised space are rigid in the world
@@ -172,6 +187,32 @@ class FlameNeRF(nn.Module):
             e = e * face_ray[:, None].to(e)
         return e
 
+    def head_weight(self, x: Tensor) -> Tensor:
+        """How much of the head's motion canonical points x (*bs, 3) (world units) take:
+        1 inside the head's ellipsoid, a smoothstep down to 0 at 1 + band times its radius
+        (the neck and hair blend into the static world). -> (*bs,)"""
+        q = ((x - self.head_centre) @ self.head_axes) / self.head_radii
+        band = self.cfg.head.band
+        s = ((1 + band - q.norm(dim=-1)) / band).clamp(0, 1)
+        return s * s * (3 - 2 * s)
+
+    def head_points(self, x: Tensor, dirs: Tensor, head: Tensor | None
+                    ) -> tuple[Tensor, Tensor]:
+        """World samples x (R, S, 3) and ray directions (R, 3) of rays with head twists
+        ξ (R, 6) -> canonical samples (R, S, 3) and directions (R, 3): a sample moves by
+        exp(w ξ) with w = head_weight of where the full motion exp(ξ) takes it, so the head
+        follows its pose and the background stays put. A ray's direction turns with the
+        most head-bound of its samples (the view direction of what it sees when it meets
+        the head; per ray, so that a still head leaves every tensor as without one).
+        Without a head region or twists: x and dirs unchanged."""
+        if not self.follows_head or head is None:
+            return x, dirs
+        w_rot, v = head[:, None, :3], head[:, None, 3:]
+        w = self.head_weight(apply_se3(w_rot, v, x))[..., None]  # (R, S, 1)
+        xc = apply_se3(w * w_rot, w * v, x)
+        dc = apply_se3(w.amax(1) * head[:, :3], torch.zeros_like(dirs), dirs)
+        return xc, dc
+
     def normalize(self, x: Tensor) -> Tensor:
         return (x - self.center) / self.half_extent
 
@@ -197,10 +238,12 @@ class FlameNeRF(nn.Module):
     def _query_rays(self, field, rays: RayBatch, t: Tensor, expr: Tensor | None):
         """Samples at depths t (R, S) along each ray -> σ (R, S), rgb (R, S, 3). The ray's
         conditioning goes in once per ray, shaped (R, 1, ·), and broadcasts over samples."""
-        xn = self.normalize(rays.origins[:, None] + t[..., None] * rays.dirs[:, None])
+        x, d = self.head_points(rays.origins[:, None] + t[..., None] * rays.dirs[:, None],
+                                rays.dirs, rays.head)
+        xn = self.normalize(x)
         expr_pts = self.region_expression(xn, expr)
         xn = self.guide_points(xn, expr)
-        dn = F.normalize(rays.dirs, dim=-1)
+        dn = F.normalize(d, dim=-1)
 
         def per_ray(v):
             return None if v is None else v[:, None]
@@ -267,7 +310,9 @@ class FlameNeRF(nn.Module):
         R, P, dev = len(rays), s.num_proposal, rays.origins.device
         edges_p = torch.linspace(self.near, self.far, P + 1, device=dev).expand(R, P + 1)
         t_p = stratified_samples(self.near, self.far, R, P, jitter, dev, generator)
-        xn = self.normalize(rays.origins[:, None] + t_p[..., None] * rays.dirs[:, None])
+        x, _ = self.head_points(rays.origins[:, None] + t_p[..., None] * rays.dirs[:, None],
+                                rays.dirs, rays.head)
+        xn = self.normalize(x)
         sig_p = self.proposal.density(xn, None if expr is None else expr[:, None])  # (R, P)
         scale = rays.dirs.norm(dim=-1, keepdim=True) / self.half_extent
         w_p = render_weights(sig_p, (edges_p[:, 1:] - edges_p[:, :-1]) * scale)

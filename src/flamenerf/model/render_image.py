@@ -14,11 +14,13 @@ from flamenerf.model.flame_nerf import FlameNeRF, RayBatch
 def render_image(model: FlameNeRF, intr: Intrinsics, c2w: np.ndarray | torch.Tensor,
                  deform_code: torch.Tensor, appearance_code: torch.Tensor,
                  expression: torch.Tensor, face_mask: np.ndarray | torch.Tensor,
-                 chunk: int = 8192) -> dict[str, torch.Tensor]:
+                 chunk: int = 8192, head: torch.Tensor | None = None
+                 ) -> dict[str, torch.Tensor]:
     """One camera, one set of codes -> rgb (H, W, 3), depth (H, W), acc (H, W) on CPU.
 
     deform_code (D,), appearance_code (A,), expression (E,), face_mask (H, W) bool: the
-    spatial prior's silhouette for this camera and expression.
+    spatial prior's silhouette for this camera and expression; head (6,): the twist of the
+    frame's canonical-from-world head transform (data/head_pose.py), or None.
     """
     dev = next(model.parameters()).device
     origins, dirs = camera_rays(intr, c2w, dev)
@@ -30,7 +32,7 @@ def render_image(model: FlameNeRF, intr: Intrinsics, c2w: np.ndarray | torch.Ten
         m = min(chunk, n - s)
         rays = RayBatch(o[s:s + m], d[s:s + m], deform_code.to(dev).expand(m, -1),
                         appearance_code.to(dev).expand(m, -1), expression.to(dev).expand(m, -1),
-                        mask[s:s + m])
+                        mask[s:s + m], None if head is None else head.to(dev).expand(m, -1))
         out = model(rays)
         for k in outs:
             outs[k].append(out[k].cpu())

@@ -50,7 +50,7 @@ class View:
     rgb: np.ndarray  # (H, W, 3) float32 in [0, 1]
     depth: np.ndarray  # (H, W) float32 z-depth (metres) of the pixel-centre ray
     mask: np.ndarray  # (H, W) bool: the face mesh's silhouette (dilated)
-    face_vertices: np.ndarray  # (V, 3) float32, world
+    face_vertices: np.ndarray  # (V, 3) float32, world (posed by the head pose)
 
 
 def shade(albedo: torch.Tensor, normal: torch.Tensor) -> torch.Tensor:
@@ -92,18 +92,33 @@ class SyntheticScene:
     # ------------------------------------------------------------------ rendering
 
     def render(self, c2w: np.ndarray, expression, body_pose: np.ndarray | None = None,
-               intr: Intrinsics | None = None) -> View:
+               intr: Intrinsics | None = None, head_pose: np.ndarray | None = None) -> View:
         """Render one frame: camera-to-world c2w (4, 4, OpenGL axes), expression
         (num_controls,) in [0, 1], world-from-body pose (default identity), intrinsics
-        (default the scene's)."""
+        (default the scene's), world-from-head pose (default identity: the head is the
+        world, as in the paper's capture).
+
+        The head is ray-marched in its own frame (the camera taken there by the inverse
+        head pose) and shaded with its own-frame normals: its light turns with it, so a
+        rigid head model can reproduce any head pose exactly (real heads' shading changes
+        under a turn are not modelled)."""
         intr = intr or self.intr
         st = self.head.state(expression)
         c2w = np.asarray(c2w, np.float64)
         o = tuple(float(x) for x in c2w[:3, 3])
         d = _ray_dirs(intr, torch.tensor(c2w, dtype=torch.float32))  # (K, 3, N)
         K, _, N = d.shape
-        t_head = self._march_head(st, o, d, intr).reshape(-1)  # (K*N,)
+        if head_pose is None:
+            o_h, d_h, verts = o, d, st.vertices
+        else:  # rigid: the ray parameter t is the same in both frames
+            hp = np.asarray(head_pose, np.float64)
+            c2h = np.linalg.inv(hp) @ c2w
+            o_h = tuple(float(x) for x in c2h[:3, 3])
+            d_h = _ray_dirs(intr, torch.tensor(c2h, dtype=torch.float32))
+            verts = (st.vertices @ hp[:3, :3].T + hp[:3, 3]).astype(np.float32)
+        t_head = self._march_head(st, o_h, d_h, intr).reshape(-1)  # (K*N,)
         dx, dy, dz = (d[:, c].reshape(-1) for c in range(3))
+        hx, hy, hz = (d_h[:, c].reshape(-1) for c in range(3))
         pose = np.eye(4) if body_pose is None else np.asarray(body_pose, np.float64)
         tr = self.backdrop.trace(o, dx, dy, dz, pose, candidates=_box_culler(intr, c2w, pose, K))
         # depth from the centre rays; colour from the 2 x 2 sub-pixel rays
@@ -117,18 +132,18 @@ class SyntheticScene:
             ids = pos + N
             if is_head:
                 th = t_head.index_select(0, ids)
-                px = o[0] + th * dx.index_select(0, ids)
-                py = o[1] + th * dy.index_select(0, ids)
-                pz = o[2] + th * dz.index_select(0, ids)
+                px = o_h[0] + th * hx.index_select(0, ids)
+                py = o_h[1] + th * hy.index_select(0, ids)
+                pz = o_h[2] + th * hz.index_select(0, ids)
                 alb, n = self.head.surface(st, px, py, pz)
             else:
                 alb, n = self.backdrop.surface(tr, ids)
             colour.index_copy_(1, pos, shade(alb, n))
         rgb = colour.clamp(0, 1).reshape(3, K - 1, intr.h, intr.w).mean(1).permute(1, 2, 0)
         dilate = self.mask_dilate if intr is self.intr else mask_dilation(intr)
-        mask = rasterize_silhouette(st.vertices, self.faces, intr, c2w, dilate)
+        mask = rasterize_silhouette(verts, self.faces, intr, c2w, dilate)
         return View(rgb=rgb.contiguous().numpy(), depth=depth.numpy().astype(np.float32),
-                    mask=mask, face_vertices=st.vertices)
+                    mask=mask, face_vertices=verts)
 
     # ------------------------------------------------------------------ head marching
 

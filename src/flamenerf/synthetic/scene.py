@@ -9,8 +9,16 @@ Splits (positions in the one frame list, in this order):
   leakage      frame 0's camera and body pose; neutral, then each control alone at
                1/steps .. 1; frame_index null; each frame records `leakage_control` and
                `leakage_value`.
+  novel_pose   with --head-motion only: novel head poses x novel cameras x novel
+               expressions (independent draws); frame_index null.
 Every frame records its world-from-body pose (`body_pose`), so `scene_from_dataset(ds)`
 can re-render ground truth for any frame, camera or expression.
+
+With `head_motion`, the world is the room (static: body_pose is the identity) and the head
+turns and shifts in it (synthetic/motion.py): every frame stores its world-from-head pose
+as the dataset's `head_pose`, and its face mesh posed by it. The reanimate and leakage
+splits keep frame 0's head pose. Without it the head is the world, as in the paper's
+capture, and frames carry no head_pose.
 """
 
 from __future__ import annotations
@@ -39,6 +47,7 @@ class FrameSpec:
     expression: np.ndarray  # (num_controls,)
     body_pose: np.ndarray  # (4, 4) world-from-body
     extra: dict[str, Any] = field(default_factory=dict)
+    head_pose: np.ndarray | None = None  # (4, 4) world-from-head; None: the head is the world
 
 
 def capture_split(t: int, frames: int) -> str:
@@ -55,18 +64,21 @@ def default_reanimate(frames: int) -> int:
 
 
 def frame_specs(seed: int, frames: int, sway: float, reanimate: int | None = None,
-                leakage_steps: int = 3) -> list[FrameSpec]:
-    """Every frame of the scene, in dataset order (train/val, reanimate, leakage)."""
+                leakage_steps: int = 3, head_motion: bool = False) -> list[FrameSpec]:
+    """Every frame of the scene, in dataset order (train/val, reanimate, leakage, and with
+    head_motion novel_pose)."""
     from flamenerf.synthetic.background import sway_pose
+    from flamenerf.synthetic.motion import head_motion_path, novel_head_poses
 
     specs: list[FrameSpec] = []
     c2ws, angles = capture_path(frames, seed)
     exprs = speech_trajectory(frames, seed, stream=0)
+    heads = head_motion_path(frames, seed) if head_motion else [None] * frames
     for t in range(frames):
         pose = sway_pose(t, sway, seed)
         specs.append(FrameSpec(capture_split(t, frames), t, c2ws[t], exprs[t], pose,
-                               {"body_pose": pose.tolist()}))
-    pose0 = sway_pose(0, sway, seed)
+                               {"body_pose": pose.tolist()}, heads[t]))
+    pose0, head0 = sway_pose(0, sway, seed), heads[0] if frames else None
     n_re = default_reanimate(frames) if reanimate is None else reanimate
     if n_re > 0:
         cams = novel_path(n_re, seed)
@@ -74,13 +86,21 @@ def frame_specs(seed: int, frames: int, sway: float, reanimate: int | None = Non
         ex = speech_trajectory(3 * n_re, seed, stream=1)[::3]
         for i in range(n_re):
             specs.append(FrameSpec("reanimate", None, cams[i], ex[i], pose0,
-                                   {"body_pose": pose0.tolist()}))
+                                   {"body_pose": pose0.tolist()}, head0))
     if leakage_steps > 0:
         sweep, labels = leakage_sweep(leakage_steps)
         for x, (name, value) in zip(sweep, labels):
             specs.append(FrameSpec("leakage", None, c2ws[0], x, pose0,
                                    {"body_pose": pose0.tolist(), "leakage_control": name,
-                                    "leakage_value": float(value)}))
+                                    "leakage_value": float(value)}, head0))
+    if head_motion and n_re > 0:
+        # novel cameras (the re-animation loop, shifted by half a step), expressions (a
+        # third independent trajectory) and head poses
+        cams = novel_path(2 * n_re, seed)[1::2]
+        ex = speech_trajectory(3 * n_re, seed, stream=2)[::3]
+        for i, hp in enumerate(novel_head_poses(n_re, seed)):
+            specs.append(FrameSpec("novel_pose", None, cams[i], ex[i], pose0,
+                                   {"body_pose": pose0.tolist()}, hp))
     return specs
 
 
@@ -100,7 +120,8 @@ def _init_worker(seed: int, size: int, sway: float) -> None:
 
 
 def _render_spec(spec: FrameSpec):
-    v = _WORKER_SCENE.render(spec.c2w, spec.expression, spec.body_pose)
+    v = _WORKER_SCENE.render(spec.c2w, spec.expression, spec.body_pose,
+                             head_pose=spec.head_pose)
     rgb = (np.clip(v.rgb, 0, 1) * 255 + 0.5).astype(np.uint8)
     return rgb, v.depth, v.mask, v.face_vertices
 
@@ -144,7 +165,8 @@ def render_frames(seed: int, size: int, sway: float, specs: list[FrameSpec],
 def make_scene(out: str | os.PathLike, seed: int = 0, size: int = 256, frames: int = 300,
                sway: float = 1.0, reanimate: int | None = None, leakage_steps: int = 3,
                overwrite: bool = False, workers: int = 0,
-               progress: Callable[[int], None] | None = None) -> Path:
+               progress: Callable[[int], None] | None = None, head_motion: bool = False
+               ) -> Path:
     """Render the synthetic portrait scene into a dataset directory `out`.
 
     seed: appearance, camera path, sway and expressions; size: image width = height;
@@ -152,7 +174,9 @@ def make_scene(out: str | os.PathLike, seed: int = 0, size: int = 256, frames: i
     re-animation frames (default frames / 10); leakage_steps: values per control in the
     leakage sweep; workers: render processes (0 = auto; they are spawned, so a script
     calling this with workers != 1 needs the usual `if __name__ == "__main__":` guard);
-    progress(n): called after each frame is written. Returns the dataset path."""
+    progress(n): called after each frame is written; head_motion: the head turns and
+    shifts independently of the camera against a static room (needs sway = 0; adds the
+    novel_pose split). Returns the dataset path."""
     from flamenerf import __version__
     from flamenerf.data.dataset import DatasetError, DatasetWriter
     from flamenerf.synthetic.cameras import intrinsics
@@ -162,12 +186,16 @@ def make_scene(out: str | os.PathLike, seed: int = 0, size: int = 256, frames: i
         raise DatasetError(f"{out}: size must be at least 16 pixels, got {size}")
     if frames < 1:
         raise DatasetError(f"{out}: frames must be at least 1, got {frames}")
-    specs = frame_specs(seed, frames, sway, reanimate, leakage_steps)
+    if head_motion and sway != 0:
+        raise DatasetError(f"{out}: with head motion the room is the static world; sway must "
+                           f"be 0, got {sway}")
+    specs = frame_specs(seed, frames, sway, reanimate, leakage_steps, head_motion)
     intr = intrinsics(size)
     source = {"name": SOURCE_NAME, "version": __version__, "seed": int(seed), "size": int(size),
               "frames": int(frames), "sway": float(sway),
               "reanimate": sum(s.split == "reanimate" for s in specs),
-              "leakage_steps": int(leakage_steps)}
+              "leakage_steps": int(leakage_steps),
+              **({"head_motion": True} if head_motion else {})}
     info = {"description": "synthetic face rig; controls named after ARKit blendshapes, "
                            "each in [0, 1] ('Left' = the subject's left, +x)"}
     from flamenerf.synthetic.render import mask_dilation
@@ -184,7 +212,8 @@ def make_scene(out: str | os.PathLike, seed: int = 0, size: int = 256, frames: i
                 raise RuntimeError(f"frame {i}: some rays see nothing (infinite depth)")
             lo, hi = min(lo, float(fin.min())), max(hi, float(fin.max()))
             writer.add_frame(rgb, mask, spec.c2w, spec.expression, spec.frame_index, spec.split,
-                             verts=verts, depth=depth, extra=spec.extra)
+                             verts=verts, depth=depth, extra=spec.extra,
+                             head_pose=spec.head_pose)
             if progress is not None:
                 progress(i + 1)
         writer.set_faces(SyntheticScene.mesh_faces())

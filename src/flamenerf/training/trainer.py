@@ -15,7 +15,8 @@ import torch
 from flamenerf import __version__
 from flamenerf.config import Config, from_dict
 from flamenerf.data.dataset import Dataset, load_dataset
-from flamenerf.data.scene import FrameSet, fit_dataset_expression_model, scene_box
+from flamenerf.data.scene import (FrameSet, fit_dataset_expression_model, model_head_region,
+                                  scene_box)
 from flamenerf.errors import Interrupted, UserError, warn
 from flamenerf.io import atomic_write_text, read_json
 from flamenerf.model.flame_nerf import FlameNeRF
@@ -70,7 +71,7 @@ def build_for_dataset(cfg: Config, ds: Dataset) -> FlameNeRF:
     V, nf = ds.face_vertices.shape[1], len(ds.faces)
     model = FlameNeRF(cfg.model, num_codes=ds.num_codes, expr_dim=ds.expression_dim,
                       near=ds.near, far=ds.far, box_min=lo, box_max=hi,
-                      mesh_vertices=V, mesh_faces=nf)
+                      mesh_vertices=V, mesh_faces=nf, head_region=model_head_region(cfg, ds))
     if model.uses_mesh_model:
         neutral, basis = fit_dataset_expression_model(ds, cfg.model.mesh_guide.ridge)
         model.set_expression_model(neutral, basis, torch.from_numpy(ds.faces).long())

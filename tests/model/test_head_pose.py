@@ -1,0 +1,133 @@
+"""Following a moving head: the transform's maths, the model's head region, and that a
+dataset without head poses (or with a head that never moves) trains exactly as before."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+import torch
+
+from flamenerf.data.head_pose import (HeadPoseKey, HeadRegion, control_transform,
+                                      head_pose_items)
+from flamenerf.errors import UserError
+from flamenerf.geometry import euler_head, se3_log
+from flamenerf.model.se3 import apply_se3
+
+
+def _rigid(rng) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = euler_head(*rng.uniform(-40, 40, 3))
+    T[:3, 3] = rng.uniform(-0.1, 0.1, 3)
+    return T
+
+
+def test_head_transform_round_trips_world_head_world():
+    rng = np.random.default_rng(0)
+    x = torch.from_numpy(rng.normal(0, 0.2, (50, 3)))
+    for _ in range(5):
+        T = _rigid(rng)
+        xi = torch.from_numpy(se3_log(T))
+        y = apply_se3(xi[None, :3], xi[None, 3:], x)  # world -> head (canonical)
+        assert torch.allclose(y, x @ torch.from_numpy(T[:3, :3]).T + torch.from_numpy(T[:3, 3]),
+                              atol=1e-10)
+        back = apply_se3(-xi[None, :3], -xi[None, 3:], y)  # head -> world
+        assert torch.allclose(back, x, atol=1e-10)
+    assert np.allclose(se3_log(np.eye(4)), 0)
+
+
+def test_control_transform_turns_the_head_about_its_centre():
+    region = HeadRegion(np.array([0.0, 0.01, -0.02]), np.eye(3), np.array([0.09, 0.12, 0.12]))
+    assert np.allclose(control_transform(HeadPoseKey(), region), np.eye(4))
+    T = control_transform(HeadPoseKey(yaw=30), region)
+    M = np.linalg.inv(T)  # the head's motion in the world
+    assert np.allclose(M[:3, :3] @ region.centre + M[:3, 3], region.centre)  # centre stays
+    nose = region.centre + [0, 0, 0.1]
+    assert (M[:3, :3] @ nose + M[:3, 3])[0] > 0.04  # yaw > 0 turns the face towards +x
+    rows, keyframes = head_pose_items(["yaw=20,pitch=-5", "roll=3"])
+    assert keyframes and np.allclose(rows, [[20, -5, 0, 0, 0, 0], [0, 0, 3, 0, 0, 0]])
+    for bad in ("yaw", "yaw=x", "tilt=3"):
+        with pytest.raises(UserError, match="--head-pose"):
+            head_pose_items([bad])
+
+
+def _model(region: dict | None):
+    from test_model import tiny
+
+    m = tiny("fast", "hash")
+    torch.manual_seed(0)
+    if region is None:
+        return m
+    from flamenerf.model.flame_nerf import FlameNeRF
+
+    m2 = FlameNeRF(m.cfg, num_codes=3, expr_dim=5, near=0.5, far=1.5, box_min=[-1] * 3,
+                   box_max=[1] * 3, head_region=region)
+    m2.load_state_dict(m.state_dict())
+    return m2
+
+
+REGION = {"centre": [0.0, 0.0, 0.0], "axes": np.eye(3).tolist(), "radii": [0.2, 0.25, 0.2]}
+
+
+def test_head_points_move_the_head_and_leave_the_background():
+    m = _model(REGION)
+    xi = torch.from_numpy(se3_log(np.linalg.inv(_rigid(np.random.default_rng(3))))).float()
+    x = torch.tensor([[[0.0, 0.02, 0.05], [0.9, 0.0, -0.8], [0.0, 0.0, 0.0]]])  # head, far, centre
+    d = torch.tensor([[0.0, 0.0, -1.0]])
+    xc, dc = m.head_points(x, d, xi[None])
+    full = apply_se3(xi[None, :3], xi[None, 3:], x[0])
+    assert torch.allclose(xc[0, 0], full[0], atol=1e-6)  # inside: the full rigid motion
+    assert torch.equal(xc[0, 1], x[0, 1])  # far away: untouched
+    assert torch.allclose(dc[0].norm(), torch.tensor(1.0))
+    # no twists, or a model without a head region: exactly the input
+    assert m.head_points(x, d, None)[0] is x
+    assert _model(None).head_points(x, d, xi[None])[0] is x
+
+
+def test_zero_head_twists_render_exactly_as_no_head_poses():
+    from test_model import rays
+
+    m = _model(REGION).eval()
+    r = rays(m, n=16)
+    plain = m(r)
+    r.head = torch.zeros(16, 6)
+    posed = m(r)
+    for k in ("rgb", "depth", "acc"):
+        assert torch.equal(plain[k], posed[k]), k
+
+
+def test_still_head_poses_train_exactly_as_no_head_poses(toy_dataset, tmp_path):
+    """The same capture with an identity head_pose on every frame: same weights after
+    training, same renders (a dataset without head poses behaves as it always did)."""
+    from toy import toy_config
+
+    from flamenerf.training.run import load_run
+    from flamenerf.training.trainer import train
+
+    posed = tmp_path / "posed"
+    shutil.copytree(toy_dataset, posed)
+    meta = json.loads((posed / "transforms.json").read_text())
+    for fr in meta["frames"]:
+        fr["head_pose"] = np.eye(4).tolist()
+    (posed / "transforms.json").write_text(json.dumps(meta))
+    runs = []
+    for name, data in (("plain", toy_dataset), ("posed", posed)):
+        train(data, tmp_path / name, toy_config("masked", 3), device="cpu", quiet=True)
+        runs.append(load_run(tmp_path / name, "cpu"))
+    a, b = runs
+    assert not a.model.follows_head and b.model.follows_head
+    for (k, va), vb in zip(a.model.state_dict().items(), b.model.state_dict().values()):
+        assert torch.equal(va, vb), k
+    from flamenerf.data.dataset import load_dataset
+    from flamenerf.data.scene import FrameSet
+    from flamenerf.evaluation.protocol import render_frames
+
+    imgs = []
+    for run, data in ((a, toy_dataset), (b, posed)):
+        ds = load_dataset(data)
+        fs = FrameSet(ds, ds.split("val"), run.train_intrinsics(ds))
+        om, ph = run.model.codes(fs.frame_index)
+        imgs.append(render_frames(run.model, fs, om.detach(), ph.detach()))
+    assert all(np.array_equal(x, y) for x, y in zip(*imgs))
