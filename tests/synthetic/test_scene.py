@@ -319,3 +319,58 @@ def test_expressions_act_only_well_inside_the_face_mesh(still):
     outside = ~head.active[head.win_rows[0]:head.win_rows[1], head.win_cols[0]:head.win_cols[1]]
     assert head.warp_basis[..., outside].abs().max() == 0
     assert head.radial_basis[..., outside].abs().max() == 0
+
+
+@pytest.fixture(scope="module")
+def head_motion_scene(tmp_path_factory):
+    """The built-in scene with head motion at 32x32: 12 capture frames."""
+    out = tmp_path_factory.mktemp("head") / "scene"
+    return make_scene(out, seed=2, size=32, frames=12, sway=0.0, reanimate=3, leakage_steps=1,
+                      workers=1, head_motion=True)
+
+
+def test_head_motion_scene_has_consistent_posed_meshes_and_masks(head_motion_scene):
+    from flamenerf.data.head_pose import canonical_vertices
+    from flamenerf.synthetic.scene import scene_from_dataset
+
+    ds = load_dataset(head_motion_scene)
+    assert ds.has_head_poses and "novel_pose" in ds.splits and len(ds.split("novel_pose")) == 3
+    assert ds.source["head_motion"] and "head_pose" not in ds.frames[0].extra
+    cap = ds.split("train") + ds.split("val")
+    angles = [np.degrees(np.arccos(np.clip((np.trace(f.head_pose[:3, :3]) - 1) / 2, -1, 1)))
+              for f in cap]
+    assert max(angles) > 10  # the head really turns
+    # the posed mesh is the head pose applied to the un-posed one, and it projects inside
+    # the stored face mask
+    scene = scene_from_dataset(ds)
+    for f in cap[:3] + ds.split("novel_pose")[:2]:
+        v = scene.render(f.c2w, f.expression, head_pose=f.head_pose).face_vertices
+        assert np.allclose(v, ds.face_vertices[f.position], atol=1e-6)
+        un = scene.head_state(f.expression).vertices
+        assert np.allclose(v, un @ f.head_pose[:3, :3].T + f.head_pose[:3, 3], atol=1e-5)
+        uv, z = project_points(ds.face_vertices[f.position], ds.intrinsics, f.c2w)
+        m = ds.load_mask(f)
+        px = np.clip(uv.astype(int), 0, ds.intrinsics.w - 1)
+        assert (z > 0).all() and m[px[:, 1], px[:, 0]].mean() > 0.99
+    # canonical meshes (frame 0's pose) differ only by expression: well under the motion
+    canon = canonical_vertices(ds, cap)
+    world = ds.face_vertices[[f.position for f in cap]]
+    spread = lambda v: np.abs(v - v.mean(0)).max()  # noqa: E731
+    assert spread(canon) < 0.5 * spread(world)
+
+
+def test_head_pose_moves_the_head_not_the_background():
+    from flamenerf.synthetic.motion import head_pose
+
+    scene = SyntheticScene(seed=3, size=SIZE, sway=0.0)
+    c2w, e = orbit(10, 5), np.zeros(len(CONTROLS))
+    a = scene.render(c2w, e)
+    b = scene.render(c2w, e, head_pose=head_pose(20, -8, 3, (0.01, 0, 0.01)))
+    assert np.array_equal(scene.render(c2w, e, head_pose=np.eye(4)).rgb, a.rgb)
+    changed = np.abs(a.rgb - b.rgb).max(-1) > 0
+    near_head = np.maximum(a.mask, b.mask)
+    from scipy import ndimage
+
+    far = ~ndimage.binary_dilation(a.depth < 0.75, iterations=10) & ~ndimage.binary_dilation(
+        b.depth < 0.75, iterations=10)
+    assert changed[near_head].mean() > 0.5 and not changed[far].any() and far.mean() > 0.15

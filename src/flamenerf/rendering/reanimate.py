@@ -1,5 +1,5 @@
-"""Render a re-animation: frame 0's codes (ω_0, φ_0), a sequence of expressions β_t and
-cameras, the prior's mask from the face mesh for each camera. Frames are produced one at a
+"""Render a re-animation: frame 0's codes (ω_0, φ_0), a sequence of expressions β_t,
+cameras and (optionally) head poses, the prior's mask from the face mesh for each camera. Frames are produced one at a
 time (each in chunks of rays, `render_image`), so memory does not grow with the length."""
 
 from __future__ import annotations
@@ -26,16 +26,20 @@ class RenderedFrame:
 
 def render_sequence(model: FlameNeRF, ds: Dataset, intr: Intrinsics, cameras: np.ndarray,
                     expressions: np.ndarray, vertices: np.ndarray, omega: torch.Tensor,
-                    phi: torch.Tensor, dilate_px: int, chunk: int = 16384
-                    ) -> Iterator[RenderedFrame]:
-    """cameras (T, 4, 4); expressions (T, E); vertices (T, V, 3), or (V, 3) for one mesh
-    for every frame (frame 0's); ω (code_dim,), φ (appearance_dim,)."""
+                    phi: torch.Tensor, dilate_px: int, chunk: int = 16384,
+                    heads: np.ndarray | None = None) -> Iterator[RenderedFrame]:
+    """cameras (T, 4, 4); expressions (T, E); vertices (T, V, 3) world (posed by the
+    frame's head pose), or (V, 3) for one mesh for every frame (frame 0's); ω (code_dim,),
+    φ (appearance_dim,); heads (T, 6): each frame's head twist (data/head_pose.py), or
+    None for the head at frame 0's pose."""
     T = len(cameras)
     for i in range(T):
         verts = vertices[i] if vertices.ndim == 3 else vertices
         mask = prior_mask(ds, verts, cameras[i], intr, dilate_px)
         beta = torch.as_tensor(np.asarray(expressions[i], np.float32))
-        out = render_image(model, intr, cameras[i], omega, phi, beta, mask, chunk=chunk)
+        head = None if heads is None else torch.as_tensor(np.asarray(heads[i], np.float32))
+        out = render_image(model, intr, cameras[i], omega, phi, beta, mask, chunk=chunk,
+                           head=head)
         yield RenderedFrame(out["rgb"].numpy(), out["depth"].numpy(), out["acc"].numpy(), mask)
 
 

@@ -32,6 +32,11 @@ class RenderOptions:
         split: Take expressions, cameras and face meshes from this dataset split.
         drive: Track the expressions of this driving video.
         camera: static, orbit, spiral, dolly, a JSON file of poses, or auto.
+        head_pose: Head pose relative to frame 0's, independent of --camera: keyframes
+            `yaw=20,pitch=-5` (degrees; roll too, x/y/z in metres), eased through like
+            expression keyframes, or a .json list of such objects (one per frame). Needs
+            a run trained with head poses. Default: a split's own head poses, else frame
+            0's.
         frames: Number of frames when the source does not fix it (keyframes, held
             expression, a named camera path).
         fps: Frames per second (default: the source's, else 30). With --drive the video
@@ -64,6 +69,7 @@ class RenderOptions:
     split: str | None = None
     drive: Path | None = None
     camera: str = "auto"
+    head_pose: list[str] | None = None
     frames: int = 60
     fps: float | None = None
     size: int | None = None
@@ -189,9 +195,47 @@ def output_paths(opts: RenderOptions, source: str, camera: str) -> dict[str, Pat
     return paths
 
 
+def head_transforms(opts: RenderOptions, run, ds: Dataset, n: int, log=print
+                    ) -> np.ndarray | None:
+    """Each frame's canonical-from-world head transform (n, 4, 4): --head-pose, else a
+    split's own head poses; None: the head at frame 0's pose."""
+    from flamenerf.data import head_pose as H
+
+    if opts.head_pose:
+        if not getattr(run.model, "follows_head", False):
+            raise UserError(f"--head-pose: {opts.run} was not trained on a dataset with head "
+                            "poses, so its head cannot be turned apart from the scene")
+        region = H.HeadRegion.from_dict(run.model.init_args["head_region"])
+        rows, keyframes = H.head_pose_items(opts.head_pose)
+        if keyframes:
+            rows = X.keyframe_sequence(rows, np.zeros(6), n)
+        elif len(rows) != n:
+            log(f"note: {opts.head_pose[0]} has {len(rows)} head poses for {n} frames; "
+                "resampled")
+            u = np.linspace(0, len(rows) - 1, n)
+            rows = np.stack([np.interp(u, np.arange(len(rows)), rows[:, j])
+                             for j in range(6)], -1)
+        return np.stack([H.control_transform(H.HeadPoseKey(*map(float, r)), region)
+                         for r in rows])
+    if opts.split and ds.has_head_poses:
+        return H.canonical_from_world(ds, ds.split(opts.split))[:n]
+    return None
+
+
+def posed_vertices(canonical: np.ndarray, T: np.ndarray | None) -> np.ndarray:
+    """Face meshes (n, V, 3) in the canonical frame posed into the world by the inverse of
+    each frame's head transform T (n, 4, 4) (unchanged when T is None)."""
+    from flamenerf.data.head_pose import transform_points
+
+    if T is None:
+        return canonical
+    return transform_points(np.linalg.inv(T), canonical).astype(np.float32)
+
+
 def write_videos(run, ds: Dataset, intr: Intrinsics, poses: np.ndarray, values: np.ndarray,
                  verts: np.ndarray, dilate_px: int, chunk: int, fps: float,
-                 paths: dict[str, Path], seq: X.ExpressionSequence, names: list[str]) -> None:
+                 paths: dict[str, Path], seq: X.ExpressionSequence, names: list[str],
+                 heads: np.ndarray | None = None) -> None:
     """Render frame 0's codes along poses (T, 4, 4) with expressions values (T, E) and write
     the result, and with "depth"/"sbs" in `paths` the depth video and driving | result |
     depth side by side (the expression as bars when the source has no driving image)."""
@@ -205,7 +249,7 @@ def write_videos(run, ds: Dataset, intr: Intrinsics, poses: np.ndarray, values: 
 
     omega, phi = run.frame_codes(0)
     frames = render_sequence(run.model, ds, intr, poses, values, verts, omega, phi, dilate_px,
-                             chunk)
+                             chunk, heads)
     with contextlib.ExitStack() as stack:
         writers = {k: stack.enter_context(VideoWriter(p, fps)) for k, p in paths.items()}
         lo = hi = None
@@ -250,15 +294,28 @@ def render_videos(opts: RenderOptions, log=print) -> RenderSummary:
     poses, cam_label, seq = camera_poses(opts, seq, C.rig_from_dataset(ds), names, base, log)
     n = len(seq) if opts.max_frames is None else min(len(seq), opts.max_frames)
     values, poses = seq.values[:n], poses[:n]
-    if seq.vertices is not None:  # a split with its own (ground-truth) meshes
+    T = head_transforms(opts, run, ds, n, log)
+    if seq.vertices is not None and not opts.head_pose:  # a split's own (posed) meshes
         verts = seq.vertices[:n]
+    elif seq.vertices is not None:  # the split's meshes, turned by --head-pose
+        from flamenerf.data.head_pose import canonical_vertices
+
+        verts = posed_vertices(canonical_vertices(ds, ds.split(opts.split))[:n], T)
     else:  # the prior's silhouette follows the driven expression's mesh, not frame 0's
-        mesh_of = mesh_function(run.model, ds)
-        verts = np.stack([mesh_of(v) for v in values])
+        mesh_of = mesh_function(run.model, ds)  # canonical: the head at frame 0's pose
+        verts = posed_vertices(np.stack([mesh_of(v) for v in values]), T)
+    heads = None
+    if T is not None:
+        from flamenerf.geometry import se3_log
+
+        heads = se3_log(T).astype(np.float32)
+    if opts.head_pose:
+        cam_label = f"{cam_label}_head"
     dil = dataset_dilation(ds) if opts.dilate_px is None else opts.dilate_px
     fps = opts.fps or seq.fps or 30.0
 
     paths = output_paths(opts, seq.label, cam_label)
     writable_dir(paths["rgb"].parent, "video")
-    write_videos(run, ds, intr, poses, values, verts, dil, opts.chunk, fps, paths, seq, names)
+    write_videos(run, ds, intr, poses, values, verts, dil, opts.chunk, fps, paths, seq, names,
+                 heads)
     return RenderSummary(paths, n, intr.w, intr.h, fps, seq.label, cam_label, dil)
