@@ -168,3 +168,16 @@ def test_viewer_controls_without_a_browser(tiny_run, tmp_path):
         assert np.allclose([s.value for s in v.g_sliders], v.frame0_expression, atol=1e-4)
     finally:
         v.stop()
+
+
+def test_masker_poses_the_mesh_by_the_head_pose(tiny_scene):
+    from flamenerf.data.head_pose import HeadPoseKey, control_transform, head_region
+
+    ds = load_dataset(tiny_scene)
+    masker = FaceMasker(ds, 0)
+    intr, c2w = ds.intrinsics, ds.frames[0].c2w
+    still = masker(intr, c2w, None)
+    assert np.array_equal(masker(intr, c2w, None, np.eye(4)), still)
+    T = control_transform(HeadPoseKey(yaw=35, x=0.02), head_region(ds))
+    turned = masker(intr, c2w, None, T)
+    assert turned.any() and (turned != still).mean() > 0.01

@@ -165,6 +165,19 @@ class Viewer:
                                    initial_value=float(self.neutral[j]))
                 s.on_update(self._slider_cb(j))
                 self.g_sliders.append(s)
+        self.g_head: list = []
+        if getattr(self.run.model, "follows_head", False):  # trained with head poses
+            self.head_folder = gui.add_folder("Head pose")
+            with self.head_folder:
+                self.g_head_reset = gui.add_button("Frame 0 head pose",
+                                                   hint="Back to the capture's first pose.")
+                for name, lim in (("yaw", 40), ("pitch", 25), ("roll", 25)):
+                    s = gui.add_slider(name, min=-lim, max=lim, step=1, initial_value=0,
+                                       hint=f"Head {name} in degrees, relative to frame 0's "
+                                            "pose (independent of the camera).")
+                    s.on_update(lambda e: self._head_changed())
+                    self.g_head.append(s)
+            self.g_head_reset.on_click(lambda e: self.set_head_pose(0, 0, 0))
         self.track_folder = gui.add_folder("Track")
         with self.track_folder:
             names = [t.name for t in self.tracks] or ["(none)"]
@@ -184,6 +197,22 @@ class Viewer:
         self.g_track.on_update(self._on_track_change)
         self.g_play.on_click(lambda e: self.toggle_play())
         self.g_frame.on_update(self._on_frame_slider)
+
+    def set_head_pose(self, yaw: float, pitch: float, roll: float) -> None:
+        """Turn the head (degrees relative to frame 0's pose) and move the sliders there."""
+        for s, v in zip(self.g_head, (yaw, pitch, roll)):
+            s.value = float(v)
+        self._head_changed()
+
+    def _head_changed(self) -> None:
+        from flamenerf.data.head_pose import HeadPoseKey, HeadRegion, control_transform
+
+        yaw, pitch, roll = (float(s.value) for s in self.g_head)
+        if yaw == pitch == roll == 0:
+            self.worker.set_head(None)
+            return
+        region = HeadRegion.from_dict(self.run.model.init_args["head_region"])
+        self.worker.set_head(control_transform(HeadPoseKey(yaw, pitch, roll), region))
 
     def _slider_cb(self, j: int):
         def cb(event) -> None:

@@ -33,6 +33,8 @@ class Shared:
     progressive: bool = True
     version: int = 0
     changed_at: float = 0.0
+    # head pose (head-following runs): canonical-from-world (4, 4); None = frame 0's pose
+    head: np.ndarray | None = None
 
 
 @dataclass
@@ -123,6 +125,13 @@ class RenderWorker:
                 return
             self.shared.expression = self.shared.expression.copy()
             self.shared.expression[index] = value
+            self._touch_shared()
+
+    def set_head(self, transform: np.ndarray | None) -> None:
+        """The head's pose: canonical-from-world (4, 4) (data/head_pose.control_transform),
+        or None for frame 0's."""
+        with self._cv:
+            self.shared.head = None if transform is None else np.array(transform, np.float64)
             self._touch_shared()
 
     def expression(self) -> np.ndarray:
@@ -216,7 +225,7 @@ class RenderWorker:
         snap = dict(key=key, state=(v.version, s.version), c2w=v.c2w.copy(), fov_y=v.fov_y,
                     aspect=v.aspect, expression=s.expression.copy(), mode=s.mode,
                     height=heights[level], final=level == len(heights) - 1,
-                    depth_range=v.depth_range)
+                    depth_range=v.depth_range, head=s.head)
         return (key, level, heights, snap), None
 
     def _loop(self) -> None:
@@ -280,7 +289,13 @@ class RenderWorker:
         t0 = time.perf_counter()
         intr = view_intrinsics(snap["fov_y"], snap["aspect"], snap["height"])
         c2w = snap["c2w"]
-        mask = self.masker(intr, c2w, snap["expression"])
+        # head pose: the masker poses the mesh, render_image moves the head's points
+        mask = self.masker(intr, c2w, snap["expression"], snap["head"])
+        head = None
+        if snap["head"] is not None:
+            from flamenerf.geometry import se3_log
+
+            head = torch.from_numpy(se3_log(snap["head"]).astype(np.float32))
         expr = torch.from_numpy(snap["expression"])
         rows = max(1, self.band_rays // intr.w)
         rgb = np.zeros((intr.h, intr.w, 3), np.float32)
@@ -291,7 +306,7 @@ class RenderWorker:
             r = min(rows, intr.h - y0)
             band = Intrinsics(intr.w, r, intr.fx, intr.fy, intr.cx, intr.cy - y0)
             out = render_image(self.model, band, c2w, self.omega, self.phi, expr,
-                               mask[y0:y0 + r])
+                               mask[y0:y0 + r], head=head)
             rgb[y0:y0 + r] = out["rgb"].numpy()
             depth[y0:y0 + r] = out["depth"].numpy()
         extras: dict = {"mask": mask}
