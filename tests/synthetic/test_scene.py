@@ -257,6 +257,7 @@ def test_cli_synth(tmp_path):
                  "--leakage-steps", "0", "--workers", "1"]) == 0
     assert (out / "transforms.json").exists()
     assert main(["synth", str(out), "--size", "24", "--frames", "2"]) == 2  # exists
+    assert main(["synth", str(tmp_path / "h"), "--head-motion", "--sway", "1"]) == 2
 
 
 def test_intrinsics_frame_the_head():
