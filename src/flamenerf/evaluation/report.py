@@ -52,6 +52,7 @@ COLUMNS = [
     Column("Re-anim. PSNR ↑", ("reanimate", "psnr"), fmt, True),
     Column("Re-anim. SSIM ↑", ("reanimate", "ssim"), lambda x: fmt(x, 3), True),
     Column("Re-anim. PSNR face ↑", ("reanimate", "psnr_face"), fmt, True),
+    Column("Novel-pose PSNR face ↑", ("novel_pose", "psnr_face"), fmt, True),
     Column("Driven PSNR face ↑", ("driven", "psnr_face"), fmt, True),
     Column("Driven PSNR expr. ↑", ("driven", "psnr_expressive"), fmt, True),
     Column("Control gain ↑", ("control", "mean_gain"), fmt, True),
