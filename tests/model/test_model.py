@@ -9,6 +9,8 @@ E = 5
 
 
 def tiny(name: str, kind: str = "mlp", **sets) -> FlameNeRF:
+    # no face mesh here: the per-control prior (which needs one) only where asked for
+    sets = {"expression_regions.enabled": False, **sets}
     cfg = override(preset(name), {f"model.{k}": v for k, v in sets.items()}).model
     cfg.warp.code_dim, cfg.warp.width, cfg.warp.depth, cfg.warp.skips = 4, 16, 2, ()
     cfg.warp.init_scale = 0.1  # a warp that really moves points, so gradients flow
