@@ -120,8 +120,14 @@ class ProposalField(nn.Module):
 
     def density(self, x: Tensor, expr: Tensor | None) -> Tensor:
         """x (*bs, 3) in [-1, 1]^3, expr per point or per ray (broadcastable) -> σ (*bs)."""
+        return trunc_exp(self.raw_density(x, expr))
+
+    def raw_density(self, x: Tensor, expr: Tensor | None) -> Tensor:
+        """The density before its activation; expr None means 𝕀β = 0. -> (*bs)."""
         h = self.grid((x.reshape(-1, 3) + 1) * 0.5).view(*x.shape[:-1], -1)
-        return trunc_exp(self.head(h, expr if self.expr_dim else None)[..., 0])
+        if self.expr_dim and expr is None:
+            expr = h.new_zeros(self.expr_dim)
+        return self.head(h, expr if self.expr_dim else None)[..., 0]
 
 
 def make_field(cfg: FieldConfig, expr_dim: int) -> nn.Module:

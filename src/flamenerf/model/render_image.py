@@ -1,4 +1,7 @@
-"""Render whole images in memory-bounded chunks of rays."""
+"""Render whole images in memory-bounded chunks of rays: the one entry point of eval,
+render, the viewer and training previews. `settings` picks the path: the training forward
+(REFERENCE, the default, what eval measures) or the inference path (`RenderSettings()`,
+model/inference.py)."""
 
 from __future__ import annotations
 
@@ -8,21 +11,25 @@ import torch
 from flamenerf.data.dataset import Intrinsics
 from flamenerf.data.rays import camera_rays
 from flamenerf.model.flame_nerf import FlameNeRF, RayBatch
+from flamenerf.model.inference import REFERENCE, RenderSettings, render_rays
 
 
 @torch.no_grad()
 def render_image(model: FlameNeRF, intr: Intrinsics, c2w: np.ndarray | torch.Tensor,
                  deform_code: torch.Tensor, appearance_code: torch.Tensor,
                  expression: torch.Tensor, face_mask: np.ndarray | torch.Tensor,
-                 chunk: int = 8192, head: torch.Tensor | None = None
+                 chunk: int | None = None, head: torch.Tensor | None = None,
+                 settings: RenderSettings = REFERENCE
                  ) -> dict[str, torch.Tensor]:
     """One camera, one set of codes -> rgb (H, W, 3), depth (H, W), acc (H, W) on CPU.
 
     deform_code (D,), appearance_code (A,), expression (E,), face_mask (H, W) bool: the
     spatial prior's silhouette for this camera and expression; head (6,): the twist of the
-    frame's canonical-from-world head transform (data/head_pose.py), or None.
+    frame's canonical-from-world head transform (data/head_pose.py), or None. `chunk` (rays
+    per forward pass) overrides the settings' chunk.
     """
     dev = next(model.parameters()).device
+    chunk = chunk or settings.rays_per_chunk(dev)
     origins, dirs = camera_rays(intr, c2w, dev)
     o, d = origins.reshape(-1, 3), dirs.reshape(-1, 3)
     mask = torch.as_tensor(np.asarray(face_mask), device=dev).reshape(-1).bool()
@@ -33,7 +40,7 @@ def render_image(model: FlameNeRF, intr: Intrinsics, c2w: np.ndarray | torch.Ten
         rays = RayBatch(o[s:s + m], d[s:s + m], deform_code.to(dev).expand(m, -1),
                         appearance_code.to(dev).expand(m, -1), expression.to(dev).expand(m, -1),
                         mask[s:s + m], None if head is None else head.to(dev).expand(m, -1))
-        out = model(rays)
+        out = render_rays(model, rays, settings) if settings.fast else model(rays)
         for k in outs:
             outs[k].append(out[k].cpu())
     return {
