@@ -59,8 +59,10 @@ class RenderSettings:
         return 2048 if device.type == "cpu" else 1 << 16
 
 
+FAST = RenderSettings()
+"""The inference path with its defaults (`flamenerf render`, the viewer)."""
 REFERENCE = RenderSettings(fast=False, chunk=8192)
-"""Today's renderer: the training forward in chunks of 8192 rays (eval's default)."""
+"""The training forward in chunks of 8192 rays: what eval measures."""
 
 
 Evaluate = Callable[[Tensor, int, int], tuple[Tensor, Tensor | None]]
@@ -121,7 +123,7 @@ def _warp_fn(model, rays: RayBatch, settings: RenderSettings):
 
 
 @torch.inference_mode()
-def render_rays(model, rays: RayBatch, settings: RenderSettings = RenderSettings()
+def render_rays(model, rays: RayBatch, settings: RenderSettings = FAST
                 ) -> dict[str, Tensor]:
     """The inference path of FlameNeRF.forward (jitter off). -> rgb (R, 3), depth (R,),
     acc (R,), num_samples (evaluations of the radiance fields, not the proposal; 0-d)."""

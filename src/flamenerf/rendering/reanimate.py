@@ -12,6 +12,7 @@ import torch
 
 from flamenerf.data.dataset import Dataset, Intrinsics
 from flamenerf.model.flame_nerf import FlameNeRF
+from flamenerf.model.inference import FAST, RenderSettings
 from flamenerf.model.render_image import render_image
 from flamenerf.data.prior import prior_mask
 
@@ -26,12 +27,14 @@ class RenderedFrame:
 
 def render_sequence(model: FlameNeRF, ds: Dataset, intr: Intrinsics, cameras: np.ndarray,
                     expressions: np.ndarray, vertices: np.ndarray, omega: torch.Tensor,
-                    phi: torch.Tensor, dilate_px: int, chunk: int = 16384,
-                    heads: np.ndarray | None = None) -> Iterator[RenderedFrame]:
+                    phi: torch.Tensor, dilate_px: int, chunk: int | None = None,
+                    heads: np.ndarray | None = None, settings: RenderSettings = FAST
+                    ) -> Iterator[RenderedFrame]:
     """cameras (T, 4, 4); expressions (T, E); vertices (T, V, 3) world (posed by the
     frame's head pose), or (V, 3) for one mesh for every frame (frame 0's); ω (code_dim,),
     φ (appearance_dim,); heads (T, 6): each frame's head twist (data/head_pose.py), or
-    None for the head at frame 0's pose."""
+    None for the head at frame 0's pose. The inference path by default: ω is fixed, so the
+    warp's bake serves every frame."""
     T = len(cameras)
     for i in range(T):
         verts = vertices[i] if vertices.ndim == 3 else vertices
@@ -39,7 +42,7 @@ def render_sequence(model: FlameNeRF, ds: Dataset, intr: Intrinsics, cameras: np
         beta = torch.as_tensor(np.asarray(expressions[i], np.float32))
         head = None if heads is None else torch.as_tensor(np.asarray(heads[i], np.float32))
         out = render_image(model, intr, cameras[i], omega, phi, beta, mask, chunk=chunk,
-                           head=head)
+                           head=head, settings=settings)
         yield RenderedFrame(out["rgb"].numpy(), out["depth"].numpy(), out["acc"].numpy(), mask)
 
 

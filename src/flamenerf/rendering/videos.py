@@ -7,6 +7,7 @@ source, which cameras, how many frames) can be read and tested on its own.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Literal
@@ -16,6 +17,7 @@ import tyro
 
 from flamenerf.data.dataset import Dataset, Intrinsics, reference_position
 from flamenerf.errors import UserError
+from flamenerf.model.inference import FAST, REFERENCE, RenderSettings
 from flamenerf.rendering import cameras as C
 from flamenerf.rendering import expressions as X
 
@@ -57,7 +59,11 @@ class RenderOptions:
         relative: With --drive on a dataset of the same expression model, transfer
             expressions relative to each subject's neutral face.
         landmarker: face_landmarker.task for --drive (default: as for preprocess).
-        chunk: Rays per forward pass (lower it if memory runs out).
+        chunk: Rays per forward pass (0: the renderer's choice, 2048 on a CPU and 65536
+            on a GPU; lower it if memory runs out).
+        exact: Render with the training forward pass (what `flamenerf eval` measures)
+            instead of the inference path, which is several times faster on a CPU and
+            within 0.05 dB of it on the built-in scene (docs/bench/render.md).
         device: `auto` (CUDA when present), `cpu` or `cuda`.
         threads: CPU threads for torch (0 = default).
         overwrite: Replace existing output videos.
@@ -82,7 +88,8 @@ class RenderOptions:
     max_frames: int | None = None
     relative: bool = True
     landmarker: Path | None = None
-    chunk: int = 16384
+    chunk: int = 0
+    exact: bool = False
     device: str = "auto"
     threads: int = 0
     overwrite: bool = False
@@ -97,8 +104,8 @@ class RenderOptions:
             raise UserError(f"--frames {self.frames}: must be at least 1")
         if self.max_frames is not None and self.max_frames < 1:
             raise UserError(f"--max-frames {self.max_frames}: must be at least 1")
-        if self.chunk < 1:
-            raise UserError(f"--chunk {self.chunk}: must be positive")
+        if self.chunk < 0:
+            raise UserError(f"--chunk {self.chunk}: must be positive (or 0: automatic)")
         if self.dilate_px is not None and self.dilate_px < 0:
             raise UserError(f"--dilate-px {self.dilate_px}: must be >= 0")
 
@@ -233,7 +240,7 @@ def posed_vertices(canonical: np.ndarray, T: np.ndarray | None) -> np.ndarray:
 
 
 def write_videos(run, ds: Dataset, intr: Intrinsics, poses: np.ndarray, values: np.ndarray,
-                 verts: np.ndarray, dilate_px: int, chunk: int, fps: float,
+                 verts: np.ndarray, dilate_px: int, settings: RenderSettings, fps: float,
                  paths: dict[str, Path], seq: X.ExpressionSequence, names: list[str],
                  heads: np.ndarray | None = None) -> None:
     """Render frame 0's codes along poses (T, 4, 4) with expressions values (T, E) and write
@@ -249,7 +256,7 @@ def write_videos(run, ds: Dataset, intr: Intrinsics, poses: np.ndarray, values: 
 
     omega, phi = run.frame_codes(0)
     frames = render_sequence(run.model, ds, intr, poses, values, verts, omega, phi, dilate_px,
-                             chunk, heads)
+                             heads=heads, settings=settings)
     with contextlib.ExitStack() as stack:
         writers = {k: stack.enter_context(VideoWriter(p, fps)) for k, p in paths.items()}
         lo = hi = None
@@ -316,6 +323,8 @@ def render_videos(opts: RenderOptions, log=print) -> RenderSummary:
 
     paths = output_paths(opts, seq.label, cam_label)
     writable_dir(paths["rgb"].parent, "video")
-    write_videos(run, ds, intr, poses, values, verts, dil, opts.chunk, fps, paths, seq, names,
+    settings = dataclasses.replace(REFERENCE if opts.exact else FAST,
+                                   chunk=opts.chunk or (REFERENCE.chunk if opts.exact else 0))
+    write_videos(run, ds, intr, poses, values, verts, dil, settings, fps, paths, seq, names,
                  heads)
     return RenderSummary(paths, n, intr.w, intr.h, fps, seq.label, cam_label, dil)

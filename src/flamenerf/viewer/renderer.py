@@ -19,6 +19,7 @@ import numpy as np
 import torch
 
 from flamenerf.data.dataset import Intrinsics
+from flamenerf.model.inference import FAST, RenderSettings
 from flamenerf.model.render_image import render_image
 from flamenerf.viewer.camera import view_intrinsics
 
@@ -77,8 +78,10 @@ class RenderWorker:
     def __init__(self, model, deform_code: torch.Tensor, appearance_code: torch.Tensor,
                  masker, expression: np.ndarray, display: DisplayFn, height: int = 128,
                  settle_s: float = 0.25, band_rays: int = 4096,
-                 on_error: Callable[[object, BaseException], None] | None = None):
+                 on_error: Callable[[object, BaseException], None] | None = None,
+                 settings: RenderSettings = FAST):
         self.model = model
+        self.settings = settings  # the inference path: ω is fixed, its warp bake is reused
         self.omega, self.phi = deform_code, appearance_code
         self.masker = masker
         self.display = display
@@ -306,7 +309,7 @@ class RenderWorker:
             r = min(rows, intr.h - y0)
             band = Intrinsics(intr.w, r, intr.fx, intr.fy, intr.cx, intr.cy - y0)
             out = render_image(self.model, band, c2w, self.omega, self.phi, expr,
-                               mask[y0:y0 + r], head=head)
+                               mask[y0:y0 + r], head=head, settings=self.settings)
             rgb[y0:y0 + r] = out["rgb"].numpy()
             depth[y0:y0 + r] = out["depth"].numpy()
         extras: dict = {"mask": mask}

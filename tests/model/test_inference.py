@@ -1,0 +1,172 @@
+"""The inference renderer (model/inference.py) against the training forward."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+
+from flamenerf.data.dataset import Intrinsics
+from flamenerf.geometry import look_at
+from flamenerf.model.baked import baked_proposal_logits, baked_warp
+from flamenerf.model.flame_nerf import FlameNeRF
+from flamenerf.model.inference import FAST, REFERENCE, RenderSettings, march
+from flamenerf.model.mlp import MLP, fused_cpu_inference
+from flamenerf.model.render import render_weights
+from flamenerf.model.render_image import render_image
+
+E = 3
+EXACT = RenderSettings(warp_grid=0, proposal_grid=0, min_transmittance=0.0)
+
+
+def toy_model(sampler: str = "proposal", mode: str = "masked") -> FlameNeRF:
+    """tests/toy.py's `fast` machinery with weights that make the scene partly opaque."""
+    from toy import toy_config
+
+    cfg = toy_config(mode).model
+    if sampler == "hierarchical":
+        cfg.sampler.kind, cfg.field.kind = "hierarchical", "mlp"
+        cfg.field.width, cfg.field.depth, cfg.field.skips = 32, 3, (2,)
+    torch.manual_seed(0)
+    m = FlameNeRF(cfg, num_codes=2, expr_dim=E, near=0.5, far=1.6, box_min=[-0.5] * 3,
+                  box_max=[0.5] * 3).eval()
+    with torch.no_grad():  # random grids and heads, and enough density to stop some rays
+        fields = [m.field] + ([m.proposal] if sampler == "proposal" else [m.field_coarse])
+        for f in fields:
+            for t in getattr(getattr(f, "grid", None), "tables", []):
+                t.uniform_(-1, 1)
+            for p in f.parameters():
+                if p.dim() == 2:
+                    p.mul_(3)
+        head = (m.field.density_head.out if sampler == "proposal" else None)
+        if head is not None:
+            head.bias[0] = 2.0
+            m.proposal.head.out.bias.fill_(2.0)
+        else:
+            m.field.sigma.bias.fill_(3.0)
+            m.field_coarse.sigma.bias.fill_(3.0)
+    return m
+
+
+def render(m, settings, size=12, code=0):
+    intr = Intrinsics(size, size, 1.2 * size, 1.2 * size, size / 2, size / 2)
+    c2w = look_at(np.array([0.1, 0.05, 1.0]), np.zeros(3), np.array([0.0, 1.0, 0.0]))
+    w, a = m.codes(torch.tensor([code]))
+    mask = np.zeros((size, size), bool)
+    mask[3:8, 2:9] = True  # rays with β and rays without
+    return render_image(m, intr, c2w, w[0], a[0], torch.tensor([0.7, -0.4, 0.2]), mask,
+                        settings=settings)
+
+
+@pytest.mark.parametrize("sampler", ["proposal", "hierarchical"])
+def test_exact_inference_path_equals_reference(sampler):
+    """Without termination and bakes the inference path is the training forward's maths;
+    only the summation order inside oneDNN's fused matmuls differs: float32 rounding, which
+    the hierarchical sampler amplifies (a coarse weight's last bits move the inverse-CDF
+    samples of the fine pass), hence 2e-4 on outputs in [0, 1]."""
+    m = toy_model(sampler)
+    ref, fast = render(m, REFERENCE), render(m, EXACT)
+    if sampler == "proposal":  # (the hierarchical sampler's last interval is infinite)
+        assert 0.2 < float(ref["acc"].mean()) < 0.999  # opaque and transparent rays
+    for k in ("rgb", "acc"):
+        assert torch.allclose(fast[k], ref[k], atol=2e-4), (k, (fast[k] - ref[k]).abs().max())
+
+
+@pytest.mark.parametrize("kernel", ["1", "0"])
+def test_bakes_converge_to_the_fields(kernel, monkeypatch):
+    """A bake read at the right places converges to its field as the grid gets finer (a
+    flipped axis or an off-by-one vertex would not): 4x the vertices per axis cut the error
+    3x or more on this random model (O(h²) once the grid resolves its frequencies).
+    Through the CPU kernel and through grid_sample (the GPU path)."""
+    import flamenerf.model.cpu_kernels as ck
+
+    monkeypatch.setattr(ck, "_tried", kernel == "0")
+    monkeypatch.setattr(ck, "_lib", None if kernel == "0" else ck._lib)
+    m = toy_model()
+    code = m.deform_codes.weight[0].detach()
+    x = torch.rand(2000, 3, generator=torch.Generator().manual_seed(0)) * 1.6 - 0.8
+    with torch.no_grad():
+        exact_w = m.warp(x, code[None])
+        errs = [(baked_warp(m.warp, code, n)(x) - exact_w).abs().max() for n in (9, 33)]
+        exact_p = m.proposal.raw_density(x, None)
+        perr = [(baked_proposal_logits(m.proposal, n, "cpu")(x)[:, 0] - exact_p).abs().mean()
+                for n in (9, 33)]
+    assert errs[1] < errs[0] / 3, errs
+    assert perr[1] < perr[0] / 2, perr
+
+
+def test_default_path_renders_the_same_scene():
+    """Termination and 128³ bakes: the bakes interpolate this random model's fields, which
+    vary much faster than a trained one's (the trained `fast` run: 43 dB against the
+    reference, 0.02 dB PSNR against the images; docs/bench/render.md), hence a loose bound."""
+    m = toy_model()
+    ref, fast = render(m, REFERENCE), render(m, FAST)
+    assert float((fast["rgb"] - ref["rgb"]).abs().mean()) < 0.05
+    assert float((fast["acc"] - ref["acc"]).abs().mean()) < 0.05
+
+
+def test_inference_is_deterministic():
+    m = toy_model()
+    a, b = render(m, FAST), render(m, FAST)
+    assert all(torch.equal(a[k], b[k]) for k in a)
+
+
+def test_termination_never_changes_a_ray_with_weight_left():
+    """Rays whose transmittance stays above ε are rendered exactly; a terminated ray loses
+    only samples that the reference weighs below ε in total."""
+    g = torch.Generator().manual_seed(0)
+    R, S, eps = 200, 40, 1e-3
+    sigma = torch.rand(R, S, generator=g) * torch.rand(R, 1, generator=g) * 8
+    deltas = torch.full((R, S), 0.1)
+    rgb = torch.rand(R, S, 3, generator=g)
+    calls = []
+
+    def evaluate(rows, lo, hi):
+        calls.append(len(rows) * (hi - lo))
+        return sigma[rows, lo:hi], rgb[rows, lo:hi]
+
+    w, c = march(evaluate, deltas, 8, eps)
+    w_ref = render_weights(sigma, deltas)
+    t_end = torch.exp(-(sigma * deltas).sum(-1))  # light left after the last sample
+    kept = t_end >= eps
+    assert 0 < int(kept.sum()) < R and sum(calls) < R * S  # both kinds, and work saved
+    assert torch.allclose(w[kept], w_ref[kept], atol=1e-6)
+    assert torch.equal(c[kept], rgb[kept])
+    evaluated = w > 0
+    assert torch.allclose(w[evaluated], w_ref[evaluated], atol=1e-6)
+    assert torch.all((w_ref - w).sum(-1) < eps)  # what a terminated ray skipped
+
+
+def test_fused_mlp_equals_plain():
+    torch.manual_seed(0)
+    m = MLP(10 + 4, 32, 3, (1,), out_dim=5)
+    x, cond = torch.randn(6, 7, 10), torch.randn(6, 1, 4)
+    with torch.no_grad():
+        plain = m(x, cond)
+        with fused_cpu_inference():
+            fused = m(x, cond)
+    assert torch.allclose(plain, fused, atol=1e-5)
+
+
+def test_warp_bake_follows_the_code_and_the_weights():
+    m = toy_model()
+    code = m.deform_codes.weight[0].detach()
+    baked_warp(m.warp, code, 8)
+    grid = m.warp._baked[1]
+    baked_warp(m.warp, code, 8)
+    assert m.warp._baked[1] is grid  # reused while nothing changes
+    baked_warp(m.warp, code + 1, 8)
+    assert m.warp._baked[1] is not grid
+    x = torch.rand(50, 3) * 2 - 1
+    before = baked_warp(m.warp, code, 8)(x)
+    with torch.no_grad():  # an optimiser step changes weights in place
+        m.warp.trans.bias.add_(0.1)
+    after = baked_warp(m.warp, code, 8)(x)
+    assert (after - before).abs().max() > 0.05
+
+
+def test_settings_chunk_changes_nothing_but_speed():
+    m = toy_model()
+    a = render(m, dataclasses.replace(FAST, chunk=7))
+    b = render(m, dataclasses.replace(FAST, chunk=1000))
+    assert torch.allclose(a["rgb"], b["rgb"], atol=1e-5)
