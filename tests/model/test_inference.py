@@ -29,12 +29,19 @@ def toy_model(sampler: str = "proposal", mode: str = "masked") -> FlameNeRF:
         cfg.field.width, cfg.field.depth, cfg.field.skips = 32, 3, (2,)
     torch.manual_seed(0)
     m = FlameNeRF(cfg, num_codes=2, expr_dim=E, near=0.5, far=1.6, box_min=[-0.5] * 3,
-                  box_max=[0.5] * 3).eval()
+                  box_max=[0.5] * 3, mesh_vertices=6, mesh_faces=2).eval()
+    if m.uses_mesh_model:  # `fast`'s per-control prior: two triangles in front of the camera
+        verts = torch.tensor([[-.1, -.1, .1], [.1, -.1, .1], [0, .1, .1], [-.1, 0, .2],
+                              [.1, 0, .2], [0, .15, .2]])
+        basis = torch.zeros(E, 6, 3)
+        basis[0, :3, 1], basis[1, 3:, 0], basis[2, :, 2] = 0.02, 0.01, 0.01
+        m.set_expression_model(verts, basis, torch.tensor([[0, 1, 2], [3, 4, 5]]))
     with torch.no_grad():  # random grids and heads, and enough density to stop some rays
         fields = [m.field] + ([m.proposal] if sampler == "proposal" else [m.field_coarse])
         for f in fields:
-            for t in getattr(getattr(f, "grid", None), "tables", []):
-                t.uniform_(-1, 1)
+            for g in (getattr(f, "grid", None), getattr(f, "expr_grid", None)):
+                for t in getattr(g, "tables", []):
+                    t.uniform_(-1, 1)
             for p in f.parameters():
                 if p.dim() == 2:
                     p.mul_(3)
@@ -76,7 +83,8 @@ def test_exact_inference_path_equals_reference(sampler):
 def test_bakes_converge_to_the_fields(kernel, monkeypatch):
     """A bake read at the right places converges to its field as the grid gets finer (a
     flipped axis or an off-by-one vertex would not): 4x the vertices per axis cut the error
-    3x or more on this random model (O(h²) once the grid resolves its frequencies).
+    3x or more on this random model's warp (O(h²) once the grid resolves its frequencies),
+    the proposal's error by 40 % or more.
     Through the CPU kernel and through grid_sample (the GPU path)."""
     import flamenerf.model.cpu_kernels as ck
 
@@ -92,7 +100,8 @@ def test_bakes_converge_to_the_fields(kernel, monkeypatch):
         perr = [(baked_proposal_logits(m.proposal, n, "cpu")(x)[:, 0] - exact_p).abs().mean()
                 for n in (9, 33)]
     assert errs[1] < errs[0] / 3, errs
-    assert perr[1] < perr[0] / 2, perr
+    # the proposal's random fine levels (uniform tables) converge more slowly than the warp
+    assert perr[1] < perr[0] * 0.6, perr
 
 
 def test_default_path_renders_the_same_scene():

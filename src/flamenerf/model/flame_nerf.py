@@ -235,21 +235,31 @@ class FlameNeRF(nn.Module):
         xc = self.warp_points(xn, code, expr)
         return field(xc, dirs, app, expr)
 
-    def _query_rays(self, field, rays: RayBatch, t: Tensor, expr: Tensor | None):
-        """Samples at depths t (R, S) along each ray -> σ (R, S), rgb (R, S, 3). The ray's
-        conditioning goes in once per ray, shaped (R, 1, ·), and broadcasts over samples."""
-        x, d = self.head_points(rays.origins[:, None] + t[..., None] * rays.dirs[:, None],
-                                rays.dirs, rays.head)
+    def sample_points(self, origins: Tensor, dirs: Tensor, t: Tensor, expr: Tensor | None,
+                      head: Tensor | None) -> tuple[Tensor, Tensor, Tensor | None]:
+        """Samples at depths t (R, S) along rays (R, 3), (R, 3) with masked expressions
+        (R, E) and head twists (R, 6) (either None) -> normalised points ready for the warp
+        (R, S, 3) (in the head's frame, carried to the neutral mesh when mesh-guided), unit
+        view directions (R, 3), and the expression each point gets (R, S, E), or (R, 1, E)
+        per ray without the per-control prior. The one place both renderers (training and
+        model/inference.py) prepare samples."""
+        x, d = self.head_points(origins[:, None] + t[..., None] * dirs[:, None], dirs, head)
         xn = self.normalize(x)
         expr_pts = self.region_expression(xn, expr)
-        xn = self.guide_points(xn, expr)
-        dn = F.normalize(d, dim=-1)
+        return self.guide_points(xn, expr), F.normalize(d, dim=-1), expr_pts
 
-        def per_ray(v):
-            return None if v is None else v[:, None]
+    def proposal_points(self, origins: Tensor, dirs: Tensor, t: Tensor,
+                        head: Tensor | None) -> Tensor:
+        """The proposal's samples (R, S, 3), normalised, in the head's frame (no warp)."""
+        x, _ = self.head_points(origins[:, None] + t[..., None] * dirs[:, None], dirs, head)
+        return self.normalize(x)
 
-        return self._query(field, xn, per_ray(dn), per_ray(rays.deform_code),
-                           per_ray(rays.appearance_code), expr_pts)
+    def _query_rays(self, field, rays: RayBatch, t: Tensor, expr: Tensor | None):
+        """Samples at depths t (R, S) along each ray -> σ (R, S), rgb (R, S, 3). The ray's
+        codes go in once per ray, shaped (R, 1, ·), and broadcast over samples."""
+        xn, dn, expr_pts = self.sample_points(rays.origins, rays.dirs, t, expr, rays.head)
+        return self._query(field, xn, dn[:, None], rays.deform_code[:, None],
+                           rays.appearance_code[:, None], expr_pts)
 
     def _deltas(self, t: Tensor, dirs: Tensor, last: float) -> Tensor:
         """Distances between samples in normalised units. t (R, S) -> (R, S)."""
@@ -310,9 +320,7 @@ class FlameNeRF(nn.Module):
         R, P, dev = len(rays), s.num_proposal, rays.origins.device
         edges_p = torch.linspace(self.near, self.far, P + 1, device=dev).expand(R, P + 1)
         t_p = stratified_samples(self.near, self.far, R, P, jitter, dev, generator)
-        x, _ = self.head_points(rays.origins[:, None] + t_p[..., None] * rays.dirs[:, None],
-                                rays.dirs, rays.head)
-        xn = self.normalize(x)
+        xn = self.proposal_points(rays.origins, rays.dirs, t_p, rays.head)
         sig_p = self.proposal.density(xn, None if expr is None else expr[:, None])  # (R, P)
         scale = rays.dirs.norm(dim=-1, keepdim=True) / self.half_extent
         w_p = render_weights(sig_p, (edges_p[:, 1:] - edges_p[:, :-1]) * scale)

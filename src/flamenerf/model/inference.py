@@ -24,7 +24,6 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
 from flamenerf.data.rays import RayBatch
@@ -114,12 +113,13 @@ def _warp_fn(model, rays: RayBatch, settings: RenderSettings):
     """points (n, k, 3), rows (n,) -> canonical points: the bake when every ray has the same
     ω, else the warp MLP."""
     if model.warp is None:
-        return lambda xn, rows: xn
+        return lambda xn, rows, e: xn
     codes = rays.deform_code
-    if settings.warp_grid > 0 and bool((codes == codes[:1]).all()):
+    if (settings.warp_grid > 0 and not model.warp_expression
+            and bool((codes == codes[:1]).all())):
         baked = baked_warp(model.warp, codes[0], settings.warp_grid)
-        return lambda xn, rows: baked(xn)
-    return lambda xn, rows: model.warp(xn, codes[rows, None])
+        return lambda xn, rows, e: baked(xn)
+    return lambda xn, rows, e: model.warp_points(xn, codes[rows, None], e)
 
 
 @torch.inference_mode()
@@ -135,24 +135,27 @@ def _render_rays(model, rays: RayBatch, settings: RenderSettings) -> dict[str, T
     expr = model.masked_expression(rays.expression, rays.face_ray)
     dev = rays.origins.device
     warp = _warp_fn(model, rays, settings)
-    dn = F.normalize(rays.dirs, dim=-1)
     scale = rays.dirs.norm(dim=-1, keepdim=True) / model.half_extent
     counted = []
 
     def points(rows, t):
-        return model.normalize(rays.origins[rows, None] + t[..., None] * rays.dirs[rows, None])
+        return model.proposal_points(rays.origins[rows], rays.dirs[rows],
+                                     t.expand(len(rows), -1), sub_ray(rays.head, rows))
+
+    def sub_ray(v, rows):
+        return None if v is None else v[rows]
 
     def sub(v, rows):
         return None if v is None else v[rows, None]
 
     def field_at(field, t: Tensor) -> Evaluate:
         def evaluate(rows, lo, hi):
-            e = sub(expr, rows)
-            xn = model.guide_points(points(rows, t[rows, lo:hi]),
-                                    None if e is None else e[:, 0])
+            xn, d, e = model.sample_points(rays.origins[rows], rays.dirs[rows],
+                                           t[rows, lo:hi], sub_ray(expr, rows),
+                                           sub_ray(rays.head, rows))
             counted.append(xn.shape[0] * xn.shape[1])
             with _autocast(dev, settings):
-                return field(warp(xn, rows), dn[rows, None], rays.appearance_code[rows, None],
+                return field(warp(xn, rows, e), d[:, None], rays.appearance_code[rows, None],
                              e)
         return evaluate
 
