@@ -125,6 +125,20 @@ def rotate_about(points: np.ndarray, axis: np.ndarray, angle: float, center: np.
     return (np.asarray(points, np.float64) - center) @ R.T + center
 
 
+def umeyama(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """Similarity (s, R, t) minimising Σ |s R src + t - dst|² over points src, dst (N, 3)
+    (Umeyama 1991)."""
+    ms, md = src.mean(0), dst.mean(0)
+    a, b = src - ms, dst - md
+    U, S, Vt = np.linalg.svd(b.T @ a / len(src))
+    D = np.eye(3)
+    if np.linalg.det(U @ Vt) < 0:
+        D[2, 2] = -1
+    R = U @ D @ Vt
+    s = float(np.trace(np.diag(S) @ D) / (a * a).sum(1).mean())
+    return s, R, md - s * R @ ms
+
+
 # ----------------------------------------------------------------------------- cameras
 
 

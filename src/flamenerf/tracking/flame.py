@@ -29,7 +29,7 @@ import numpy as np
 import torch
 
 from flamenerf.errors import UserError
-from flamenerf.geometry import matrix_to_rotvec, project, so3_exp
+from flamenerf.geometry import matrix_to_rotvec, project, so3_exp, umeyama
 
 NUM_FLAME_SHAPE = 300  # FLAME's shape components precede its expression components
 
@@ -274,19 +274,6 @@ class FlameFit:
     model_info: dict
 
 
-def _umeyama(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-    """Similarity (s, R, t) minimising |s R src + t - dst|²."""
-    ms, md = src.mean(0), dst.mean(0)
-    a, b = src - ms, dst - md
-    U, S, Vt = np.linalg.svd(b.T @ a / len(src))
-    D = np.eye(3)
-    if np.linalg.det(U @ Vt) < 0:
-        D[2, 2] = -1
-    R = U @ D @ Vt
-    s = float(np.trace(np.diag(S) @ D) / (a * a).sum(1).mean())
-    return s, R, md - s * R @ ms
-
-
 def fit_flame(m: FlameModel, clip, sol, num_expr: int = 50, num_shape: int = 100,
               iters: int = 200, reg_shape: float = 1e-3, reg_expr: float = 1e-4,
               reg_pose: float = 1e-2, smooth: float = 1e-3) -> FlameFit:
@@ -326,7 +313,7 @@ def _fit(m, clip, sol, num_expr, num_shape, iters, reg_shape, reg_expr, reg_pose
     with torch.no_grad():
         lm0 = landmarks(layer(zeros(S, dtype=dt), zeros(1, E, dtype=dt),
                               zeros(1, 5, 3, dtype=dt)))[0].numpy()
-    s0, R0, t0 = _umeyama(lm0, sol.template[m.lmk_mediapipe])
+    s0, R0, t0 = umeyama(lm0, sol.template[m.lmk_mediapipe])
 
     # unknowns are scaled so that one unit moves the landmarks by similar amounts (L-BFGS
     # converges slowly otherwise): translation in cm, angles and log-scale in 0.1 units

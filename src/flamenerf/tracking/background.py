@@ -1,0 +1,296 @@
+"""Cameras from the static background: COLMAP (pycolmap) structure-from-motion on the frames
+with the person masked out, one shared pinhole camera.
+
+    frames + person masks -> SIFT outside the person -> sequential matching (1, 2, 4, 8...
+    frames apart) -> background flow -> [still camera] or incremental mapping
+
+The result is in COLMAP's own world and scale (`flamenerf.tracking.world` makes it metric
+from the face and puts the head in it). Three outcomes, each with a reason for the report:
+  registered    cameras solved for (most of) the frames;
+  still         the background does not move in the image (tripod, a selfie held still):
+                the camera is fixed, there is nothing to solve;
+  failed        too little texture, too few matches, or the mapping did not register
+                enough frames: the caller falls back to head-as-world cameras.
+"""
+
+from __future__ import annotations
+
+import shutil
+import tempfile
+import time
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+# COLMAP / OpenCV camera axes (x right, y down, z forward) -> OpenGL (x right, y up, -z fwd)
+CV_TO_GL = np.diag([1.0, -1.0, -1.0, 1.0])
+
+
+@dataclass
+class BackgroundOptions:
+    """Knobs of the background registration (defaults tuned on the two reference clips)."""
+
+    max_side: int = 960
+    """Frames are downscaled to at most this many pixels on their long side for COLMAP."""
+    max_features: int = 4096
+    """SIFT features per frame."""
+    min_features: int = 60
+    """Median SIFT features per frame outside the person below which the background counts
+    as textureless (no registration is attempted)."""
+    still_flow: float = 0.004
+    """The camera counts as still when background features move less than this fraction of
+    the image's long side (90th percentile over matched frame pairs)."""
+    min_registered: float = 0.8
+    """Fraction of the frames that must register; fewer and the registration failed."""
+    max_reprojection_px: float = 2.0
+    """Mean reprojection error (source pixels) above which the registration failed."""
+    overlap: int = 8
+    """Sequential matching: each frame against the next `overlap` ones, plus 2^k apart."""
+    init_min_tri_angle: float = 4.0
+    """Degrees; COLMAP's default (16) rejects the small baselines of handheld clips."""
+    refine_focal: bool = True
+    """Refine the given focal length in a final bundle adjustment."""
+    max_focal_change: float = 0.3
+    """Keep the given focal length if the refinement moves it by more than this fraction."""
+    num_threads: int = 2
+    seed: int = 0
+
+
+@dataclass
+class Registration:
+    """Cameras of the frames in COLMAP's world (OpenGL axes, arbitrary scale)."""
+
+    status: str  # "registered" | "still" | "failed"
+    reason: str
+    ids: np.ndarray  # (N,) the caller's frame ids, in the order given
+    registered: np.ndarray  # (N,) bool
+    c2w: np.ndarray  # (N, 4, 4) camera-to-world, NaN where not registered
+    focal: float | None  # source pixels, when registered
+    reprojection_error_px: float | None  # mean over observations, source pixels
+    num_points: int = 0
+    features_median: float = 0.0  # SIFT features per frame outside the person
+    flow_p90: float = 0.0  # background flow, fraction of the long side (90th pct of pairs)
+    seconds: float = 0.0
+    details: dict = field(default_factory=dict)
+
+
+def person_mask(landmarks: np.ndarray, width: int, height: int, grow: float = 1.0
+                ) -> np.ndarray:
+    """Where the person may be in a frame, generously: an ellipse around the face (hair,
+    ears, a turned head) and everything below the chin a little wider than the shoulders.
+    landmarks (L, >=2) pixels -> (H, W) bool. Feature detection skips these pixels, so
+    erring large only costs background features."""
+    x0, y0 = landmarks[:, 0].min(), landmarks[:, 1].min()
+    x1, y1 = landmarks[:, 0].max(), landmarks[:, 1].max()
+    fw, fh = x1 - x0, y1 - y0
+    cx, cy = 0.5 * (x0 + x1), 0.5 * (y0 + y1) - 0.15 * fh  # the skull sits above the face
+    ax, ay = grow * 1.1 * fw, grow * 1.1 * fh
+    yy, xx = np.mgrid[0:height, 0:width].astype(np.float32)
+    head = ((xx - cx) / max(ax, 1.0)) ** 2 + ((yy - cy) / max(ay, 1.0)) ** 2 <= 1.0
+    below = yy >= cy
+    # neck and shoulders: a widening trapezoid from the chin down to the frame's bottom
+    half = grow * (0.9 * fw + 1.2 * fw * np.clip((yy - y1) / max(fh, 1.0), 0, None))
+    body = below & (np.abs(xx - cx) <= half)
+    return head | body
+
+
+def register_background(frames: Iterable[tuple[int, np.ndarray, np.ndarray]],
+                        opts: BackgroundOptions | None = None,
+                        focal: float | None = None) -> Registration:
+    """frames: (id, (H, W, 3) uint8 RGB, (H, W) bool person mask) in time order.
+    Everything COLMAP writes lives in a temporary folder, removed afterwards."""
+    opts = opts or BackgroundOptions()
+    t0 = time.perf_counter()
+    tmp = Path(tempfile.mkdtemp(prefix="flamenerf_colmap_"))
+    try:
+        reg = _register(frames, opts, tmp, focal)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    reg.seconds = time.perf_counter() - t0
+    return reg
+
+
+def _write_frames(frames, opts: BackgroundOptions, img_dir: Path, mask_dir: Path):
+    from PIL import Image
+
+    ids, names, size, scale = [], [], None, 1.0
+    for k, (fid, rgb, person) in enumerate(frames):
+        h, w = rgb.shape[:2]
+        if size is None:
+            size = (w, h)
+            scale = min(1.0, opts.max_side / max(w, h))
+        img = Image.fromarray(rgb)
+        keep = Image.fromarray(np.where(person, 0, 255).astype(np.uint8))
+        if scale < 1.0:
+            sz = (round(w * scale), round(h * scale))
+            img = img.resize(sz, Image.Resampling.LANCZOS)
+            keep = keep.resize(sz, Image.Resampling.NEAREST)
+        name = f"{k:06d}.png"
+        img.save(img_dir / name)
+        keep.save(mask_dir / f"{name}.png")  # COLMAP: features only where the mask is > 0
+        ids.append(int(fid))
+        names.append(name)
+    return np.asarray(ids, np.int64), names, size, scale
+
+
+def _empty(ids, status, reason, **kw) -> Registration:
+    n = len(ids)
+    return Registration(status, reason, ids, np.zeros(n, bool), np.full((n, 4, 4), np.nan),
+                        None, None, **kw)
+
+
+def _register(frames, opts: BackgroundOptions, tmp: Path, focal: float | None
+              ) -> Registration:
+    import pycolmap
+
+    pycolmap.set_random_seed(opts.seed)
+    pycolmap.logging.minloglevel = 2  # errors only: COLMAP logs every frame and pair
+    img_dir, mask_dir, db_path = tmp / "images", tmp / "masks", tmp / "database.db"
+    img_dir.mkdir()
+    mask_dir.mkdir()
+    ids, names, size, scale = _write_frames(frames, opts, img_dir, mask_dir)
+    if len(ids) < 2:
+        return _empty(ids, "failed", "fewer than 2 frames")
+    W, H = size
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = "SIMPLE_PINHOLE"  # the dataset's cameras are pinholes
+    if focal is not None:
+        reader.camera_params = f"{focal * scale},{W * scale / 2},{H * scale / 2}"
+    reader.mask_path = mask_dir
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.num_threads = opts.num_threads
+    extraction.sift.max_num_features = opts.max_features
+    extraction.use_gpu = False
+    pycolmap.extract_features(db_path, img_dir, image_names=names,
+                              camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
+                              extraction_options=extraction, device=pycolmap.Device.cpu)
+    db = pycolmap.Database.open(db_path)
+    try:
+        image_ids = {im.name: im.image_id for im in db.read_all_images()}
+        feats = np.array([db.num_keypoints_for_image(image_ids[n]) for n in names])
+    finally:
+        db.close()
+    features_median = float(np.median(feats))
+    if features_median < opts.min_features:
+        return _empty(ids, "failed", f"background has too little texture (median "
+                      f"{features_median:.0f} features per frame outside the person, need "
+                      f"{opts.min_features})", features_median=features_median)
+
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.num_threads = opts.num_threads
+    matching.use_gpu = False
+    pairing = pycolmap.SequentialPairingOptions()
+    pairing.overlap = opts.overlap
+    pairing.quadratic_overlap = True
+    pycolmap.match_sequential(db_path, matching_options=matching, pairing_options=pairing,
+                              device=pycolmap.Device.cpu)
+    flow, n_pairs = _background_flow(db_path, image_ids, names)
+    long_side = max(W, H) * scale
+    flow_p90 = float(np.percentile(flow, 90) / long_side) if len(flow) else 0.0
+    if n_pairs == 0 and flow_p90 >= opts.still_flow:
+        return _empty(ids, "failed", "no frame pairs of the background verified",
+                      features_median=features_median, flow_p90=flow_p90)
+    kw = dict(features_median=features_median, flow_p90=flow_p90,
+              details={"verified_pairs": n_pairs, "image_scale": scale})
+    if len(flow) == 0:
+        return _empty(ids, "failed", "no frame pairs of the background matched", **kw)
+    if flow_p90 < opts.still_flow:
+        return _empty(ids, "still", f"the background does not move (90% of frame pairs "
+                      f"move < {100 * flow_p90:.2f}% of the image)", **kw)
+
+    mapping = pycolmap.IncrementalPipelineOptions()
+    # one thread: the multi-threaded mapper is not reproducible, and on short clips its
+    # outcome varied from run to run (all frames or a handful); it is not the slow part
+    mapping.num_threads = 1
+    mapping.random_seed = opts.seed
+    mapping.multiple_models = False
+    mapping.min_model_size = 3
+    mapping.ba_refine_principal_point = False
+    mapping.extract_colors = False
+    # the focal length stays at the face solve's while the map grows: refined from the first
+    # few frames (little parallax) it collapses and the reconstruction with it
+    mapping.ba_refine_focal_length = focal is None
+    mapping.mapper.abs_pose_refine_focal_length = focal is None
+    mapping.mapper.init_min_tri_angle = opts.init_min_tri_angle
+    mapping.mapper.init_min_num_inliers = 50
+    mapping.mapper.num_threads = 1
+    mapping.mapper.random_seed = opts.seed
+    recs = pycolmap.incremental_mapping(db_path, img_dir, tmp / "sparse", mapping)
+    if not recs:
+        return _empty(ids, "failed", "COLMAP found no initial pair to start the "
+                      "reconstruction from (too little parallax or too few matches)", **kw)
+    rec = max(recs.values(), key=lambda r: r.num_reg_images())
+    pos = {n: k for k, n in enumerate(names)}
+    c2w = np.full((len(ids), 4, 4), np.nan)
+    if focal is not None and opts.refine_focal:
+        rec = _refine_focal(rec, focal * scale, opts)
+    for im in rec.images.values():
+        if im.has_pose:
+            w2c = np.eye(4)
+            w2c[:3] = im.cam_from_world().matrix()
+            c2w[pos[im.name]] = np.linalg.inv(w2c) @ CV_TO_GL
+    registered = np.isfinite(c2w[:, 0, 0])
+    cam = next(iter(rec.cameras.values()))
+    focal = float(cam.params[0]) / scale
+    err = float(rec.compute_mean_reprojection_error()) / scale
+    kw.update(num_points=int(rec.num_points3D()))
+    frac = registered.mean()
+    out = Registration("registered", f"{registered.sum()} of {len(ids)} frames registered "
+                       f"against the background", ids, registered, c2w, focal, err, **kw)
+    if frac < opts.min_registered:
+        out.status = "failed"
+        out.reason = (f"only {registered.sum()} of {len(ids)} frames registered against the "
+                      f"background (need {100 * opts.min_registered:.0f}%)")
+    elif err > opts.max_reprojection_px:
+        out.status = "failed"
+        out.reason = (f"background reprojection error {err:.2f} px > "
+                      f"{opts.max_reprojection_px} px")
+    return out
+
+
+def _refine_focal(rec, focal0: float, opts: BackgroundOptions):
+    """One global bundle adjustment with the focal length free, now that every frame's
+    parallax constrains it. -> the refined reconstruction, or `rec` unchanged if the focal
+    moved by more than max_focal_change (a weakly constrained focal wanders)."""
+    import pycolmap
+
+    out = pycolmap.Reconstruction(rec)
+    ba = pycolmap.BundleAdjustmentOptions()
+    ba.refine_focal_length = True
+    ba.refine_principal_point = False
+    ba.refine_extra_params = False
+    ba.print_summary = False
+    ba.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
+    ba.ceres.solver_options.num_threads = opts.num_threads
+    pycolmap.bundle_adjustment(out, ba)
+    f = float(next(iter(out.cameras.values())).params[0])
+    return out if abs(np.log(f / focal0)) <= np.log(1 + opts.max_focal_change) else rec
+
+
+def _background_flow(db_path: Path, image_ids: dict[str, int], names: list[str]
+                     ) -> tuple[np.ndarray, int]:
+    """Median image motion (downscaled px) of the background matches of every matched frame
+    pair, and the number of geometrically verified pairs. Raw matches, not verified ones:
+    COLMAP's verification rejects pairs that do not move at all (no epipolar geometry, or
+    a "watermark"), which are exactly a still camera's; the median is robust to the
+    outliers among them."""
+    import pycolmap
+
+    db = pycolmap.Database.open(db_path)
+    try:
+        kps = {i: db.read_keypoints(i)[:, :2] for i in image_ids.values()}
+        pair_ids, matches = db.read_all_matches()
+        verified = sum(len(g.inlier_matches) >= 15 for g in db.read_two_view_geometries()[1])
+    finally:
+        db.close()
+    flow = []
+    for pid, m in zip(pair_ids, matches):
+        m = np.asarray(m)
+        if len(m) < 15:
+            continue
+        a, b = pycolmap.pair_id_to_image_pair(pid)
+        d = np.linalg.norm(kps[a][m[:, 0]] - kps[b][m[:, 1]], axis=1)
+        flow.append(float(np.median(d)))
+    return np.asarray(flow), int(verified)
