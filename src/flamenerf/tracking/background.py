@@ -75,6 +75,24 @@ class Registration:
     seconds: float = 0.0
     details: dict = field(default_factory=dict)
 
+    def subset(self, ids: np.ndarray) -> "Registration":
+        """The same registration restricted to (and ordered as) the frames `ids`."""
+        pos = {int(i): k for k, i in enumerate(self.ids)}
+        idx = np.array([pos[int(i)] for i in ids], np.int64)
+        out = Registration(**self.__dict__)
+        out.ids, out.registered, out.c2w = self.ids[idx], self.registered[idx], self.c2w[idx]
+        return out
+
+    def summary(self) -> dict:
+        """The report's view: everything but the per-frame arrays."""
+        return {"status": self.status, "reason": self.reason,
+                "frames": int(len(self.ids)), "registered": int(self.registered.sum()),
+                "focal_px_source": self.focal,
+                "reprojection_error_px_source": self.reprojection_error_px,
+                "points": self.num_points, "features_per_frame_median": self.features_median,
+                "background_flow_p90": self.flow_p90, "seconds": self.seconds,
+                **self.details}
+
 
 def person_mask(landmarks: np.ndarray, width: int, height: int, grow: float = 1.0
                 ) -> np.ndarray:

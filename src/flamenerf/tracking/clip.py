@@ -137,3 +137,59 @@ def solve_clip(clip: TrackedClip, mesh, fov: float | None, max_error: float = MA
         require_enough(clip, min_tracked)
         res = run(clip)
     return clip, res
+
+
+@dataclass
+class Scene:
+    """The clip's cameras and head poses in one metric world (`flamenerf.tracking.world`),
+    with the background registration they came from (None when it was not attempted)."""
+
+    world: Any  # tracking.world.World
+    registration: Any  # tracking.background.Registration | None
+    seconds: float = 0.0
+
+
+def solve_scene(clip: TrackedClip, mesh, fov: float | None, max_error: float = MAX_ERROR,
+                min_tracked: float = 0.5, background: bool = True, bg_opts=None,
+                progress: bool = False):
+    """Face solve, then cameras from the background and head poses from the face.
+
+    1. `solve_clip`: focal length (scan) and camera-from-head per frame, misfits dropped;
+    2. the background (person masked out) registered by COLMAP from that focal length,
+       which a final bundle adjustment refines (unless `fov` fixes it);
+    3. frames the background did not register are dropped, and the face solve is rerun at
+       the background's focal length, so that both agree on depth;
+    4. `compose_world`: metric scale, head poses, the case, warnings.
+    With background=False, or when the registration fails, the head is the world (as
+    before). -> (clip, SolveResult, Scene)"""
+    from flamenerf.data.video import iter_frames
+    from flamenerf.tracking.background import (BackgroundOptions, person_mask,
+                                               register_background)
+    from flamenerf.tracking.world import compose_world
+
+    clip, sol = solve_clip(clip, mesh, fov, max_error, min_tracked)
+    centre = sol.template.mean(0)
+    if not background:
+        return clip, sol, Scene(compose_world(sol.w2c, None, centre), None)
+    t0 = time.perf_counter()
+    opts = bg_opts or BackgroundOptions()
+    if fov is not None:
+        opts = BackgroundOptions(**{**opts.__dict__, "refine_focal": False})
+    info = clip.info
+    pos = {int(s): k for k, s in enumerate(clip.frames)}
+    frames = ((i, rgb, person_mask(clip.landmarks[pos[i], :, :2], info.width, info.height))
+              for i, rgb in progress_bar(iter_frames(info, clip.frames), len(clip.frames),
+                                         "background", progress))
+    reg = register_background(frames, opts, focal=sol.focal)
+    if reg.status == "registered":
+        keep = np.isin(clip.frames, reg.ids[reg.registered])
+        if not keep.all():
+            clip = drop_frames(clip, keep, {int(k): "not registered against the background"
+                                            for k in np.flatnonzero(~keep)})
+            require_enough(clip, min_tracked)
+        bg_fov = float(np.degrees(2 * np.arctan(0.5 * info.width / reg.focal)))
+        clip, sol = solve_clip(clip, mesh, bg_fov if fov is None else fov, max_error,
+                               min_tracked)
+        reg = reg.subset(clip.frames)
+    world = compose_world(sol.w2c, reg, sol.template.mean(0))
+    return clip, sol, Scene(world, reg, time.perf_counter() - t0)

@@ -2,6 +2,7 @@
 
     decode (rotation honoured) -> select frames -> FaceLandmarker per frame (IMAGE mode)
     -> joint camera solve (focal, poses, template; robust, smooth) -> drop misfits
+    -> cameras from the background (COLMAP, person masked) + head poses from the face
     -> [FLAME fit] -> one stable square crop -> resize -> silhouettes -> dataset + QA
 
 Everything is written through `DatasetWriter` (a temp dir renamed into place), the QA files
@@ -23,7 +24,7 @@ import tyro
 
 from flamenerf.errors import UserError
 from flamenerf.io import jsonable, write_json
-from flamenerf.tracking.clip import (MAX_ERROR, progress_bar, require_enough, solve_clip,
+from flamenerf.tracking.clip import (MAX_ERROR, progress_bar, require_enough, solve_scene,
                                      track_clip)
 
 
@@ -45,6 +46,10 @@ class PreprocessOptions:
             far-scale x the largest camera-head distance).
         far_scale: See --far.
         fov: Fix the horizontal field of view in degrees instead of estimating it.
+        cameras: scene: cameras from the static background (COLMAP, the person masked
+            out) and the head's rigid pose per frame from the face; falls back to head
+            when the background cannot be registered. head: the head is the world (every
+            head turn becomes a camera motion; the paper's still-head capture).
         landmarker: face_landmarker.task to use (default: $FLAMENERF_LANDMARKER, then the
             copy installed by scripts/get_landmarker.py).
         face_model: mediapipe: MediaPipe face mesh + ARKit blendshapes; flame: fit FLAME
@@ -72,6 +77,7 @@ class PreprocessOptions:
     far: float | None = None
     far_scale: float = 4.0
     fov: float | None = None
+    cameras: Literal["scene", "head"] = "scene"
     landmarker: Path | None = None
     face_model: Literal["mediapipe", "flame"] = "mediapipe"
     flame_dir: Path | None = None
@@ -124,20 +130,23 @@ def preprocess_video(video: str | os.PathLike, out: str | os.PathLike,
     n_tracked = len(clip.frames)
     require_enough(clip, opts.min_tracked)
     t_track = time.perf_counter()
-    clip, sol = solve_clip(clip, mesh, opts.fov, opts.max_error, opts.min_tracked)
+    clip, sol, scene = solve_scene(clip, mesh, opts.fov, opts.max_error, opts.min_tracked,
+                                   background=opts.cameras == "scene", progress=opts.progress)
     t_solve = time.perf_counter()
     face = fit_face(clip, sol, mesh, flame, opts.flame_expr_dim)
+    # from here on the solve's world is the scene's: cameras and posed face meshes
+    sol, face = in_scene(sol, face, scene.world)
     t_fit = time.perf_counter()
 
     crop, crop_facts = stable_square_crop(face_boxes(clip.landmarks[:, :468]),
                                           clip.info.width, clip.info.height, opts.size,
                                           opts.crop_scale)
     intr = crop.intrinsics(sol.focal, sol.cx, sol.cy)
-    near, far, cam_dist = scene_bounds(sol, face.vertices, opts)
+    near, far, cam_dist = scene_bounds(sol, face.vertices, opts, scene.world.head_pose)
     splits = assign_splits(len(clip.frames), opts.val_every)
     t = {"start": t_start, "track": t_track, "solve": t_solve, "fit": t_fit}
-    return write_dataset(video, out, opts, clip, sol, face, crop, crop_facts, intr, near, far,
-                         cam_dist, splits, n_tracked, t)
+    return write_dataset(video, out, opts, clip, sol, scene, face, crop, crop_facts, intr,
+                         near, far, cam_dist, splits, n_tracked, t)
 
 
 def check_options(o: PreprocessOptions) -> None:
@@ -174,14 +183,30 @@ def fit_face(clip, sol, mesh, flame, flame_expr_dim: int) -> FaceFit:
                     "range": [0.0, 1.0], "model_sha256": SHA256})
 
 
-def scene_bounds(sol, vertices: np.ndarray, opts: PreprocessOptions
-                 ) -> tuple[float, float, np.ndarray]:
-    """near / far from the geometry (z-depth of the face mesh (N, V, 3) in every camera),
-    unless given. -> near, far, camera distances from the head (N,)"""
+def in_scene(sol, face: FaceFit, world) -> tuple[Any, FaceFit]:
+    """The solve and the face fit moved from the head's frame into the scene's world: the
+    scene's cameras, and every frame's mesh posed by its head pose."""
+    from dataclasses import replace
+
+    if world.head_pose is None:  # the head is the world
+        return replace(sol, c2w=world.c2w, w2c=np.linalg.inv(world.c2w)), face
+    R, t = world.head_pose[:, None, :3, :3], world.head_pose[:, None, :3, 3]
+    pose = lambda v: (R @ v[..., None])[..., 0] + t  # noqa: E731
+    return (replace(sol, c2w=world.c2w, w2c=np.linalg.inv(world.c2w),
+                    vertices=pose(sol.vertices)),
+            replace(face, vertices=pose(face.vertices)))
+
+
+def scene_bounds(sol, vertices: np.ndarray, opts: PreprocessOptions,
+                 head_pose: np.ndarray | None = None) -> tuple[float, float, np.ndarray]:
+    """near / far from the geometry (z-depth of the face mesh (N, V, 3), world, in every
+    camera), unless given. -> near, far, camera distances from the head's origin (N,)
+    (head_pose (N, 4, 4) world-from-head; None: the world's origin)"""
     w2c = sol.w2c
     depth = -(np.einsum("nab,nvb->nva", w2c[:, :3, :3], vertices)
               + w2c[:, None, :3, 3])[..., 2]
-    cam_dist = np.linalg.norm(sol.c2w[:, :3, 3], axis=1)
+    head = 0.0 if head_pose is None else head_pose[:, :3, 3]
+    cam_dist = np.linalg.norm(sol.c2w[:, :3, 3] - head, axis=1)
     near = opts.near if opts.near is not None else 0.5 * float(depth.min())
     far = opts.far if opts.far is not None else opts.far_scale * float(cam_dist.max())
     if not 0 <= near < far:
@@ -195,8 +220,9 @@ def assign_splits(n: int, val_every: int) -> list[str]:
             for k in range(n)] if val_every > 1 else ["train"] * n
 
 
-def write_dataset(video: Path, out: Path, opts: PreprocessOptions, clip, sol, face: FaceFit,
-                  crop, crop_facts: dict, intr, near: float, far: float, cam_dist: np.ndarray,
+def write_dataset(video: Path, out: Path, opts: PreprocessOptions, clip, sol, scene,
+                  face: FaceFit, crop, crop_facts: dict, intr, near: float, far: float,
+                  cam_dist: np.ndarray,
                   splits: list[str], n_tracked: int, t: dict[str, float]) -> dict:
     """Decode the kept frames again, crop them, rasterise their silhouettes and write the
     dataset with its QA folder (atomically). -> the tracking report"""
@@ -210,6 +236,7 @@ def write_dataset(video: Path, out: Path, opts: PreprocessOptions, clip, sol, fa
     info, N = clip.info, len(clip.frames)
     expressions, names, kind = face.expressions, face.names, face.kind
     verts_world, faces = face.vertices, face.faces
+    head_pose = scene.world.head_pose
     lm_out = crop.points(clip.landmarks[..., :2])
     source = {
         "tool": "flamenerf preprocess", "version": flamenerf.__version__,
@@ -238,7 +265,7 @@ def write_dataset(video: Path, out: Path, opts: PreprocessOptions, clip, sol, fa
             mask = rasterize_silhouette(verts_world[k], faces, intr, sol.c2w[k], opts.dilate)
             writer.add_frame(
                 img, mask, sol.c2w[k], expressions[k], frame_index=k, split=splits[k],
-                verts=verts_world[k],
+                verts=verts_world[k], head_pose=None if head_pose is None else head_pose[k],
                 extra={"source_frame": i, "time": round(float(clip.times[k]), 6),
                        "reprojection_error_px": round(float(sol.rigid_error[k] * crop.scale),
                                                       4)})
@@ -246,7 +273,10 @@ def write_dataset(video: Path, out: Path, opts: PreprocessOptions, clip, sol, fa
                                            expressions[k], names))
             if opts.qa:
                 label = f"{k:04d} src {i} {splits[k]} err {sol.rigid_error[k] * crop.scale:.2f}px"
-                ov = qa.overlay_frame(img, mask, lm_out[k, :468], intr, sol.c2w[k], label)
+                # head axes: the camera seen from the head
+                cam_in_head = sol.c2w[k] if head_pose is None else np.linalg.inv(
+                    head_pose[k]) @ sol.c2w[k]
+                ov = qa.overlay_frame(img, mask, lm_out[k, :468], intr, cam_in_head, label)
                 video_out.write(ov)
                 if k in sheet_pos:
                     sheet_frames.append(ov)
@@ -254,18 +284,23 @@ def write_dataset(video: Path, out: Path, opts: PreprocessOptions, clip, sol, fa
             raise UserError(f"{video}: decoding stopped early ({len(per_frame)} of {N} "
                             "frames) on the second pass")
         writer.set_faces(faces)
-        writer.set_meta("scene", {"units": "metres", "world": "head frame (MediaPipe "
-                                  "canonical face axes: x left-of-subject, y up, z out of "
-                                  "the face)"})
+        axes = "MediaPipe canonical face axes: x left-of-subject, y up, z out of the face"
+        writer.set_meta("scene", {
+            "units": "metres", "case": scene.world.case,
+            "world": f"head frame ({axes})" if head_pose is None else
+                     f"the head's mean pose; cameras from the static background, the head's "
+                     f"rigid pose per frame in head_pose ({axes})"})
         t_write = time.perf_counter()
-        timings = {"track": t["track"] - t["start"], "solve": t["solve"] - t["track"],
+        timings = {"track": t["track"] - t["start"],
+                   "solve": t["solve"] - t["track"] - scene.seconds,
+                   "background": scene.seconds,
                    "fit": t["fit"] - t["solve"], "write": t_write - t["fit"]}
-        report = R.tracking_report(video, clip, sol, intr, crop, crop_facts, n_tracked,
-                                   cam_dist, near, far, kind, names, splits, per_frame,
-                                   timings)
+        report = R.tracking_report(video, clip, sol, scene, intr, crop, crop_facts,
+                                   n_tracked, cam_dist, near, far, kind, names, splits,
+                                   per_frame, timings)
         if video_out is not None:
             video_out.close()
-            R.write_qa(writer.tmp / "qa", report, sheet_frames, sol, clip, splits,
+            R.write_qa(writer.tmp / "qa", report, sheet_frames, sol, scene, clip, splits,
                        expressions, names, kind)
         total = time.perf_counter() - t["start"]
         report["timings_s"]["total"] = total

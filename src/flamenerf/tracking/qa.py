@@ -146,3 +146,53 @@ def plot_expression_traces(path: Path, times: np.ndarray, expressions: np.ndarra
         ax.set_title(title, fontsize=10)
     fig.savefig(path, dpi=110, bbox_inches="tight")
     plt.close(fig)
+
+
+def plot_motion(path: Path, times: np.ndarray, c2w: np.ndarray, head_pose: np.ndarray | None,
+                title: str = "") -> None:
+    """Camera motion and head motion, separately, in the scene's world: translation from
+    the mean (cm) and rotation from the mean as yaw / pitch / roll (deg) over time.
+    c2w, head_pose (N, 4, 4); head_pose None: the head is the world (nothing to plot)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from flamenerf.tracking.world import mean_pose
+
+    fig, axes = plt.subplots(2, 2, figsize=(11, 5.6), sharex=True, layout="constrained")
+    rows = (("camera", c2w), ("head", head_pose))
+    for r, (name, T) in enumerate(rows):
+        ax_t, ax_r = axes[r]
+        if T is None:
+            for ax in (ax_t, ax_r):
+                ax.text(0.5, 0.5, "head taken as the world (fallback):\nits motion is in "
+                        "the camera's", ha="center", va="center", transform=ax.transAxes)
+            ax_t.set_title(f"{name} position", fontsize=9)
+            continue
+        t, ypr = _relative_motion(T, mean_pose(T))
+        for k, axis in enumerate("xyz"):
+            ax_t.plot(times, 100 * t[:, k], lw=1.0, label=axis)
+        for k, axis in enumerate(("yaw", "pitch", "roll")):
+            ax_r.plot(times, ypr[:, k], lw=1.0, label=axis)
+        ax_t.set_title(f"{name} position from its mean (world axes)", fontsize=9)
+        ax_r.set_title(f"{name} rotation from its mean", fontsize=9)
+        ax_t.set_ylabel("cm")
+        ax_r.set_ylabel("degrees")
+        for ax in (ax_t, ax_r):
+            ax.grid(alpha=0.3)
+            ax.legend(fontsize=7, loc="upper right")
+    for ax in axes[1]:
+        ax.set_xlabel("time (s)")
+    if title:
+        fig.suptitle(title, fontsize=10)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def _relative_motion(T: np.ndarray, M: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Translation (N, 3) and yaw/pitch/roll (N, 3) degrees of poses T relative to M."""
+    from scipy.spatial.transform import Rotation
+
+    rel = Rotation.from_matrix(np.einsum("nab,cb->nac", T[:, :3, :3], M[:3, :3]))
+    return T[:, :3, 3] - M[:3, 3], rel.as_euler("YXZ", degrees=True)

@@ -16,11 +16,29 @@ GROUPS_ARKIT = {  # channels plotted in qa/expressions.png (groups are averaged)
 
 
 
-def tracking_report(video: Path, clip, sol, intr, crop, crop_facts, n_tracked: int,
+def scene_report(scene) -> dict:
+    """Which case the clip is, how the cameras were found, how much camera and head move,
+    and what that allows (warnings)."""
+    w, reg = scene.world, scene.registration
+    return {
+        "case": w.case,
+        "cameras_from": ("the static background" if reg is not None and reg.status in
+                         ("registered", "still") and w.head_pose is not None
+                         else "the face (head as world)"),
+        "warnings": w.warnings,
+        "metric_scale_m_per_unit": w.scale,
+        "camera_motion": w.camera_motion,
+        "head_motion": w.head_motion,
+        "background": reg.summary() if reg is not None else None,
+    }
+
+
+def tracking_report(video: Path, clip, sol, scene, intr, crop, crop_facts, n_tracked: int,
                     cam_dist: np.ndarray, near: float, far: float, kind: str,
                     names: list[str], splits: list[str], per_frame: list[dict],
                     timings: dict[str, float]) -> dict:
-    """What preprocessing found and kept: video, frames, cameras, crop, errors, bounds."""
+    """What preprocessing found and kept: video, frames, scene, cameras, crop, errors,
+    bounds."""
     info, N = clip.info, len(clip.frames)
     return {
         "video": {"path": str(video), "width": info.width, "height": info.height,
@@ -32,6 +50,7 @@ def tracking_report(video: Path, clip, sol, intr, crop, crop_facts, n_tracked: i
         "tracked_percent": 100.0 * n_tracked / max(1, len(clip.selected)),
         "kept_percent": 100.0 * N / max(1, len(clip.selected)),
         "dropped": clip.dropped,
+        "scene": scene_report(scene),
         "camera": {
             "focal_px_source": sol.focal, "fov_x_deg": _fov(sol.focal, info.width),
             "fov_y_deg": _fov(sol.focal, info.height),
@@ -72,8 +91,8 @@ def frame_entry(k: int, source_frame: int, clip, sol, crop, split: str, mask: np
     }
 
 
-def write_qa(qa_dir: Path, report: dict, sheet_frames: list[np.ndarray], sol, clip, splits,
-              expressions, names, kind) -> None:
+def write_qa(qa_dir: Path, report: dict, sheet_frames: list[np.ndarray], sol, scene, clip,
+             splits, expressions, names, kind) -> None:
     import imageio.v3 as iio
 
     from flamenerf.tracking import qa
@@ -85,6 +104,10 @@ def write_qa(qa_dir: Path, report: dict, sheet_frames: list[np.ndarray], sol, cl
                     title=f"{len(sol.c2w)} cameras, focal {sol.focal:.0f} px (source), "
                           f"median reprojection error {rep['rigid_median_out']:.2f} px "
                           f"(output)")
+    w = scene.world
+    qa.plot_motion(qa_dir / "motion.png", clip.times, w.c2w, w.head_pose,
+                   title=f"{w.case}" + (f" - {len(w.warnings)} warning(s), see "
+                                        "tracking_report.json" if w.warnings else ""))
     if kind == "arkit":
         qa.plot_expression_traces(qa_dir / "expressions.png", clip.times, expressions, names,
                                   GROUPS_ARKIT, title="expression trace")
