@@ -43,7 +43,9 @@ def contact_sheet_from_dataset(ds_dir: Path, out_png: Path, n: int = 8, cols: in
         img = (ds.load_image(f) * 255 + 0.5).astype(np.uint8)
         uv, _ = project_points(ds.face_vertices[k].astype(np.float64), ds.intrinsics, f.c2w)
         label = f"t={f.extra.get('time', 0):.1f}s {f.extra.get('reprojection_error_px', 0):.2f}px"
-        tiles.append(qa.overlay_frame(img, ds.load_mask(f), uv, ds.intrinsics, f.c2w, label,
+        # head axes: the camera seen from the head
+        cam = f.c2w if f.head_pose is None else np.linalg.inv(f.head_pose) @ f.c2w
+        tiles.append(qa.overlay_frame(img, ds.load_mask(f), uv, ds.intrinsics, cam, label,
                                       upscale=1))
     out_png.parent.mkdir(parents=True, exist_ok=True)
     iio.imwrite(out_png, qa.contact_sheet(tiles, cols=cols))
@@ -58,6 +60,23 @@ def trace_from_dataset(ds_dir: Path, out_png: Path, title: str):
     t = np.array([f.extra["time"] for f in ds.frames])
     qa.plot_expression_traces(out_png, t, ds.expression_matrix(ds.frames),
                               ds.expression_names, GROUPS_ARKIT, title=title)
+
+
+def _scene_row(sc: dict) -> dict:
+    bg = sc["background"] or {}
+    r = (lambda v, d=3: None if v is None else round(v, d))  # noqa: E731
+    return {
+        "case": sc["case"], "warnings": sc["warnings"],
+        "background_status": bg.get("status"), "background_reason": bg.get("reason"),
+        "frames": bg.get("frames"), "registered": bg.get("registered"),
+        "background_reprojection_px": r(bg.get("reprojection_error_px_source")),
+        "background_points": bg.get("points"),
+        "background_focal_px": r(bg.get("focal_px_source"), 1),
+        "background_s": r(bg.get("seconds"), 1),
+        "camera_motion": {k: (r(v) if not isinstance(v, list) else [r(x) for x in v])
+                          for k, v in sc["camera_motion"].items()},
+        "head_motion": {k: r(v) for k, v in sc["head_motion"].items()},
+    }
 
 
 def main() -> int:
@@ -101,9 +120,14 @@ def main() -> int:
             "wall_s": round(wall, 2),
             "frames_per_second": round(rep["selected_frames"] / wall, 2),
             "timings_s": {k: round(v, 2) for k, v in rep["timings_s"].items()},
+            "scene": _scene_row(rep["scene"]),
             "loadavg_1min_before_after": [round(load0[0], 2), round(load1[0], 2)],
         }
         results["clips"][name] = row
+        sc = row["scene"]
+        print(f"{name}: {sc['case']}; background {sc['background_status']} "
+              f"({sc['registered']} of {sc['frames']} frames registered, "
+              f"{sc['background_reprojection_px']} px, {sc['background_s']} s)", flush=True)
         print(f"{name}: tracked {row['tracked_frames']}/{row['selected_frames']} "
               f"({row['tracked_percent']:.1f}%), median reprojection error "
               f"{row['median_reprojection_error_px_source']:.2f} px source / "

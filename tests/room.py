@@ -45,13 +45,17 @@ def _yaw_pitch(yaw: float, pitch: float) -> np.ndarray:
 
 def render_room(canonical: np.ndarray, n: int = 16, size: tuple[int, int] = (192, 144),
                 fov: float = 60.0, camera_deg: float = 30.0, head_yaw_deg: float = 20.0,
-                head_shift: float = 0.03, radius: float = 0.1) -> Room:
+                head_shift: float = 0.03, radius: float = 0.1, textured: bool = True) -> Room:
     """Camera on an arc of `camera_deg` around the head at 0.6 m; the head yaws by
-    ±head_yaw_deg, pitches by half that and shifts by head_shift metres, independently."""
+    ±head_yaw_deg, pitches by half that and shifts by head_shift metres, independently.
+    textured=False: plain walls (a smooth shading only)."""
     W, H = size
     f = 0.5 * W / np.tan(np.radians(fov) / 2)
     intr = Intrinsics(W, H, f, f, W / 2, H / 2)
     tex = _textures()
+    if not textured:  # a smooth gradient: shading without anything SIFT can latch onto
+        tex = {k: np.broadcast_to(np.linspace(90, 160, 64, dtype=np.float32)[:, None, None],
+                                  (64, 64, 3)).copy() for k in tex}
     t = np.linspace(0.0, 1.0, n)
     az = np.radians(camera_deg) * (t - 0.5)
     centre = np.array([0.0, 0.0, -0.5])

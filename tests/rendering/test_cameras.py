@@ -20,8 +20,28 @@ def rig(toy_dataset):
 def test_rig_from_the_capture(rig):
     np.testing.assert_allclose(rig.center, 0, atol=1e-6)  # the toy face's centroid
     assert rig.radius == pytest.approx(1.0, abs=0.01)
-    assert rig.swing_deg >= 10.0
+    assert rig.swing_deg > 0
+    lo, hi = rig.azimuth_range
+    assert lo <= 0 <= hi and hi - lo == pytest.approx(2 * rig.swing_deg)
     assert 0.5 < rig.min_distance < 1.0
+
+
+def test_default_orbit_stays_within_the_captured_azimuths(rig):
+    def azimuths(P, r):
+        e0 = r.reference[:3, 3] - r.center
+        e0 -= r.up * (e0 @ r.up)
+        e0 /= np.linalg.norm(e0)
+        v = P[:, :3, 3] - r.center
+        return np.degrees(np.arctan2(v @ np.cross(r.up, e0), v @ e0))
+
+    from dataclasses import replace
+
+    for lo, hi in ((-2.0, 12.0), (0.0, 0.0), (-7.0, 0.0)):  # frame 0 off-centre, still
+        r = replace(rig, azimuth_range=(lo, hi))
+        az = azimuths(C.camera_path("orbit", 40, r), r)
+        assert az.min() == pytest.approx(lo, abs=0.2) and az.max() == pytest.approx(hi, abs=0.2)
+    wide = azimuths(C.camera_path("orbit", 40, r, amplitude=20.0), r)  # asked for: beyond
+    assert wide.max() == pytest.approx(20.0, abs=0.2)
 
 
 @pytest.mark.parametrize("kind", C.PATH_KINDS)

@@ -6,13 +6,15 @@ y up, the camera looks down -z).
 Every path starts from the reference camera (the camera of frame 0, whose codes ω_0, φ_0
 re-animation uses) and looks at the head: the centroid of frame 0's face mesh. Its scale
 comes from the capture: the radius is the mean distance of the training cameras from the
-head, the default swing is the half-range of their azimuths about the capture's mean up
-vector (at least 10 deg), so a path stays where the model has seen the scene.
+head, and by default a path stays within the azimuths the training cameras covered about the
+capture's mean up vector, where the model has seen the scene (a still camera gives a still
+path: views beyond the capture extrapolate, ask for them with an explicit amplitude).
 
 Kinds:
   static  the reference camera itself, every frame;
   orbit   an arc around the head at the reference camera's distance, swinging
-          +-amplitude deg in azimuth (one back-and-forth over the video);
+          +-amplitude deg in azimuth (one back-and-forth over the video); by default from
+          the reference out to each end of the captured azimuths;
   spiral  an LLFF/Nerfies-style spiral: the camera circles the reference position in the
           image plane (radius = tan(amplitude/2) x distance) while moving 10 % in and out;
   dolly   along the line to the head, in to (1 - amplitude) times the reference distance
@@ -47,6 +49,9 @@ class CameraRig:
     radius: float  # mean distance of the training cameras from `center`
     swing_deg: float  # half-range of the training cameras' azimuths about `up`
     min_distance: float = 0.0  # closer to `center` than this, the face crosses the near plane
+    azimuth_range: tuple[float, float] | None = None
+    """(lowest, highest) training-camera azimuth in degrees, relative to the reference
+    camera (so lowest <= 0 <= highest); None: +-swing_deg."""
 
     def clamp(self, eye: np.ndarray) -> np.ndarray:
         """Push an eye position out to `min_distance` from the head if it is closer."""
@@ -76,12 +81,13 @@ def rig_from_dataset(ds: Dataset) -> CameraRig:
     e1 = np.cross(up, e0)
     v = eyes - center
     az = np.degrees(np.arctan2(v @ e1, v @ e0))
-    swing = max(10.0, float(az.max() - az.min()) / 2)
+    swing = float(az.max() - az.min()) / 2
     # how far the face reaches out towards the reference camera, plus 10 % of near
     verts = ds.face_vertices[ref].astype(np.float64) - center
     to_cam = (ref_c2w[:3, 3] - center) / max(np.linalg.norm(ref_c2w[:3, 3] - center), 1e-12)
     reach = max(0.0, float((verts @ to_cam).max()))
-    return CameraRig(center, up, ref_c2w, radius, swing, 1.1 * ds.near + reach)
+    return CameraRig(center, up, ref_c2w, radius, swing, 1.1 * ds.near + reach,
+                     (min(0.0, float(az.min())), max(0.0, float(az.max()))))
 
 
 def camera_path(kind: str, num: int, rig: CameraRig, amplitude: float | None = None
@@ -96,9 +102,14 @@ def camera_path(kind: str, num: int, rig: CameraRig, amplitude: float | None = N
     target = rig.center
     eye0 = rig.eye
     if kind == "orbit":
-        amp = np.radians(rig.swing_deg if amplitude is None else amplitude)
-        return np.stack([look_at(rotate_about(eye0, rig.up, amp * np.sin(2 * np.pi * t),
-                                              target), target, rig.up) for t in s])
+        wave = np.sin(2 * np.pi * s)
+        if amplitude is not None or rig.azimuth_range is None:
+            ang = np.radians(rig.swing_deg if amplitude is None else amplitude) * wave
+        else:  # out to each end of the captured range, however far off-centre frame 0 is
+            lo, hi = np.radians(rig.azimuth_range)
+            ang = np.where(wave >= 0, hi * wave, -lo * wave)
+        return np.stack([look_at(rotate_about(eye0, rig.up, a, target), target, rig.up)
+                         for a in ang])
     if kind == "spiral":
         amp = np.radians(rig.swing_deg if amplitude is None else amplitude)
         base = look_at(eye0, target, rig.up)

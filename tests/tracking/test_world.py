@@ -1,0 +1,150 @@
+"""Cameras from the background and head poses from the face, against ground truth: a tiny
+textured room (tests/room.py) seen from known cameras while a head moves in it."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from room import render_room
+from scipy.spatial.transform import Rotation
+
+from flamenerf.tracking.background import (BackgroundOptions, person_mask,
+                                           register_background)
+from flamenerf.tracking.cameras import SolveConfig, solve_cameras
+from flamenerf.tracking.world import CASES, compose_world, metric_scale
+
+N, SIZE = 20, (320, 240)
+
+
+def _fov(f: float) -> float:
+    return float(np.degrees(2 * np.arctan(0.5 * SIZE[0] / f)))
+
+
+def _face_solve(room, mesh, fov=None):
+    """The face solve as preprocessing runs it: 20 frames over 4 s of a 30 fps clip."""
+    return solve_cameras(room.landmarks, np.arange(N) * 4.0 / N, mesh.vertices, mesh.faces,
+                         mesh.weights, *SIZE, None, SolveConfig(fov_deg=fov), frame_step=1 / 30)
+
+
+def _solve(room, mesh):
+    """solve_scene's steps on in-memory frames: face solve -> background -> face solve at
+    the background's focal length -> world."""
+    sol = _face_solve(room, mesh)
+    frames = ((k, f, person_mask(lm[:, :2], *SIZE))
+              for k, (f, lm) in enumerate(zip(room.frames, room.landmarks)))
+    reg = register_background(frames, BackgroundOptions(), focal=sol.focal)
+    if reg.status == "registered":
+        sol = _face_solve(room, mesh, _fov(reg.focal))
+    return sol, reg, compose_world(sol.w2c, reg, mesh.vertices.mean(0))
+
+
+def _rot_deg(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    return np.degrees(Rotation.from_matrix(np.einsum("nab,ncb->nac", A, B)).magnitude())
+
+
+def _align(est: np.ndarray, gt: np.ndarray):
+    """Similarity (s, R, t) taking the estimated camera poses (N, 4, 4) onto the true ones:
+    R from the rotations (the camera centres lie near a line), then s, t by least squares."""
+    R = Rotation.from_matrix(np.einsum("nab,ncb->nac", gt[:, :3, :3], est[:, :3, :3])
+                             ).mean().as_matrix()
+    a, b = est[:, :3, 3] @ R.T, gt[:, :3, 3]
+    da, db = a - a.mean(0), b - b.mean(0)
+    s = float((da * db).sum() / (da * da).sum())
+    return s, R, b.mean(0) - s * a.mean(0)
+
+
+def test_cameras_and_head_poses_of_a_moving_head(canonical_mesh):
+    room = render_room(canonical_mesh.vertices, n=N, size=SIZE)
+    sol, reg, world = _solve(room, canonical_mesh)
+    assert reg.status == "registered", reg.reason
+    assert reg.registered.all()
+    assert reg.reprojection_error_px < 0.5
+    assert reg.focal == pytest.approx(room.intr.fx, rel=0.03)
+    assert world.case == "both moving"
+    s, R, t = _align(world.c2w, room.c2w)
+    # tolerances: the camera arc is 30 deg, 31 cm long, at 0.6 m from the head
+    assert s == pytest.approx(1.0, abs=0.05)  # metric scale from the face
+    centres = s * world.c2w[:, :3, 3] @ R.T + t
+    assert np.linalg.norm(centres - room.c2w[:, :3, 3], axis=1).max() < 0.015
+    assert _rot_deg(R @ world.c2w[:, :3, :3], room.c2w[:, :3, :3]).max() < 0.5
+    heads = s * world.head_pose[:, :3, 3] @ R.T + t
+    assert np.linalg.norm(heads - room.head_pose[:, :3, 3], axis=1).max() < 0.025
+    assert _rot_deg(R @ world.head_pose[:, :3, :3], room.head_pose[:, :3, :3]).max() < 1.0
+    assert world.head_motion["rotation_max_deg"] > 15  # the head turned ±20 deg
+    assert world.warnings == []
+
+
+def test_still_head_gets_one_pose_and_metric_cameras(canonical_mesh):
+    room = render_room(canonical_mesh.vertices, n=N, size=SIZE, head_yaw_deg=0.0,
+                       head_shift=0.0)
+    _, reg, world = _solve(room, canonical_mesh)
+    assert reg.status == "registered", reg.reason
+    assert world.case == "moving camera, still head"
+    np.testing.assert_allclose(world.head_pose, np.tile(np.eye(4), (N, 1, 1)), atol=1e-9)
+    # the world is the head's frame, in metres: the cameras are the true ones seen from it
+    gt = np.linalg.inv(room.head_pose) @ room.c2w
+    assert np.linalg.norm(world.c2w[:, :3, 3] - gt[:, :3, 3], axis=1).max() < 0.02
+    assert _rot_deg(world.c2w[:, :3, :3], gt[:, :3, :3]).max() < 1.0
+
+
+def test_still_camera_is_detected_and_held_fixed(canonical_mesh):
+    room = render_room(canonical_mesh.vertices, n=N, size=SIZE, camera_deg=0.0)
+    sol, reg, world = _solve(room, canonical_mesh)
+    assert reg.status == "still", reg.reason
+    assert world.case == "still camera, moving head"
+    assert np.ptp(world.c2w, axis=0).max() == 0  # one camera for every frame
+    # the head moves as the face says, relative to that camera
+    np.testing.assert_allclose(np.linalg.inv(world.c2w) @ world.head_pose, sol.w2c,
+                               atol=1e-9)
+    assert any("does not move" in w for w in world.warnings)
+
+
+def test_textureless_background_falls_back_to_the_head(canonical_mesh):
+    room = render_room(canonical_mesh.vertices, n=N, size=SIZE, textured=False)
+    sol, reg, world = _solve(room, canonical_mesh)
+    assert reg.status == "failed" and "texture" in reg.reason
+    assert world.case == CASES[4]
+    assert world.head_pose is None
+    np.testing.assert_allclose(world.c2w, sol.c2w, atol=1e-9)  # today's cameras
+    assert any("could not be solved from the background" in w for w in world.warnings)
+
+
+# ----------------------------------------------------------------------------- pure math
+
+
+def _poses(n=12, cam_deg=30.0, head_deg=0.0, seed=0):
+    rng = np.random.default_rng(seed)
+    from flamenerf.geometry import look_at
+
+    az = np.radians(np.linspace(-cam_deg / 2, cam_deg / 2, n))
+    c2w = np.stack([look_at(0.6 * np.array([np.sin(a), 0.05, np.cos(a)]), np.zeros(3))
+                    for a in az])
+    head = np.tile(np.eye(4), (n, 1, 1))
+    yaw = np.radians(rng.uniform(-head_deg, head_deg, n))
+    head[:, :3, :3] = Rotation.from_rotvec(yaw[:, None] * [0.0, 1.0, 0.0]).as_matrix()
+    return c2w, head
+
+
+def test_metric_scale_is_exact_for_a_still_head():
+    c2w, head = _poses()
+    cam_from_head = np.linalg.inv(c2w) @ head
+    # COLMAP's world: rotated, shifted and 3.7x smaller
+    G = Rotation.from_euler("xyz", [10, -40, 5], degrees=True).as_matrix()
+    colmap = c2w.copy()
+    colmap[:, :3, :3] = G @ c2w[:, :3, :3]
+    colmap[:, :3, 3] = (c2w[:, :3, 3] @ G.T + [1.0, -2.0, 0.5]) / 3.7
+    assert metric_scale(colmap, cam_from_head) == pytest.approx(3.7, rel=1e-9)
+
+
+def test_case_detection_from_motion():
+    class Reg:  # a background registration of these cameras, in metres already
+        status = "registered"
+
+    for cam_deg, head_deg, case in ((30, 0, CASES[0]), (30, 15, CASES[2]),
+                                    (0.5, 0, CASES[3])):
+        c2w, head = _poses(cam_deg=cam_deg, head_deg=head_deg)
+        Reg.c2w = c2w
+        w = compose_world(np.linalg.inv(c2w) @ head, Reg, np.zeros(3))
+        assert w.case == case, (cam_deg, head_deg)
+        assert w.scale == pytest.approx(1.0, rel=1e-6) or cam_deg < 1
+        assert any("novel views will extrapolate" in m for m in w.warnings) == (cam_deg < 5)
