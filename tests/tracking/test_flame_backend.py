@@ -68,8 +68,7 @@ def test_fit_recovers_expression_from_landmarks(tiny_flame, canonical_mesh):
     """Synthetic landmarks from known FLAME parameters and cameras -> the fit finds them."""
     from types import SimpleNamespace
 
-    from flamenerf.geometry import so3_exp
-    from flamenerf.tracking.flame import _umeyama
+    from flamenerf.geometry import so3_exp, umeyama
 
     m = load_flame_dir(tiny_flame["dir"])
     rng = np.random.default_rng(1)
@@ -82,7 +81,7 @@ def test_fit_recovers_expression_from_landmarks(tiny_flame, canonical_mesh):
         v = layer(torch.zeros(6, dtype=torch.float64), torch.tensor(expr),
                   torch.zeros(N, 5, 3, dtype=torch.float64)).numpy()
     # FLAME frame -> head frame (undo the fixture's transform)
-    s, R, t = _umeyama(m.v_template, canonical_mesh.vertices)
+    s, R, t = umeyama(m.v_template, canonical_mesh.vertices)
     v_world = s * v @ R.T + t
     f, W = 500.0, 256
     ang = np.radians(np.linspace(-15, 15, N))

@@ -39,8 +39,9 @@ class BackgroundOptions:
     peak_threshold: float = 0.004
     """SIFT's contrast threshold (COLMAP's default 0.0067 finds too little in the soft,
     defocused backgrounds of portrait clips)."""
-    first_octave: int = 0
-    """SIFT's first octave: -1 (COLMAP's default) doubles the image first, 4x the time."""
+    first_octave: int | None = None
+    """SIFT's first octave: -1 (COLMAP's default) doubles the image first, 4x the time;
+    None: -1 for frames under 640 px (they need it), else 0."""
     min_features: int = 60
     """Median SIFT features per frame outside the person below which the background counts
     as textureless (no registration is attempted)."""
@@ -191,7 +192,8 @@ def _register(frames, opts: BackgroundOptions, tmp: Path, focal: float | None,
     extraction.num_threads = opts.num_threads
     extraction.sift.max_num_features = opts.max_features
     extraction.sift.peak_threshold = opts.peak_threshold
-    extraction.sift.first_octave = opts.first_octave
+    extraction.sift.first_octave = (opts.first_octave if opts.first_octave is not None
+                                    else -1 if max(W, H) * scale < 640 else 0)
     extraction.use_gpu = False
     pycolmap.extract_features(db_path, img_dir, image_names=names,
                               camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
