@@ -36,9 +36,10 @@ class BackgroundOptions:
     """Frames are downscaled to at most this many pixels on their long side for COLMAP."""
     max_features: int = 4096
     """SIFT features per frame."""
-    peak_threshold: float = 0.004
-    """SIFT's contrast threshold (COLMAP's default 0.0067 finds too little in the soft,
-    defocused backgrounds of portrait clips)."""
+    peak_threshold: float | None = None
+    """SIFT's contrast threshold; None: 0.004 for frames of 640 px and more (COLMAP's
+    default 0.0067 finds too little in the soft, defocused backgrounds of portrait clips),
+    COLMAP's default below (with the upsampled first octave it finds plenty)."""
     first_octave: int | None = None
     """SIFT's first octave: -1 (COLMAP's default) doubles the image first, 4x the time;
     None: -1 for frames under 640 px (they need it), else 0."""
@@ -191,9 +192,11 @@ def _register(frames, opts: BackgroundOptions, tmp: Path, focal: float | None,
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.num_threads = opts.num_threads
     extraction.sift.max_num_features = opts.max_features
-    extraction.sift.peak_threshold = opts.peak_threshold
+    small = max(W, H) * scale < 640
+    extraction.sift.peak_threshold = (opts.peak_threshold if opts.peak_threshold is not None
+                                      else 0.0067 if small else 0.004)
     extraction.sift.first_octave = (opts.first_octave if opts.first_octave is not None
-                                    else -1 if max(W, H) * scale < 640 else 0)
+                                    else -1 if small else 0)
     extraction.use_gpu = False
     pycolmap.extract_features(db_path, img_dir, image_names=names,
                               camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
@@ -288,7 +291,8 @@ def _register(frames, opts: BackgroundOptions, tmp: Path, focal: float | None,
 def _refine_focal(rec, focal0: float, opts: BackgroundOptions):
     """One global bundle adjustment with the focal length free, now that every frame's
     parallax constrains it. -> the refined reconstruction, or `rec` unchanged if the focal
-    moved by more than max_focal_change (a weakly constrained focal wanders)."""
+    moved by more than max_focal_change (a weakly constrained focal wanders) or the
+    reprojection error did not improve."""
     import pycolmap
 
     out = pycolmap.Reconstruction(rec)
@@ -301,7 +305,10 @@ def _refine_focal(rec, focal0: float, opts: BackgroundOptions):
     ba.ceres.solver_options.num_threads = opts.num_threads
     pycolmap.bundle_adjustment(out, ba)
     f = float(next(iter(out.cameras.values())).params[0])
-    return out if abs(np.log(f / focal0)) <= np.log(1 + opts.max_focal_change) else rec
+    e0, e1 = rec.compute_mean_reprojection_error(), out.compute_mean_reprojection_error()
+    ok = (abs(np.log(f / focal0)) <= np.log(1 + opts.max_focal_change) and np.isfinite(e1)
+          and e1 <= e0)  # a diverged adjustment (seen once on a tiny clip) is dropped
+    return out if ok else rec
 
 
 def _still_head_hypothesis(rec, c2w_gl: np.ndarray, names: list[str], db_path: Path,
