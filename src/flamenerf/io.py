@@ -77,15 +77,18 @@ def write_json(path: str | os.PathLike, obj: Any, indent: int | None = 1) -> Non
     atomic_write_text(path, json.dumps(jsonable(obj), indent=indent))
 
 
-def read_json(path: str | os.PathLike) -> Any:
-    """Parse a JSON file; a missing or malformed file is a one-line UserError."""
+def read_json(path: str | os.PathLike, what: str | None = None) -> Any:
+    """Parse a JSON file; a missing, unreadable or malformed file is a one-line UserError
+    naming it (`what`: the kind of file, for the message)."""
     path = Path(path)
-    if not path.exists():
-        raise UserError(f"{path}: file is missing")
+    if not path.is_file():
+        raise UserError(f"{path}: {what} does not exist" if what else f"{path}: file is missing")
     try:
         return json.loads(path.read_text())
     except json.JSONDecodeError as e:
-        raise UserError(f"{path}: invalid JSON at line {e.lineno} ({e.msg})") from None
+        raise UserError(f"{path}: not valid JSON (line {e.lineno}: {e.msg})") from None
+    except UnicodeDecodeError:
+        raise UserError(f"{path}: not valid JSON (not UTF-8 text)") from None
 
 
 def save_png(path: str | os.PathLike, img: np.ndarray) -> None:

@@ -164,19 +164,15 @@ def head_pose_items(items: list[str]) -> tuple[np.ndarray, bool]:
     """`--head-pose` values -> rows (K, 6) of (yaw, pitch, roll, x, y, z), and whether they
     are keyframes (to ease through, as expression keyframes are) rather than one FILE's
     per-frame poses (.json: a list of {yaw, pitch, ...} objects, or {"head_pose": [...]})."""
-    import json
     from pathlib import Path
+
+    from flamenerf.io import read_json
 
     if not items:
         raise UserError("--head-pose: give yaw=..,pitch=.. keyframes or a .json file")
     if len(items) == 1 and (items[0].lower().endswith(".json") or Path(items[0]).is_file()):
         path = Path(items[0])
-        if not path.is_file():
-            raise UserError(f"{path}: head-pose file does not exist")
-        try:
-            d = json.loads(path.read_text())
-        except (json.JSONDecodeError, UnicodeDecodeError) as e:
-            raise UserError(f"{path}: not valid JSON ({e})") from None
+        d = read_json(path, "head-pose file")
         rows = d.get("head_pose") if isinstance(d, dict) else d
         if not isinstance(rows, list) or not rows or not all(isinstance(r, dict) for r in rows):
             raise UserError(f"{path}: expected a non-empty list of {{yaw, pitch, roll, x, y, "

@@ -26,7 +26,6 @@ Kinds:
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -35,6 +34,7 @@ import numpy as np
 from flamenerf.data.dataset import Dataset, reference_position
 from flamenerf.errors import UserError
 from flamenerf.geometry import look_at, rotate_about
+from flamenerf.io import read_json
 
 PATH_KINDS = ("static", "orbit", "spiral", "dolly")
 
@@ -137,12 +137,7 @@ def camera_path(kind: str, num: int, rig: CameraRig, amplitude: float | None = N
 def load_poses(path: str | Path) -> np.ndarray:
     """Camera-to-world matrices (N, 4, 4) from a JSON file (see the module doc)."""
     path = Path(path)
-    if not path.is_file():
-        raise UserError(f"{path}: camera path file does not exist")
-    try:
-        d = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise UserError(f"{path}: not valid JSON ({e})") from None
+    d = read_json(path, "camera path file")
     if isinstance(d, dict):
         if "frames" in d and isinstance(d["frames"], list):
             try:

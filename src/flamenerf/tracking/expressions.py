@@ -32,6 +32,7 @@ import numpy as np
 
 from flamenerf.data.dataset import Dataset
 from flamenerf.errors import UserError
+from flamenerf.io import read_json
 
 FORMAT = "flamenerf-expressions"
 VERSION = 1
@@ -71,12 +72,7 @@ def save_expressions(path: str | os.PathLike, track: ExpressionTrack) -> Path:
 def load_expressions(path: str | os.PathLike) -> ExpressionTrack:
     """Read and validate; any problem is one UserError naming the file."""
     path = Path(path)
-    if not path.is_file():
-        raise UserError(f"{path}: expression file does not exist")
-    try:
-        d = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise UserError(f"{path}: not valid JSON ({e})") from None
+    d = read_json(path, "expression file")
     if not isinstance(d, dict) or "names" not in d or "frames" not in d:
         raise UserError(f"{path}: needs an object with 'names' and 'frames'")
     names = d["names"]
