@@ -288,6 +288,21 @@ def _register(frames, opts: BackgroundOptions, tmp: Path, focal: float | None,
     return out
 
 
+def _bundle_adjust(rec, refine_focal: bool, opts: BackgroundOptions) -> None:
+    """Global bundle adjustment in place: poses and points, the focal length only when
+    asked, a robust (Cauchy) loss against background outliers."""
+    import pycolmap
+
+    ba = pycolmap.BundleAdjustmentOptions()
+    ba.refine_focal_length = refine_focal
+    ba.refine_principal_point = False
+    ba.refine_extra_params = False
+    ba.print_summary = False
+    ba.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
+    ba.ceres.solver_options.num_threads = opts.num_threads
+    pycolmap.bundle_adjustment(rec, ba)
+
+
 def _refine_focal(rec, focal0: float, opts: BackgroundOptions):
     """One global bundle adjustment with the focal length free, now that every frame's
     parallax constrains it. -> the refined reconstruction, or `rec` unchanged if the focal
@@ -296,14 +311,7 @@ def _refine_focal(rec, focal0: float, opts: BackgroundOptions):
     import pycolmap
 
     out = pycolmap.Reconstruction(rec)
-    ba = pycolmap.BundleAdjustmentOptions()
-    ba.refine_focal_length = True
-    ba.refine_principal_point = False
-    ba.refine_extra_params = False
-    ba.print_summary = False
-    ba.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
-    ba.ceres.solver_options.num_threads = opts.num_threads
-    pycolmap.bundle_adjustment(out, ba)
+    _bundle_adjust(out, refine_focal=True, opts=opts)
     f = float(next(iter(out.cameras.values())).params[0])
     e0, e1 = rec.compute_mean_reprojection_error(), out.compute_mean_reprojection_error()
     ok = (abs(np.log(f / focal0)) <= np.log(1 + opts.max_focal_change) and np.isfinite(e1)
@@ -329,14 +337,7 @@ def _still_head_hypothesis(rec, c2w_gl: np.ndarray, names: list[str], db_path: P
             alt.frame(im.frame_id).rig_from_world = pycolmap.Rigid3d(w2c[:3])
     alt = pycolmap.triangulate_points(alt, db_path, img_dir, tmp / "hypothesis",
                                       clear_points=True, options=mapping)
-    ba = pycolmap.BundleAdjustmentOptions()
-    ba.refine_focal_length = False
-    ba.refine_principal_point = False
-    ba.refine_extra_params = False
-    ba.print_summary = False
-    ba.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
-    ba.ceres.solver_options.num_threads = opts.num_threads
-    pycolmap.bundle_adjustment(alt, ba)
+    _bundle_adjust(alt, refine_focal=False, opts=opts)
     e0, e1 = rec.compute_mean_reprojection_error(), alt.compute_mean_reprojection_error()
     n0, n1 = rec.num_points3D(), alt.num_points3D()
     # the face's start wins when it explains the background as well with as many points
