@@ -74,10 +74,24 @@ def camera(size: int, dist: float = 1.0) -> tuple[Intrinsics, np.ndarray]:
     return intr, c2w
 
 
-def untrained(name: str, dev: torch.device, expr_dim: int = 8) -> FlameNeRF:
+def untrained(name: str, dev: torch.device, expr_dim: int = 8, n: int = 16) -> FlameNeRF:
+    """A preset's model with random weights; where it uses a face-mesh model (the per-control
+    prior of `fast`), an n x n grid 'face' facing the camera whose controls each move a
+    band of it, so that the prior's cost is in the timing."""
     torch.manual_seed(0)
+    faces = [(i * n + j, i * n + j + 1, (i + 1) * n + j) for i in range(n - 1)
+             for j in range(n - 1)]
     m = FlameNeRF(preset(name).model, num_codes=4, expr_dim=expr_dim, near=0.5, far=1.5,
-                  box_min=[-0.5] * 3, box_max=[0.5] * 3)
+                  box_min=[-0.5] * 3, box_max=[0.5] * 3, mesh_vertices=n * n,
+                  mesh_faces=len(faces))
+    if m.uses_mesh_model:
+        u = torch.linspace(-0.15, 0.15, n)
+        verts = torch.stack([u[None].expand(n, n), u[:, None].expand(n, n),
+                             torch.full((n, n), 0.1)], -1).reshape(-1, 3)
+        basis = torch.zeros(expr_dim, n * n, 3)
+        for k in range(expr_dim):
+            basis[k, k * n * n // expr_dim:(k + 1) * n * n // expr_dim, 1] = 0.01
+        m.set_expression_model(verts, basis, torch.tensor(faces))
     m.update_to_step(1, 1)  # every c2f band on, as after training
     return m.to(dev).eval()
 
@@ -157,7 +171,7 @@ def viewer_latency(run, ds, height: int, steps: int) -> dict:
                                 [-math.sin(a), 0, math.cos(a), 0], [0, 0, 0, 1]])
                 snap = dict(key=0, state=(i, 0), c2w=rot @ fr.c2w, fov_y=fov, aspect=1.0,
                             expression=fr.expression, mode="RGB", height=h, final=True,
-                            depth_range=None)
+                            depth_range=None, head=None)
                 t = time.perf_counter()
                 w._render(snap, level, cancellable=False)
                 if i:  # the first one makes the bakes
