@@ -111,6 +111,11 @@ class MeshGuideConfig:
     neighbours: int = 4
     ridge: float = 1e-3
     """Ridge of the β -> mesh least-squares fit (relative to the mean squared control)."""
+    face_parts: bool = True
+    """Fit the β -> mesh model with each ARKit-named control limited to its part of the
+    face (brows, eyes, mid face, lower face) on MediaPipe meshes: the tracker's scores
+    co-vary, and a free fit lets brow controls open the jaw (data/face_parts.py). Used by
+    every preset that fits the model (per-control prior, mesh guide, driven silhouettes)."""
 
 
 @dataclass

@@ -37,12 +37,15 @@ def surface_points(vertices: Tensor, faces: Tensor, tri: Tensor, uv: Tensor,
     return v[:, 0] + u[:, :1] * (v[:, 1] - v[:, 0]) + u[:, 1:] * (v[:, 2] - v[:, 0])
 
 
-def fit_expression_model(expressions: Tensor, vertices: Tensor, ridge: float = 1e-3
-                         ) -> tuple[Tensor, Tensor]:
+def fit_expression_model(expressions: Tensor, vertices: Tensor, ridge: float = 1e-3,
+                         weights: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """Least-squares linear model mesh(β) = neutral + Σ_k β_k basis_k over frames.
 
     expressions (N, E); vertices (N, V, 3). `ridge` (relative to the mean squared control
     value) keeps controls that barely vary in the frames from getting wild shapes.
+    `weights` (V, E) in [0, 1] limits where each control may move the mesh
+    (data/face_parts.py): vertex v is fitted on the controls scaled by weights[v], so a
+    control with weight 0 there leaves it still and the others explain its motion.
     -> neutral (V, 3), basis (E, V, 3).
     """
     n, e = expressions.shape
@@ -51,8 +54,18 @@ def fit_expression_model(expressions: Tensor, vertices: Tensor, ridge: float = 1
     y = vertices.reshape(n, -1).to(torch.float64)  # (N, 3V)
     reg = torch.eye(e + 1, dtype=torch.float64) * ridge * max(float((x[:, 1:] ** 2).mean()), 1e-12) * n
     reg[0, 0] = 0.0  # the neutral mesh is not shrunk
-    coef = torch.linalg.solve(x.T @ x + reg, x.T @ y)  # (1+E, 3V)
-    coef = coef.to(torch.float32).view(e + 1, -1, 3)
+    if weights is None:
+        coef = torch.linalg.solve(x.T @ x + reg, x.T @ y)  # (1+E, 3V)
+        coef = coef.to(torch.float32).view(e + 1, -1, 3)
+        return coef[0], coef[1:]
+    # per vertex, the design x·diag(w̃_v) with w̃_v = (1, weights[v]): its normal equations
+    # are the shared ones scaled by w̃_v w̃_vᵀ, so one batched (V, 1+E, 1+E) solve
+    v = vertices.shape[1]
+    wt = torch.cat([torch.ones(v, 1, dtype=torch.float64), weights.to(torch.float64)], 1)
+    gram = (x.T @ x)[None] * (wt[:, :, None] * wt[:, None, :]) + reg  # (V, 1+E, 1+E)
+    rhs = (x.T @ y).view(e + 1, v, 3).permute(1, 0, 2) * wt[:, :, None]  # (V, 1+E, 3)
+    coef = torch.linalg.solve(gram, rhs) * wt[:, :, None]  # (V, 1+E, 3)
+    coef = coef.permute(1, 0, 2).to(torch.float32)
     return coef[0], coef[1:]
 
 

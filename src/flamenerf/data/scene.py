@@ -10,6 +10,7 @@ from flamenerf.data.head_pose import canonical_vertices, head_region, head_twist
 from flamenerf.data.rays import RayBatch, pixel_directions
 from flamenerf.data.prior import training_mask
 from flamenerf.images import resize_image
+from flamenerf.data.face_parts import control_weights
 from flamenerf.meshes import fit_expression_model, surface_points
 
 
@@ -40,14 +41,20 @@ def model_head_region(cfg, ds: Dataset) -> dict | None:
     return head_region(ds, cfg.model.head.region_scale).to_dict()
 
 
-def fit_dataset_expression_model(ds: Dataset, ridge: float = 1e-3
+def fit_dataset_expression_model(ds: Dataset, ridge: float = 1e-3, face_parts: bool = True
                                  ) -> tuple[torch.Tensor, torch.Tensor]:
     """The subject's linear β -> mesh model fitted on the training frames' face meshes, in
-    the canonical frame (the head at frame 0's pose; the world without head poses).
+    the canonical frame (the head at frame 0's pose; the world without head poses); with
+    `face_parts`, each named control moves only its part of the face where the dataset's
+    controls and mesh say which (data/face_parts.py).
     -> neutral (V, 3), basis (E, V, 3) in world units."""
     train = ds.split("train") or [f for f in ds.frames if f.frame_index is not None]
+    verts = canonical_vertices(ds, train)
+    weights = (control_weights(ds.expression_kind, ds.expression_names, verts.mean(0))
+               if face_parts else None)
     return fit_expression_model(torch.from_numpy(ds.expression_matrix(train)),
-                                torch.from_numpy(canonical_vertices(ds, train)), ridge)
+                                torch.from_numpy(verts), ridge,
+                                None if weights is None else torch.from_numpy(weights))
 
 
 class FrameSet:

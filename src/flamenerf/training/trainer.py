@@ -73,7 +73,8 @@ def build_for_dataset(cfg: Config, ds: Dataset) -> FlameNeRF:
                       near=ds.near, far=ds.far, box_min=lo, box_max=hi,
                       mesh_vertices=V, mesh_faces=nf, head_region=model_head_region(cfg, ds))
     if model.uses_mesh_model:
-        neutral, basis = fit_dataset_expression_model(ds, cfg.model.mesh_guide.ridge)
+        neutral, basis = fit_dataset_expression_model(ds, cfg.model.mesh_guide.ridge,
+                                                     cfg.model.mesh_guide.face_parts)
         model.set_expression_model(neutral, basis, torch.from_numpy(ds.faces).long())
     return model
 

@@ -1,0 +1,104 @@
+"""Which part of the face each named control may move.
+
+A tracker's expression scores co-vary: in a surprised face MediaPipe raises jawOpen,
+browOuterUp and eyeWide together, and a blink comes with eyeLookDown. A β -> mesh model
+fitted by least squares on such frames spreads the jaw's motion over the brow controls
+(measured on a real clip: browInnerUp's largest vertex motion was on the chin), and the
+per-control spatial prior built from it lets a brow control open the mouth, so that
+commanding jawOpen alone opens it a fraction. Anatomy settles what the data cannot: a brow
+control moves the brows, a jaw or mouth control the lower face. This module gives, for
+ARKit-named controls on MediaPipe's face-mesh topology (what `flamenerf preprocess`
+writes), a soft weight per vertex and control; the β -> mesh fit (meshes.
+fit_expression_model) only lets control k move vertex v by as much as that weight.
+
+Other expression kinds (FLAME's PCA components, the synthetic rig's own topology) get no
+weights: their controls are either a model's own basis or uncorrelated by construction.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+# MediaPipe's canonical face mesh (468 landmarks; 478 with the irises): the eye corners,
+# the lip centres and the mouth corners, which place the eyes and the mouth on any face
+_EYE_LEFT = (263, 362)   # the subject's left eye, outer and inner corner
+_EYE_RIGHT = (33, 133)
+_MOUTH = (13, 14, 61, 291)
+MEDIAPIPE_VERTEX_COUNTS = (468, 478)
+
+# (lower, upper) bounds of a part along the face's vertical axis h (0 at the mouth, 1 at the
+# eyes), with a soft edge of _EDGE on each side; the eyes are a distance from either eye.
+_EDGE = 0.1
+_LOWER_FACE = (-np.inf, 0.45)     # chin, jaw, lips, up to under the nose
+_MID_FACE = (-0.1, 1.15)          # cheeks and nose
+_UPPER_FACE = (0.9, np.inf)       # brows and forehead
+_EYE_RADIUS = (0.35, 0.5)         # full weight within, none beyond (units of eye-mouth distance)
+# "Left" is the subject's left, MediaPipe's left eye (checked on a real clip: a free fit
+# moves the left eye's lid most under eyeBlinkLeft, the right brow under browDownRight);
+# a sided control fades out over ±_MIDLINE across the face's midline. jawLeft/Right and
+# mouthLeft/Right move the whole jaw or mouth sideways: not sided.
+_MIDLINE = 0.1
+_UNSIDED = ("jawLeft", "jawRight", "mouthLeft", "mouthRight")
+
+
+def _part_of(name: str) -> str | None:
+    """The part an ARKit blendshape name belongs to; None for unknown names (no limit)."""
+    if name == "_neutral":
+        return "none"  # MediaPipe's overall 'no expression' score: no place on the face
+    for prefix, part in (("brow", "upper"), ("eye", "eye"), ("cheek", "mid"),
+                         ("nose", "mid"), ("jaw", "lower"), ("mouth", "lower"),
+                         ("tongue", "lower")):
+        if name.startswith(prefix):
+            return part
+    return None
+
+
+def _band(h: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    """1 on [lo, hi], fading linearly to 0 over _EDGE outside it."""
+    below = np.clip((h - (lo - _EDGE)) / _EDGE, 0, 1) if np.isfinite(lo) else 1.0
+    above = np.clip(((hi + _EDGE) - h) / _EDGE, 0, 1) if np.isfinite(hi) else 1.0
+    return np.minimum(below, above) * np.ones_like(h)
+
+
+def control_weights(kind: str, names: list[str], vertices: np.ndarray) -> np.ndarray | None:
+    """Soft per-vertex limits of each control, or None where none apply (not ARKit names,
+    not MediaPipe's topology, or no name this module knows).
+
+    kind: the dataset's expression kind (`arkit` for MediaPipe's blendshape scores);
+    names (E,); vertices (V, 3) a typical mesh of the subject (e.g. the mean training
+    mesh), any units. -> (V, E) float32 in [0, 1].
+    """
+    parts = [_part_of(n) for n in names]
+    if (kind != "arkit" or vertices.shape[0] not in MEDIAPIPE_VERTEX_COUNTS
+            or all(p is None for p in parts)):
+        return None
+    v = np.asarray(vertices, np.float64)
+    eye_l, eye_r = v[list(_EYE_LEFT)].mean(0), v[list(_EYE_RIGHT)].mean(0)
+    mouth = v[list(_MOUTH)].mean(0)
+    up = (eye_l + eye_r) / 2 - mouth
+    scale = float(np.linalg.norm(up))
+    h = (v - mouth) @ (up / scale) / scale
+    across = eye_l - eye_r
+    across -= (across @ up) / scale ** 2 * up
+    s = (v - mouth) @ (across / np.linalg.norm(across)) / scale  # > 0 on the subject's left
+    d_eye = np.minimum(np.linalg.norm(v - eye_l, axis=1),
+                       np.linalg.norm(v - eye_r, axis=1)) / scale
+    lo, hi = _EYE_RADIUS
+    weight = {
+        "lower": _band(h, *_LOWER_FACE),
+        "mid": _band(h, *_MID_FACE),
+        "upper": _band(h, *_UPPER_FACE),
+        "eye": np.clip((hi - d_eye) / (hi - lo), 0, 1),
+        "none": np.zeros(len(v)),
+        None: np.ones(len(v)),
+    }
+    side = {"Left": np.clip((s + _MIDLINE) / (2 * _MIDLINE), 0, 1),
+            "Right": np.clip((_MIDLINE - s) / (2 * _MIDLINE), 0, 1)}
+    cols = []
+    for name, part in zip(names, parts):
+        w = weight[part]
+        for suffix, ws in side.items():
+            if part is not None and name.endswith(suffix) and name not in _UNSIDED:
+                w = w * ws
+        cols.append(w)
+    return np.stack(cols, 1).astype(np.float32)

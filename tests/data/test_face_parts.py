@@ -1,0 +1,79 @@
+"""Face parts of named controls, and the β -> mesh fit limited to them: co-varying tracker
+scores must not let a brow control move the jaw."""
+
+import numpy as np
+import torch
+
+from flamenerf.data.face_parts import control_weights
+from flamenerf.meshes import expression_mesh, fit_expression_model
+
+NAMES = ["_neutral", "browInnerUp", "eyeBlinkLeft", "eyeBlinkRight", "jawOpen",
+         "mouthSmileLeft", "jawLeft", "someOtherControl"]
+
+
+def _face(n: int = 468, seed: int = 0) -> np.ndarray:
+    """A flat face-shaped cloud in MediaPipe's numbering where it matters: the eye corners
+    at y = 2.7 (the subject's left at +x), the mouth at y = -4.2 (units: cm)."""
+    rng = np.random.default_rng(seed)
+    v = np.stack([rng.uniform(-7, 7, n), rng.uniform(-9, 8, n), np.zeros(n)], 1)
+    v[263], v[362] = (4.5, 2.7, 0), (1.5, 2.7, 0)
+    v[33], v[133] = (-4.5, 2.7, 0), (-1.5, 2.7, 0)
+    v[13], v[14], v[61], v[291] = (0, -4.0, 0), (0, -4.4, 0), (-2.5, -4.2, 0), (2.5, -4.2, 0)
+    return v
+
+
+def test_parts_follow_the_names_and_the_sides():
+    v = _face()
+    w = control_weights("arkit", NAMES, v)
+    assert w.shape == (468, len(NAMES))
+    col = {n: w[:, i] for i, n in enumerate(NAMES)}
+    chin = np.linalg.norm(v - (0, -8, 0), axis=1) < 1.0
+    brow = np.linalg.norm(v - (-3, 5.5, 0), axis=1) < 0.8
+    left_eye = np.linalg.norm(v - (3, 2.7, 0), axis=1) < 1.0
+    right_eye = np.linalg.norm(v - (-3, 2.7, 0), axis=1) < 1.0
+    assert chin.any() and brow.any() and left_eye.any() and right_eye.any()
+    assert (col["jawOpen"][chin] == 1).all() and (col["jawOpen"][brow] == 0).all()
+    assert (col["browInnerUp"][brow] == 1).all() and (col["browInnerUp"][chin] == 0).all()
+    assert (col["eyeBlinkLeft"][left_eye] == 1).all()
+    assert (col["eyeBlinkLeft"][right_eye] == 0).all()
+    assert (col["eyeBlinkRight"][right_eye] == 1).all()
+    assert (col["_neutral"] == 0).all()
+    assert (col["someOtherControl"] == 1).all()  # unknown names are not limited
+    # jawLeft moves the whole jaw sideways: not cut at the midline
+    assert (col["jawLeft"][chin] == 1).all()
+    # other kinds and topologies get no limits
+    assert control_weights("flame", NAMES, v) is None
+    assert control_weights("arkit", NAMES, v[:400]) is None
+
+
+def test_the_limited_fit_keeps_a_correlated_brow_control_off_the_jaw():
+    v = torch.from_numpy(_face()).float()
+    names = ["browInnerUp", "jawOpen"]
+    w = torch.from_numpy(control_weights("arkit", names, v.numpy()))
+    lower = (v[:, 1] < -6).float()[:, None] * torch.tensor([0.0, -1.0, 0.0])  # jaw drops
+    upper = (v[:, 1] > 5).float()[:, None] * torch.tensor([0.0, 0.5, 0.0])   # brows rise
+    g = torch.Generator().manual_seed(1)
+    jaw = torch.rand(120, generator=g)
+    brow = (jaw + 0.1 * torch.randn(120, generator=g)).clamp(0, 1)  # a surprised face
+    betas = torch.stack([brow, jaw], 1)
+    meshes = (v + brow[:, None, None] * upper + jaw[:, None, None] * lower
+              + 0.05 * torch.randn(120, *v.shape, generator=g))  # tracking noise
+    neutral, basis = fit_expression_model(betas, meshes, weights=w)
+    jaw_v, brow_v = v[:, 1] < -6, v[:, 1] > 5
+    assert basis[0][jaw_v].abs().max() == 0  # the brow control cannot move the jaw
+    assert basis[1][brow_v].abs().max() == 0
+    assert torch.allclose(basis[1][jaw_v], lower[jaw_v], atol=0.1)
+    assert torch.allclose(basis[0][brow_v], upper[brow_v], atol=0.1)
+    # commanding jawOpen alone opens the jaw fully
+    opened = expression_mesh(neutral, basis, torch.tensor([0.0, 1.0]))
+    drop = (opened - expression_mesh(neutral, basis, torch.zeros(2)))[jaw_v, 1]
+    assert (drop < -0.9).all()
+
+
+def test_all_ones_weights_are_the_free_fit():
+    g = torch.Generator().manual_seed(2)
+    betas, meshes = torch.rand(30, 3, generator=g), torch.randn(30, 20, 3, generator=g)
+    free = fit_expression_model(betas, meshes)
+    ones = fit_expression_model(betas, meshes, weights=torch.ones(20, 3))
+    for a, b in zip(free, ones):
+        assert torch.allclose(a, b, atol=1e-5)
