@@ -44,6 +44,28 @@ def test_control_response_tells_a_working_control_from_a_dead_one():
     assert abs(res["controls"]["eyeBlinkLeft"]["gain"]) < 1e-9
 
 
+def test_drive_response_correlates_driving_and_retracked_over_time():
+    names = ["jawOpen", "eyeBlinkLeft", "browInnerUp"]
+    t = np.linspace(0, 2 * np.pi, 12)
+    values = np.stack([0.3 + 0.3 * np.sin(t), 0.5 * (np.cos(t) > 0), np.full(12, 0.2)], 1)
+
+    def render(beta):
+        return beta
+
+    def track(img):  # the jaw followed at 0.8, the blink ignored, one frame without a face
+        if abs(img[0] - values[3, 0]) < 1e-6:
+            return None
+        return {"jawOpen": 0.8 * img[0] + 0.1, "eyeBlinkLeft": 0.05}
+
+    res, preds = C.drive_response(render, names, values, track)
+    assert len(preds) == 12 and res["frames"] == 12
+    jaw = res["controls"]["jawOpen"]
+    assert jaw["correlation"] == pytest.approx(1.0) and jaw["gain"] == pytest.approx(0.8)
+    assert jaw["detected"] == 11 and np.isnan(jaw["retracked"][3])
+    assert abs(res["controls"]["eyeBlinkLeft"]["gain"]) < 1e-9
+    assert "browInnerUp" in res["skipped"]  # the driving sequence holds it still
+
+
 @pytest.fixture(scope="module")
 def face_scene(tmp_path_factory):
     """The built-in scene at a size the landmarker can read, with its leakage sweep."""

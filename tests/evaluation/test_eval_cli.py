@@ -59,6 +59,22 @@ def test_eval_writes_the_documented_schema(evaluated):
     assert "**Control response**" in (evaluated / "metrics.md").read_text()
 
 
+def test_eval_drive_reports_the_driving_correlation(toy_run, astronaut_video, tmp_path):
+    out = tmp_path / "eval"
+    eval_cmd(toy_run, fit_steps=1, fit_batch_rays=32, out=out, device="cpu", images=0,
+             control=False, drive=astronaut_video, drive_frames=4)
+    res = _strict(out / "metrics.json")
+    dv = res["drive"]
+    assert dv["frames"] == 4 and dv["video"] == str(astronaut_video)
+    # a still photo drives nothing enough to measure, and the report says so
+    assert dv["controls"] == {} and dv["skipped"]
+    assert "images/drive.png" in res["images"]
+    assert iio.imread(out / "images" / "drive.png").shape[0] > 16  # driving over render
+    assert "**Drive**" in (out / "metrics.md").read_text()
+    with pytest.raises(UserError, match="--drive"):
+        eval_cmd(toy_run, out=tmp_path / "e2", drive=tmp_path / "missing.mp4")
+
+
 def test_compare_prints_a_table(evaluated, tmp_path, capsys):
     out = tmp_path / "table.md"
     compare([evaluated / "metrics.json", evaluated / "metrics.json"], labels=["A", "B"],

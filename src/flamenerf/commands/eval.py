@@ -19,6 +19,8 @@ def eval(  # noqa: A001 - the subcommand's name
     control: bool = True,
     control_steps: int = 5,
     images: int = 3,
+    drive: Path | None = None,
+    drive_frames: int = 40,
     out: Path | None = None,
     device: str = "auto",
     threads: int = 0,
@@ -54,6 +56,11 @@ def eval(  # noqa: A001 - the subcommand's name
         control_steps: Values per control in the control sweep (datasets without a
             leakage split).
         images: Number of held-out and re-animation frames saved as PNGs.
+        drive: A driving video (another person, or the subject on another day): its tracked
+            expressions drive frame 0's camera and codes, the renders are re-tracked, and
+            the correlation over time of driving and re-tracked controls is reported
+            (section `drive`, images/drive.png: driving over result).
+        drive_frames: Frames of the driving video used, spread over the clip.
         out: Output directory (default: RUN/eval).
         device: `auto` (CUDA when present), `cpu` or `cuda`.
         threads: CPU threads for torch (0 = default).
@@ -69,6 +76,10 @@ def eval(  # noqa: A001 - the subcommand's name
     set_threads(threads)
     if fit_batch_rays <= 0:
         raise UserError(f"--fit-batch-rays {fit_batch_rays}: must be positive")
+    if drive is not None and not Path(drive).is_file():
+        raise UserError(f"--drive {drive}: no such file")
+    if drive_frames < 3:
+        raise UserError(f"--drive-frames {drive_frames}: must be at least 3")
     if control_steps < 2:
         raise UserError(f"--control-steps {control_steps}: must be at least 2")
     for name, v in (("--fit-steps", fit_steps), ("--images", images),
@@ -86,7 +97,8 @@ def eval(  # noqa: A001 - the subcommand's name
         fit_steps = 2000 if r.device.type == "cuda" else 300
     opts = EvalOptions(split=split, fit_steps=fit_steps, fit_batch_rays=fit_batch_rays,
                        fit_lr=fit_lr, seed=seed, leakage_dilate_px=leakage_dilate_px,
-                       num_images=images, control=control, control_steps=control_steps)
+                       num_images=images, control=control, control_steps=control_steps,
+                       drive=None if drive is None else str(drive), drive_frames=drive_frames)
     res = evaluate_run(r, ds, opts, out_dir)
     print()
     print(compare_markdown([res]), end="")

@@ -195,6 +195,42 @@ def control_response(render: RenderFn, names: list[str], base: np.ndarray,
     return out
 
 
+def drive_response(render: RenderFn, names: list[str], values: np.ndarray, track: Callable,
+                   min_range: float = 0.05, controls: list[str] | None = None
+                   ) -> tuple[dict[str, Any], list[np.ndarray]]:
+    """Render a driving sequence and re-track it: per control that the sequence moves, the
+    correlation over time of commanded (the driving video's tracked value, mapped onto the
+    run) and re-tracked, and the gain (slope of re-tracked on commanded).
+
+    values (T, E) the sequence in the run's control order. -> ({"controls": {name:
+    {commanded, retracked, gain, correlation, detected}}, "mean_gain", "mean_correlation",
+    "frames", "skipped": {name: why}}, the renders).
+    """
+    want = controls if controls is not None else trackable_controls(names)
+    preds, scores = [], []
+    for beta in values:
+        preds.append(render(np.asarray(beta, np.float32)))
+        scores.append(track(preds[-1]))
+    out: dict[str, Any] = {"controls": {}, "skipped": {}, "frames": len(values)}
+    for name in want:
+        k = names.index(name)
+        x = np.asarray(values[:, k], np.float64)
+        if np.ptp(x) < min_range:
+            out["skipped"][name] = f"the driving sequence moves it by less than {min_range}"
+            continue
+        got = np.array([math.nan if sc is None else sc.get(name, math.nan) for sc in scores])
+        ok = np.isfinite(got)
+        gain, corr = fit_line(x[ok], got[ok]) if ok.sum() >= 3 else (math.nan, math.nan)
+        out["controls"][name] = {"commanded": x.tolist(), "retracked": got.tolist(),
+                                 "gain": gain, "correlation": corr, "detected": int(ok.sum())}
+    gains = [c["gain"] for c in out["controls"].values() if math.isfinite(c["gain"])]
+    corrs = [c["correlation"] for c in out["controls"].values()
+             if math.isfinite(c["correlation"])]
+    out["mean_gain"] = float(np.mean(gains)) if gains else float("nan")
+    out["mean_correlation"] = float(np.mean(corrs)) if corrs else float("nan")
+    return out, preds
+
+
 def model_renderer(model: FlameNeRF, ds: Dataset, intr: Intrinsics, c2w: np.ndarray,
                    omega: torch.Tensor, phi: torch.Tensor, mesh_of: Callable,
                    dilate_px: int, chunk: int = 16384) -> RenderFn:

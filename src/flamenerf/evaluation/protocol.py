@@ -64,6 +64,11 @@ class EvalOptions:
     grown before measuring change outside it."""
     num_images: int = 3
     """Held-out and re-animation frames saved as GT | render | |diff| PNGs."""
+    drive: str | None = None
+    """A driving video: render its tracked expressions at the reference frame's camera,
+    re-track the renders, report the correlation over time (`drive` section, drive.png)."""
+    drive_frames: int = 40
+    """Frames of the driving video used, spread over the clip."""
     chunk: int = 16384
 
 
@@ -232,7 +237,7 @@ def evaluate_run(run, ds: Dataset, opts: EvalOptions, out_dir: Path | None = Non
         "device": str(run.device),
         "protocol": asdict(opts),
         "heldout": None, "driven": None, "reanimate": None, "novel_pose": None,
-        "leakage": None, "control": None,
+        "leakage": None, "control": None, "drive": None,
     }
     images: dict[str, np.ndarray] = {}
     frames = ds.split(opts.split)
@@ -289,6 +294,10 @@ def evaluate_run(run, ds: Dataset, opts: EvalOptions, out_dir: Path | None = Non
     if opts.control:
         log("control response: re-tracking renders with the face landmarker")
         res["control"] = control_section(run, ds, intr, omega0, phi0, opts, leak_preds)
+    if opts.drive is not None:
+        log(f"drive: tracking {opts.drive}, rendering and re-tracking {opts.drive_frames} "
+            "frames")
+        res["drive"], images["drive.png"] = drive_section(run, ds, intr, omega0, phi0, opts)
     res["seconds"] = time.perf_counter() - t_start
     if out_dir is not None:
         write_results(Path(out_dir), res, images)
@@ -321,6 +330,33 @@ def control_section(run, ds: Dataset, intr, omega0, phi0, opts: EvalOptions,
         return res
     finally:
         track.close()
+
+
+def drive_section(run, ds: Dataset, intr, omega0, phi0, opts: EvalOptions
+                  ) -> tuple[dict[str, Any], np.ndarray]:
+    """The drive correlation (see module doc) at the reference frame's camera, and a
+    picture: six driving frames spread over the sequence, each over its render."""
+    from flamenerf.data.dataset import reference_position
+    from flamenerf.data.prior import dataset_dilation, mesh_function
+    from flamenerf.evaluation import control as C
+    from flamenerf.images import hstack, vstack
+    from flamenerf.rendering.expressions import from_video
+
+    names = run.expression_names
+    seq = from_video(Path(opts.drive), ds, names, max_frames=opts.drive_frames,
+                     panel_height=intr.h)
+    fr = ds.frames[reference_position(ds)]
+    render = C.model_renderer(run.model, ds, intr, fr.c2w, omega0, phi0,
+                              mesh_function(run.model, ds), dataset_dilation(ds), opts.chunk)
+    track = C.Retracker()
+    try:
+        res, preds = C.drive_response(render, names, seq.values, track)
+    finally:
+        track.close()
+    res["video"] = str(opts.drive)
+    res["notes"] = list(seq.notes)
+    pick = np.unique(np.linspace(0, len(preds) - 1, min(6, len(preds))).round().astype(int))
+    return res, hstack([vstack([seq.driving(int(i)), preds[i]], gap=2) for i in pick], gap=4)
 
 
 def _triptych(fs: FrameSet, k: int, pred: np.ndarray) -> np.ndarray:

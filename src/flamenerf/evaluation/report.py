@@ -181,6 +181,19 @@ def eval_markdown(res: dict[str, Any]) -> str:
         if ct.get("responsive_controls") is not None:
             L.append(f"\nMeans over the controls the landmarker sees in the ground truth "
                      f"(gt gain > 0.1): {', '.join(ct['responsive_controls']) or 'none'}.")
+    dv = res.get("drive")
+    if dv:
+        L += ["", f"**Drive** (`{dv.get('video')}`, {dv.get('frames')} frames at the reference "
+              "frame's camera with frame 0's codes): correlation over time of the driving "
+              "video's tracked controls and the renders' re-tracked ones; `drive.png`: driving "
+              "over result", "", "| control | correlation | gain |", "|---|--:|--:|"]
+        for n, c in dv["controls"].items():
+            L.append(f"| {n} | {fmt(c['correlation'])} | {fmt(c['gain'])} |")
+        L.append(f"| **mean** | **{fmt(dv.get('mean_correlation'))}** | "
+                 f"{fmt(dv.get('mean_gain'))} |")
+        if not dv["controls"]:
+            L.append("\nThe driving video moves no control the landmarker reports enough to "
+                     "measure.")
     lk = res.get("leakage")
     if lk:
         L += ["", f"**Background leakage** ({lk['num_frames']} frames, fixed camera, expression "

@@ -157,10 +157,17 @@ class FlameNeRF(nn.Module):
         neutral = self.normalize(self.mesh_neutral)
         r2 = (self.cfg.expression_regions.radius
               * float((neutral.amax(0) - neutral.amin(0)).norm())) ** 2
+        # one mesh per distinct β (a batch holds a few frames' β; an image or a viewer
+        # update one): the per-ray meshes cost more than the distances
+        uniq, inv = torch.unique(beta[rows], dim=0, return_inverse=True)
+        meshes = self.normalize(self.face_mesh(uniq))  # (U, V, 3)
         for s in range(0, len(rows), block):  # bounded (B, S, V) distance blocks
             r = rows[s:s + block]
-            meshes = self.normalize(self.face_mesh(beta[r]))  # (B, V, 3)
-            d2, nn_ = torch.cdist(xn[r], meshes).min(-1)  # (B, S)
+            if len(uniq) == 1:
+                d2, nn_ = torch.cdist(xn[r].reshape(-1, 3), meshes[0]).min(-1)
+                d2, nn_ = d2.view(len(r), -1), nn_.view(len(r), -1)
+            else:
+                d2, nn_ = torch.cdist(xn[r], meshes[inv[s:s + block]]).min(-1)  # (B, S)
             out[r] = self.mesh_regions[nn_] * torch.exp(-d2.square() / r2)[..., None]
         return out
 
