@@ -109,6 +109,18 @@ def test_textureless_background_falls_back_to_the_head(canonical_mesh):
     assert any("could not be solved from the background" in w for w in world.warnings)
 
 
+def test_textureless_background_of_a_still_camera_is_a_still_camera(canonical_mesh):
+    # a plain wall behind a tripod clip: nothing to register, but its pixels stay put
+    room = render_room(canonical_mesh.vertices, n=N, size=SIZE, textured=False,
+                       camera_deg=0.0)
+    sol, reg, world = _solve(room, canonical_mesh)
+    assert reg.status == "still" and "texture" in reg.reason, reg.reason
+    assert reg.details["background_change"] < 4.0
+    assert world.case == "still camera, moving head"
+    np.testing.assert_allclose(np.linalg.inv(world.c2w) @ world.head_pose, sol.w2c,
+                               atol=1e-9)
+
+
 # ----------------------------------------------------------------------------- pure math
 
 

@@ -8,7 +8,8 @@ The result is in COLMAP's own world and scale (`flamenerf.tracking.world` makes 
 from the face and puts the head in it). Three outcomes, each with a reason for the report:
   registered    cameras solved for (most of) the frames;
   still         the background does not move in the image (tripod, a selfie held still):
-                the camera is fixed, there is nothing to solve;
+                the camera is fixed, there is nothing to solve; also a background too
+                plain to register whose pixels do not change over the clip;
   failed        too little texture, too few matches, or the mapping did not register
                 enough frames: the caller falls back to head-as-world cameras.
 """
@@ -49,6 +50,10 @@ class BackgroundOptions:
     still_flow: float = 0.004
     """The camera counts as still when background features move less than this fraction of
     the image's long side (90th percentile over matched frame pairs)."""
+    still_change: float = 4.0
+    """A textureless background counts as a still camera's when its pixels change by less
+    than this (mean |Δ| in 0-255 over the background, 90th percentile over frames against
+    the first); more and the registration failed."""
     min_registered: float = 0.8
     """Fraction of the frames that must register; fewer and the registration failed."""
     max_reprojection_px: float = 2.0
@@ -165,6 +170,33 @@ def _write_frames(frames, opts: BackgroundOptions, img_dir: Path, mask_dir: Path
     return np.asarray(ids, np.int64), names, size, scale
 
 
+def _background_change(img_dir: Path, mask_dir: Path, names: list[str], side: int = 160,
+                       max_frames: int = 40) -> float | None:
+    """How much the background's pixels change over the clip: mean |Δ| (0-255, grey) over
+    the pixels outside the person in both frames, each frame against the first, 90th
+    percentile over up to `max_frames` frames; None when too little background is seen."""
+    from PIL import Image
+
+    def load(name):
+        img = Image.open(img_dir / name).convert("L")
+        s = side / max(img.size)
+        sz = (max(1, round(img.width * s)), max(1, round(img.height * s)))
+        keep = Image.open(mask_dir / f"{name}.png").resize(sz, Image.Resampling.NEAREST)
+        return (np.asarray(img.resize(sz, Image.Resampling.BILINEAR), np.float32),
+                np.asarray(keep) > 0)
+
+    pick = np.unique(np.linspace(0, len(names) - 1, min(max_frames, len(names))).astype(int))
+    ref, ref_keep = load(names[pick[0]])
+    changes = []
+    for k in pick[1:]:
+        img, keep = load(names[k])
+        both = keep & ref_keep
+        if both.mean() < 0.05:
+            continue
+        changes.append(float(np.abs(img - ref)[both].mean()))
+    return float(np.percentile(changes, 90)) if changes else None
+
+
 def _empty(ids, status, reason, **kw) -> Registration:
     n = len(ids)
     return Registration(status, reason, ids, np.zeros(n, bool), np.full((n, 4, 4), np.nan),
@@ -209,9 +241,16 @@ def _register(frames, opts: BackgroundOptions, tmp: Path, focal: float | None,
         db.close()
     features_median = float(np.median(feats))
     if features_median < opts.min_features:
-        return _empty(ids, "failed", f"background has too little texture (median "
-                      f"{features_median:.0f} features per frame outside the person, need "
-                      f"{opts.min_features})", features_median=features_median)
+        why = (f"background has too little texture (median {features_median:.0f} features "
+               f"per frame outside the person, need {opts.min_features})")
+        change = _background_change(img_dir, mask_dir, names)
+        kw = dict(features_median=features_median, details={"background_change": change})
+        if change is not None and change < opts.still_change:
+            # nothing to register, and the background's pixels stay put: a still camera
+            # (were it moving, a wall this plain would look the same from anywhere near)
+            return _empty(ids, "still", f"{why}, and its pixels do not change between frames "
+                          f"(mean |Δ| {change:.1f}/255)", **kw)
+        return _empty(ids, "failed", why, **kw)
 
     matching = pycolmap.FeatureMatchingOptions()
     matching.num_threads = opts.num_threads
