@@ -160,8 +160,26 @@ def test_expression_region_gates_of_many_rays_are_each_rays_own():
 def test_expression_regions_keep_the_silhouette_prior():
     m = regions_model()
     r = rays(m)
+    # aim the rays through the two triangles, so that samples come within the gates' reach
+    target = m.mesh_neutral[torch.arange(8) % 6] + 0.02
+    r.dirs = target - r.origins
     out = m(r)
     (out["rgb"].sum() + out["depth"].sum()).backward()
     g = r.expression.grad
+    assert g is not None and g[r.face_ray, :2].abs().sum() > 0, "β acts on the face"
     assert torch.all(g[~r.face_ray] == 0), "β leaked to rays outside the silhouette"
     assert torch.all(g[:, 2:] == 0), "a control without a region has no effect"
+
+
+def test_nearest_vertex_matches_brute_force_within_the_bound():
+    from flamenerf.model.flame_nerf import nearest_vertex
+
+    g = torch.Generator().manual_seed(4)
+    verts, pts = torch.rand(50, 3, generator=g), torch.rand(300, 3, generator=g) * 1.6 - 0.3
+    d, i = nearest_vertex(pts, verts, 0.2)
+    bd, bi = torch.cdist(pts.double(), verts.double()).min(-1)
+    bd = bd.float()
+    near = bd <= 0.2
+    assert near.any() and (~near).any()
+    assert torch.allclose(d[near], bd[near], atol=1e-5) and torch.equal(i[near], bi[near])
+    assert torch.isinf(d[~near]).all() and (i[~near] == 0).all()

@@ -10,6 +10,7 @@ without one, or for rays without a head transform, points are exactly as before.
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
@@ -22,6 +23,30 @@ from flamenerf.model.render import (composite, interlevel_loss, render_weights, 
                                     stratified_samples)
 from flamenerf.model.se3 import apply_se3
 from flamenerf.model.warp import SE3Field
+
+
+GATE_CUTOFF = 3.0
+"""Per-control prior: gates are exp(-(d/r)²), cut to 0 beyond d = 3r (exp(-9) ≈ 1e-4)."""
+
+
+def nearest_vertex(pts: Tensor, verts: Tensor, bound: float) -> tuple[Tensor, Tensor]:
+    """Distance to, and index of, the nearest of verts (V, 3) for pts (P, 3); points farther
+    than `bound` get d = inf and index 0. A k-d tree on a CPU (the brute-force distances
+    were a third of a 256 px frame's time), brute force on a GPU. -> (P,), (P,) long."""
+    if len(pts) == 0:
+        return pts.new_zeros(0), torch.zeros(0, dtype=torch.long, device=pts.device)
+    if pts.device.type == "cpu":
+        from scipy.spatial import cKDTree
+
+        d, i = cKDTree(verts.double().numpy()).query(
+            pts.double().numpy(), distance_upper_bound=bound,
+            workers=max(1, torch.get_num_threads()))
+        far = ~np.isfinite(d)
+        i[far] = 0
+        return torch.from_numpy(d).to(pts.dtype), torch.from_numpy(i).long()
+    d, i = torch.cdist(pts, verts).min(-1)
+    far = d > bound
+    return d.masked_fill(far, float("inf")), i.masked_fill(far, 0)
 
 
 class FlameNeRF(nn.Module):
@@ -147,13 +172,28 @@ class FlameNeRF(nn.Module):
     def _region_gates(self, xn: Tensor, expr: Tensor, block: int = 1024) -> Tensor:
         """(R, S, 3), (R, E) -> (R, S, E) in [0, 1]: each point's share of each control,
         the membership of its nearest vertex (on the mesh of the ray's own expression) in
-        the control's region times exp(-d²/r²) of the distance d to that vertex. Rays with
-        β = 0 get 0."""
+        the control's region times exp(-d²/r²) of the distance d to that vertex, cut to 0
+        beyond d = GATE_CUTOFF·r (where it is below 1e-4: the expression fields then skip
+        the point). Rays with β = 0 get 0."""
         out = xn.new_zeros(*xn.shape[:2], expr.shape[-1])
         beta = expr / self.cfg.expression_scale
         rows = (beta.abs().amax(-1) > 0).nonzero()[:, 0]
         if len(rows) == 0:
             return out
+        neutral = self.normalize(self.mesh_neutral)
+        r = self.cfg.expression_regions.radius * float((neutral.amax(0) - neutral.amin(0)).norm())
+        # one mesh per distinct β (a batch holds a few frames' β; an image or a viewer
+        # update one): the per-ray meshes cost more than the distances
+        uniq, inv = torch.unique(beta[rows], dim=0, return_inverse=True)
+        meshes = self.normalize(self.face_mesh(uniq))  # (U, V, 3)
+        for u in range(len(uniq)):
+            ru = rows if len(uniq) == 1 else rows[inv == u]
+            for s in range(0, len(ru), block):  # bounded (B·S, V) blocks on a GPU
+                rb = ru[s:s + block]
+                d, nn_ = nearest_vertex(xn[rb].reshape(-1, 3), meshes[u], GATE_CUTOFF * r)
+                gate = torch.exp(-(d / r).square()).view(len(rb), -1, 1)
+                out[rb] = self.mesh_regions[nn_].view(len(rb), xn.shape[1], -1) * gate
+        return out
         neutral = self.normalize(self.mesh_neutral)
         r2 = (self.cfg.expression_regions.radius
               * float((neutral.amax(0) - neutral.amin(0)).norm())) ** 2
