@@ -105,3 +105,16 @@ def test_expressive_region_is_mouth_eyes_and_brows(face_scene):
     motion = np.sqrt(((v - v.mean(0)) ** 2).sum(-1).mean(0))
     assert np.argmax(motion) in set(part.ravel())
     assert np.argmin(motion) not in set(part.ravel())
+
+
+def test_control_figure_rows_are_the_strongest_controls_in_sweep_order():
+    from flamenerf.evaluation.protocol import _control_figure
+
+    res = {"controls": {"a": {"commanded": [0, 1, 2], "gain": 0.1},
+                        "b": {"commanded": [0, 1, 2], "gain": 0.9},
+                        "c": {"commanded": [0, 1, 2], "gain": float("nan")}}}
+    renders = [np.full((4, 5, 3), v / 10, np.float32) for v in range(9)]
+    img, rows = _control_figure(res, renders, rows=2)
+    assert rows == ["b", "a"]
+    assert img.shape == (4 * 2 + 2, 5 * 3 + 2 * 2, 3)
+    assert img[0, 0, 0] == pytest.approx(0.3) and img[6, 0, 0] == pytest.approx(0.0)

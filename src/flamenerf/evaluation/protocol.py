@@ -293,7 +293,8 @@ def evaluate_run(run, ds: Dataset, opts: EvalOptions, out_dir: Path | None = Non
         leak_preds = (fs, preds)
     if opts.control:
         log("control response: re-tracking renders with the face landmarker")
-        res["control"] = control_section(run, ds, intr, omega0, phi0, opts, leak_preds)
+        res["control"] = control_section(run, ds, intr, omega0, phi0, opts, leak_preds,
+                                         images)
     if opts.drive is not None:
         log(f"drive: tracking {opts.drive}, rendering and re-tracking {opts.drive_frames} "
             "frames")
@@ -305,9 +306,10 @@ def evaluate_run(run, ds: Dataset, opts: EvalOptions, out_dir: Path | None = Non
 
 
 def control_section(run, ds: Dataset, intr, omega0, phi0, opts: EvalOptions,
-                    leak_preds) -> dict[str, Any]:
+                    leak_preds, images: dict[str, np.ndarray] | None = None) -> dict[str, Any]:
     """The control response (see module doc): the leakage sweep's renders against its ground
-    truth when the dataset has one, else a sweep at the reference frame's camera."""
+    truth when the dataset has one, else a sweep at the reference frame's camera (its
+    picture, control.png, goes into `images`)."""
     from flamenerf.evaluation import control as C
     from flamenerf.data.dataset import reference_position
     from flamenerf.data.prior import dataset_dilation, mesh_function
@@ -324,12 +326,36 @@ def control_section(run, ds: Dataset, intr, omega0, phi0, opts: EvalOptions,
         render = C.model_renderer(run.model, ds, intr, fr.c2w, omega0, phi0,
                                   mesh_function(run.model, ds), dataset_dilation(ds),
                                   opts.chunk)
-        res = C.control_response(render, names, ds.expression_matrix([fr])[0], train_e, track,
+        renders: list[np.ndarray] = []
+
+        def keep(beta):
+            renders.append(render(beta))
+            return renders[-1]
+
+        res = C.control_response(keep, names, ds.expression_matrix([fr])[0], train_e, track,
                                  opts.control_steps)
         res["source"] = f"sweep over the training range at frame {pos}'s camera"
+        if images is not None and res["controls"]:
+            images["control.png"], res["figure_rows"] = _control_figure(res, renders)
         return res
     finally:
         track.close()
+
+
+def _control_figure(res: dict[str, Any], renders: list[np.ndarray], rows: int = 6
+                    ) -> tuple[np.ndarray, list[str]]:
+    """The sweep's renders, one row per control (the `rows` with the largest gain), from the
+    low end of its range to the high end. -> image, the rows' control names."""
+    from flamenerf.images import hstack, vstack
+
+    per, at = {}, 0
+    for name, c in res["controls"].items():
+        per[name] = renders[at:at + len(c["commanded"])]
+        at += len(c["commanded"])
+    gain = {n: c["gain"] if np.isfinite(c["gain"]) else -np.inf
+            for n, c in res["controls"].items()}
+    names = sorted(per, key=lambda n: -gain[n])[:rows]
+    return vstack([hstack(per[n], gap=2) for n in names], gap=2), names
 
 
 def drive_section(run, ds: Dataset, intr, omega0, phi0, opts: EvalOptions

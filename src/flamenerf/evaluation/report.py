@@ -178,6 +178,9 @@ def eval_markdown(res: dict[str, Any]) -> str:
         L.append(f"| **mean** | **{fmt(ct.get('mean_gain'))}** | "
                  f"{fmt(ct.get('mean_correlation'))} |"
                  + (f" {fmt(ct.get('mean_gt_gain'))} | |" if gt else ""))
+        if ct.get("figure_rows"):
+            L.append(f"\n`images/control.png`: the sweep's renders, one row per control "
+                     f"(low to high): {', '.join(ct['figure_rows'])}.")
         if ct.get("responsive_controls") is not None:
             L.append(f"\nMeans over the controls the landmarker sees in the ground truth "
                      f"(gt gain > 0.1): {', '.join(ct['responsive_controls']) or 'none'}.")
