@@ -70,3 +70,26 @@ def test_projection_of_a_looked_at_point_is_the_principal_point():
     pc = (pts - c2w[:3, 3]) @ c2w[:3, :3]
     uv_t = G.project(torch.from_numpy(pc), 500.0, 400.0, 320.0, 240.0, min_depth=1e-6)
     np.testing.assert_allclose(uv_t.numpy(), uv, atol=1e-9)
+
+
+def test_head_euler_inverts_euler_head():
+    from flamenerf.geometry import euler_head, head_euler
+
+    for ypr in ([20.0, -5.0, 3.0], [-40.0, 12.0, -7.0], [0.0, 0.0, 0.0]):
+        np.testing.assert_allclose(head_euler(euler_head(*ypr)), ypr, atol=1e-9)
+
+
+def test_relative_head_pose_of_the_landmarker_matrices():
+    from flamenerf.geometry import euler_head
+    from flamenerf.tracking.driving import relative_head_pose
+
+    R0 = euler_head(5.0, 10.0, -2.0) @ np.diag([1.0, 1.0, 1.0])
+    poses = []
+    for ypr in ([0, 0, 0], [20, -5, 3], [-15, 8, 0]):
+        M = np.eye(4)
+        M[:3, :3] = 1.3 * R0 @ euler_head(*ypr)  # the landmarker's matrices carry a scale
+        M[:3, 3] = [1.0, 2.0, -40.0]
+        poses.append(M)
+    rows = relative_head_pose(np.stack(poses))
+    np.testing.assert_allclose(rows[:, :3], [[0, 0, 0], [20, -5, 3], [-15, 8, 0]], atol=1e-4)
+    assert (rows[:, 3:] == 0).all()

@@ -107,6 +107,16 @@ def euler_head(yaw_deg: float, pitch_deg: float, roll_deg: float) -> np.ndarray:
                                ).as_matrix()
 
 
+def head_euler(R: np.ndarray) -> np.ndarray:
+    """The inverse of `euler_head`: rotations (..., 3, 3) in the head's own axes ->
+    (..., 3) yaw, pitch, roll in degrees."""
+    from scipy.spatial.transform import Rotation
+
+    yxz = Rotation.from_matrix(np.asarray(R, np.float64).reshape(-1, 3, 3)).as_euler(
+        "YXZ", degrees=True)
+    return (yxz * [1.0, -1.0, -1.0]).reshape(*np.shape(R)[:-2], 3)
+
+
 def quat_wxyz_to_matrix(wxyz: np.ndarray) -> np.ndarray:
     """A quaternion (w, x, y, z), any norm -> its rotation matrix (3, 3)."""
     from scipy.spatial.transform import Rotation

@@ -78,3 +78,34 @@ def test_render_cli_head_pose(head_run, toy_run, tmp_path):
     with pytest.raises(UserError, match="--head-pose"):
         render(RenderOptions(head_run, out=tmp_path / "y.mp4", head_pose=["tilt=3"],
                              device="cpu"))
+
+
+def test_head_pose_from_a_driving_video(head_run, astronaut_video, tmp_path):
+    from flamenerf.rendering.expressions import ExpressionSequence
+    from flamenerf.rendering.videos import head_transforms
+    from flamenerf.training.run import load_run
+
+    run = load_run(head_run, "cpu")
+    ds = run.dataset(None)
+    rows = np.array([[0, 0, 0, 0, 0, 0], [25, -8, 3, 0, 0, 0]], np.float32)
+    seq = ExpressionSequence(np.zeros((2, ds.expression_dim), np.float32), "d",
+                             head_pose=rows)
+    T = head_transforms(RenderOptions(head_run, head_pose=["drive"]), run, ds, 2, seq=seq)
+    want = head_transforms(RenderOptions(head_run, head_pose=[str(_json(tmp_path, rows))]),
+                           run, ds, 2)
+    np.testing.assert_allclose(T, want, atol=1e-9)
+    with pytest.raises(UserError, match="--drive"):
+        head_transforms(RenderOptions(head_run, head_pose=["drive"]), run, ds, 2)
+    out = tmp_path / "d.mp4"  # end to end: the driving clip's turns and expressions
+    render(RenderOptions(head_run, out=out, drive=astronaut_video, head_pose=["drive"],
+                         max_frames=3, device="cpu"))
+    assert len(read_frames(out)) == 3
+
+
+def _json(tmp_path, rows):
+    import json
+
+    p = tmp_path / "poses.json"
+    p.write_text(json.dumps([dict(zip(("yaw", "pitch", "roll"), map(float, r[:3])))
+                             for r in rows]))
+    return p

@@ -41,6 +41,7 @@ class ExpressionSequence:
     vertices: np.ndarray | None = None  # (T, V, 3) per-frame face mesh (a split)
     driving: Callable[[int], np.ndarray] | None = None  # frame i's driving image, uint8
     resizable: bool = False  # keyframes: the sequence adapts to any number of frames
+    head_pose: np.ndarray | None = None  # (T, 6) a driving video's head turns (--head-pose drive)
     notes: tuple[str, ...] = ()
 
     def __len__(self) -> int:
@@ -294,4 +295,4 @@ def from_video(video: Path, ds, names: list[str], relative: bool = True,
         return images.get(want[i], blank)
 
     return ExpressionSequence(values, label=Path(video).stem, fps=tr.fps, driving=driving,
-                              notes=tuple(notes))
+                              notes=tuple(notes), head_pose=tr.head_pose)

@@ -34,7 +34,8 @@ class RenderOptions:
         split: Take expressions, cameras and face meshes from this dataset split.
         drive: Track the expressions of this driving video.
         camera: static, orbit, spiral, dolly, a JSON file of poses, or auto.
-        head_pose: Head pose relative to frame 0's, independent of --camera: keyframes
+        head_pose: Head pose relative to frame 0's, independent of --camera: `drive` (the
+            driving video's head turns, with --drive), keyframes
             `yaw=20,pitch=-5` (degrees; roll too, x/y/z in metres), eased through like
             expression keyframes, or a .json list of such objects (one per frame). Needs
             a run trained with head poses. Default: a split's own head poses, else frame
@@ -202,10 +203,11 @@ def output_paths(opts: RenderOptions, source: str, camera: str) -> dict[str, Pat
     return paths
 
 
-def head_transforms(opts: RenderOptions, run, ds: Dataset, n: int, log=print
-                    ) -> np.ndarray | None:
-    """Each frame's canonical-from-world head transform (n, 4, 4): --head-pose, else a
-    split's own head poses; None: the head at frame 0's pose."""
+def head_transforms(opts: RenderOptions, run, ds: Dataset, n: int, log=print,
+                    seq: X.ExpressionSequence | None = None) -> np.ndarray | None:
+    """Each frame's canonical-from-world head transform (n, 4, 4): --head-pose (`drive`:
+    the driving video's head turns, from `seq`), else a split's own head poses; None: the
+    head at frame 0's pose."""
     from flamenerf.data import head_pose as H
 
     if opts.head_pose:
@@ -213,7 +215,13 @@ def head_transforms(opts: RenderOptions, run, ds: Dataset, n: int, log=print
             raise UserError(f"--head-pose: {opts.run} was not trained on a dataset with head "
                             "poses, so its head cannot be turned apart from the scene")
         region = H.HeadRegion.from_dict(run.model.init_args["head_region"])
-        rows, keyframes = H.head_pose_items(opts.head_pose)
+        if opts.head_pose == ["drive"]:
+            if seq is None or seq.head_pose is None:
+                raise UserError("--head-pose drive: takes the head's turns from a driving "
+                                "video; give one with --drive")
+            rows, keyframes = np.asarray(seq.head_pose[:n], np.float64), False
+        else:
+            rows, keyframes = H.head_pose_items(opts.head_pose)
         if keyframes:
             rows = X.keyframe_sequence(rows, np.zeros(6), n)
         elif len(rows) != n:
@@ -301,7 +309,7 @@ def render_videos(opts: RenderOptions, log=print) -> RenderSummary:
     poses, cam_label, seq = camera_poses(opts, seq, C.rig_from_dataset(ds), names, base, log)
     n = len(seq) if opts.max_frames is None else min(len(seq), opts.max_frames)
     values, poses = seq.values[:n], poses[:n]
-    T = head_transforms(opts, run, ds, n, log)
+    T = head_transforms(opts, run, ds, n, log, seq)
     if seq.vertices is not None and not opts.head_pose:  # a split's own (posed) meshes
         verts = seq.vertices[:n]
     elif seq.vertices is not None:  # the split's meshes, turned by --head-pose

@@ -41,12 +41,31 @@ def track_expressions(video: str | os.PathLike, fps: float | None = None,
     else:
         frames, names, kind = clip.blendshapes, clip.names, "arkit"
     rate = clip.info.fps
+    head = relative_head_pose(clip.transforms)
     if len(clip.selected) > 1:  # the rate of the selected frames
         rate = clip.info.fps / float(np.median(np.diff(clip.selected)))
     return ExpressionTrack(
         names=list(names), frames=np.asarray(frames, np.float32), fps=float(rate), kind=kind,
+        head_pose=head,
         source_frames=[int(i) for i in clip.frames],
         times=[round(float(t), 6) for t in clip.times], dropped=clip.dropped,
         source={"video": str(video), "tool": "flamenerf track",
                 "version": flamenerf.__version__, "video_fps": clip.info.fps,
                 "selected_frames": int(len(clip.selected))})
+
+
+def relative_head_pose(transforms: np.ndarray) -> np.ndarray:
+    """The landmarker's face poses in the camera (T, 4, 4) -> each frame's head rotation
+    relative to the first, in the head's own axes (x: the subject's left, y: up, z: out of
+    the face, as the canonical face model's), as rows (T, 6) of yaw, pitch, roll (degrees)
+    and x, y, z = 0 (`render --head-pose drive`: turns, not the driver's distance to
+    the camera)."""
+    from flamenerf.geometry import head_euler
+
+    R = np.asarray(transforms, np.float64)[:, :3, :3]
+    u, _, vt = np.linalg.svd(R)  # the landmarker's matrices carry a scale: keep the rotation
+    R = u @ vt
+    rel = np.einsum("ji,tjk->tik", R[0], R)  # R_0ᵀ R_t: the motion in frame 0's head axes
+    out = np.zeros((len(R), 6), np.float32)
+    out[:, :3] = head_euler(rel)
+    return out

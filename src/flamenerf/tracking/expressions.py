@@ -49,6 +49,7 @@ class ExpressionTrack:
     dropped: list[dict] = field(default_factory=list)
     source: dict[str, Any] = field(default_factory=dict)
     transfer: dict[str, Any] | None = None
+    head_pose: np.ndarray | None = None  # (T, 6) yaw, pitch, roll, x, y, z vs the first frame
 
     def to_json(self) -> dict:
         return {
@@ -57,6 +58,9 @@ class ExpressionTrack:
             "frames": [[round(float(x), 6) for x in row] for row in self.frames],
             "source_frames": self.source_frames, "times": self.times,
             "dropped": self.dropped, "source": self.source, "transfer": self.transfer,
+            "head_pose": None if self.head_pose is None else [
+                dict(zip(("yaw", "pitch", "roll"), (round(float(x), 3) for x in r[:3])))
+                for r in self.head_pose],
         }
 
 
