@@ -186,13 +186,16 @@ class FlameNeRF(nn.Module):
         # update one): the per-ray meshes cost more than the distances
         uniq, inv = torch.unique(beta[rows], dim=0, return_inverse=True)
         meshes = self.normalize(self.face_mesh(uniq))  # (U, V, 3)
-        for u in range(len(uniq)):
-            ru = rows if len(uniq) == 1 else rows[inv == u]
-            for s in range(0, len(ru), block):  # bounded (B·S, V) blocks on a GPU
-                rb = ru[s:s + block]
-                d, nn_ = nearest_vertex(xn[rb].reshape(-1, 3), meshes[u], GATE_CUTOFF * r)
-                gate = torch.exp(-(d / r).square()).view(len(rb), -1, 1)
-                out[rb] = self.mesh_regions[nn_].view(len(rb), xn.shape[1], -1) * gate
+        S, cut = xn.shape[1], GATE_CUTOFF * r
+        for s in range(0, len(rows), block):  # bounded (B·S, V) distance blocks
+            rb = rows[s:s + block]
+            if len(uniq) == 1:  # an image, a viewer update: one mesh, a k-d tree on a CPU
+                d, nn_ = nearest_vertex(xn[rb].reshape(-1, 3), meshes[0], cut)
+                d, nn_ = d.view(len(rb), S), nn_.view(len(rb), S)
+            else:  # a training batch: many small meshes, batched brute force is cheaper
+                d, nn_ = torch.cdist(xn[rb], meshes[inv[s:s + block]]).min(-1)  # (B, S)
+                d = d.masked_fill(d > cut, float("inf"))
+            out[rb] = self.mesh_regions[nn_] * torch.exp(-(d / r).square())[..., None]
         return out
         neutral = self.normalize(self.mesh_neutral)
         r2 = (self.cfg.expression_regions.radius
