@@ -118,6 +118,10 @@ class MeshGuideConfig:
     every preset that fits the model (per-control prior, mesh guide, driven silhouettes)."""
 
 
+RADIUS_PARTS, RADIUS_FREE = 0.1, 0.05
+"""The per-control prior's default fade radius with and without the face parts."""
+
+
 @dataclass
 class ExpressionRegionsConfig:
     """Per-control spatial prior: β_k reaches only points near the part of the face mesh
@@ -129,11 +133,19 @@ class ExpressionRegionsConfig:
     threshold: float = 0.2
     """A vertex belongs to control k's region when k moves it by more than this fraction of
     k's largest vertex motion."""
-    radius: float = 0.1
+    radius: float | None = None
     """Distance (fraction of the neutral mesh's bounding-box diagonal) at which a point's
-    share of β_k has faded to 1/e away from the region's vertices. 0.1 (was 0.05): chosen on
-    the shared expressions clip (held-out +0.8 dB, driven face +0.7 dB, blinks respond),
-    checked on the built-in scene (docs/bench/control_exploration.md)."""
+    share of β_k has faded to 1/e away from the region's vertices. None: `RADIUS_PARTS` where
+    the face parts limit the controls (`mesh_guide.face_parts` on MediaPipe meshes, whose
+    part-limited regions need the wider fade), else `RADIUS_FREE`; a run's config.json holds
+    the value it trained with. Each was measured on one dataset only: 0.1 on the shared
+    expressions clip, 0.05 on the built-in scene, where 0.1 lowered the control gain
+    (docs/bench/control_exploration.md)."""
+
+    def resolved_radius(self, face_parts: bool) -> float:
+        if self.radius is not None:
+            return self.radius
+        return RADIUS_PARTS if face_parts else RADIUS_FREE
 
 
 @dataclass

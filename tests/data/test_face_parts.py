@@ -77,3 +77,18 @@ def test_all_ones_weights_are_the_free_fit():
     ones = fit_expression_model(betas, meshes, weights=torch.ones(20, 3))
     for a, b in zip(free, ones):
         assert torch.allclose(a, b, atol=1e-5)
+
+
+def test_the_prior_radius_follows_whether_the_parts_apply(dataset_dir):
+    from flamenerf.config import RADIUS_FREE, RADIUS_PARTS, preset
+    from flamenerf.data.dataset import load_dataset
+    from flamenerf.data.face_parts import applies
+    from flamenerf.training.trainer import build_for_dataset
+
+    assert applies("arkit", NAMES, 468) and applies("arkit", NAMES, 478)
+    assert not applies("synthetic", NAMES, 468) and not applies("arkit", ["a", "b"], 468)
+    cfg = preset("fast")
+    assert cfg.model.expression_regions.radius is None
+    assert cfg.model.expression_regions.resolved_radius(True) == RADIUS_PARTS
+    m = build_for_dataset(cfg, load_dataset(dataset_dir))  # the built-in scene: no parts
+    assert cfg.model.expression_regions.radius == RADIUS_FREE == m.cfg.expression_regions.radius

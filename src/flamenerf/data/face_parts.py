@@ -60,6 +60,12 @@ def _band(h: np.ndarray, lo: float, hi: float) -> np.ndarray:
     return np.minimum(below, above) * np.ones_like(h)
 
 
+def applies(kind: str, names: list[str], num_vertices: int) -> bool:
+    """Whether `control_weights` limits anything for such an expression model and mesh."""
+    return (kind == "arkit" and num_vertices in MEDIAPIPE_VERTEX_COUNTS
+            and any(_part_of(n) is not None for n in names))
+
+
 def control_weights(kind: str, names: list[str], vertices: np.ndarray) -> np.ndarray | None:
     """Soft per-vertex limits of each control, or None where none apply (not ARKit names,
     not MediaPipe's topology, or no name this module knows).
@@ -68,10 +74,9 @@ def control_weights(kind: str, names: list[str], vertices: np.ndarray) -> np.nda
     names (E,); vertices (V, 3) a typical mesh of the subject (e.g. the mean training
     mesh), any units. -> (V, E) float32 in [0, 1].
     """
-    parts = [_part_of(n) for n in names]
-    if (kind != "arkit" or vertices.shape[0] not in MEDIAPIPE_VERTEX_COUNTS
-            or all(p is None for p in parts)):
+    if not applies(kind, names, vertices.shape[0]):
         return None
+    parts = [_part_of(n) for n in names]
     v = np.asarray(vertices, np.float64)
     eye_l, eye_r = v[list(_EYE_LEFT)].mean(0), v[list(_EYE_RIGHT)].mean(0)
     mouth = v[list(_MOUTH)].mean(0)

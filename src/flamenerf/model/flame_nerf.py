@@ -181,7 +181,8 @@ class FlameNeRF(nn.Module):
         if len(rows) == 0:
             return out
         neutral = self.normalize(self.mesh_neutral)
-        r = self.cfg.expression_regions.radius * float((neutral.amax(0) - neutral.amin(0)).norm())
+        r = (self.cfg.expression_regions.resolved_radius(False)
+             * float((neutral.amax(0) - neutral.amin(0)).norm()))
         # one mesh per distinct β (a batch holds a few frames' β; an image or a viewer
         # update one): the per-ray meshes cost more than the distances
         uniq, inv = torch.unique(beta[rows], dim=0, return_inverse=True)
@@ -196,22 +197,6 @@ class FlameNeRF(nn.Module):
                 d, nn_ = torch.cdist(xn[rb], meshes[inv[s:s + block]]).min(-1)  # (B, S)
                 d = d.masked_fill(d > cut, float("inf"))
             out[rb] = self.mesh_regions[nn_] * torch.exp(-(d / r).square())[..., None]
-        return out
-        neutral = self.normalize(self.mesh_neutral)
-        r2 = (self.cfg.expression_regions.radius
-              * float((neutral.amax(0) - neutral.amin(0)).norm())) ** 2
-        # one mesh per distinct β (a batch holds a few frames' β; an image or a viewer
-        # update one): the per-ray meshes cost more than the distances
-        uniq, inv = torch.unique(beta[rows], dim=0, return_inverse=True)
-        meshes = self.normalize(self.face_mesh(uniq))  # (U, V, 3)
-        for s in range(0, len(rows), block):  # bounded (B, S, V) distance blocks
-            r = rows[s:s + block]
-            if len(uniq) == 1:
-                d2, nn_ = torch.cdist(xn[r].reshape(-1, 3), meshes[0]).min(-1)
-                d2, nn_ = d2.view(len(r), -1), nn_.view(len(r), -1)
-            else:
-                d2, nn_ = torch.cdist(xn[r], meshes[inv[s:s + block]]).min(-1)  # (B, S)
-            out[r] = self.mesh_regions[nn_] * torch.exp(-d2.square() / r2)[..., None]
         return out
 
     # ---------------------------------------------------------------- conditioning

@@ -67,6 +67,14 @@ def may_skip_parameters(model: FlameNeRF) -> bool:
 
 
 def build_for_dataset(cfg: Config, ds: Dataset) -> FlameNeRF:
+    """The model for `ds`; settles the config's dataset-dependent defaults in place (so that
+    the run's config.json holds what it trained with)."""
+    from flamenerf.data.face_parts import applies
+
+    regions = cfg.model.expression_regions
+    regions.radius = regions.resolved_radius(
+        cfg.model.mesh_guide.face_parts
+        and applies(ds.expression_kind, ds.expression_names, ds.face_vertices.shape[1]))
     lo, hi = scene_box(ds)
     V, nf = ds.face_vertices.shape[1], len(ds.faces)
     model = FlameNeRF(cfg.model, num_codes=ds.num_codes, expr_dim=ds.expression_dim,
