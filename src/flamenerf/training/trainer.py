@@ -66,15 +66,21 @@ def may_skip_parameters(model: FlameNeRF) -> bool:
     return model.warp is None or getattr(model.field, "expr_grid", None) is not None
 
 
-def build_for_dataset(cfg: Config, ds: Dataset) -> FlameNeRF:
-    """The model for `ds`; settles the config's dataset-dependent defaults in place (so that
-    the run's config.json holds what it trained with)."""
+def settle_dataset_defaults(cfg: Config, ds: Dataset) -> Config:
+    """Fill the config's dataset-dependent defaults in place (the per-control prior's radius),
+    so that a run's config.json holds what it trained with. -> cfg."""
     from flamenerf.data.face_parts import applies
 
     regions = cfg.model.expression_regions
     regions.radius = regions.resolved_radius(
         cfg.model.mesh_guide.face_parts
         and applies(ds.expression_kind, ds.expression_names, ds.face_vertices.shape[1]))
+    return cfg
+
+
+def build_for_dataset(cfg: Config, ds: Dataset) -> FlameNeRF:
+    """The model for `ds` (settling the config's dataset-dependent defaults first)."""
+    settle_dataset_defaults(cfg, ds)
     lo, hi = scene_box(ds)
     V, nf = ds.face_vertices.shape[1], len(ds.faces)
     model = FlameNeRF(cfg.model, num_codes=ds.num_codes, expr_dim=ds.expression_dim,

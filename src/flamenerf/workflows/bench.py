@@ -175,6 +175,10 @@ def _train(name: str, cfg: Config, scene: Path, o: BenchOptions, log) -> dict[st
     timing_file = run_dir / "bench_timing.json"
     prev = 0.0
     if latest_checkpoint(run_dir) is not None:
+        from flamenerf.data.dataset import load_dataset
+        from flamenerf.training.trainer import settle_dataset_defaults
+
+        settle_dataset_defaults(cfg, load_dataset(scene))  # as the saved run has them
         saved = json.loads((run_dir / "config.json").read_text())
         same = (_comparable(saved.get("config", {})) == _comparable(cfg.to_dict())
                 and Path(saved.get("dataset", "")) == scene.resolve())
