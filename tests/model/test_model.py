@@ -172,7 +172,7 @@ def test_expression_regions_keep_the_silhouette_prior():
 
 
 def test_nearest_vertex_matches_brute_force_within_the_bound():
-    from flamenerf.model.flame_nerf import nearest_vertex
+    from flamenerf.meshes import nearest_vertex
 
     g = torch.Generator().manual_seed(4)
     verts, pts = torch.rand(50, 3, generator=g), torch.rand(300, 3, generator=g) * 1.6 - 0.3

@@ -10,14 +10,14 @@ without one, or for rays without a head transform, points are exactly as before.
 
 from __future__ import annotations
 
-import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
 from flamenerf.config import ModelConfig
 from flamenerf.data.rays import RayBatch  # noqa: F401 - the model's input, re-exported
-from flamenerf.meshes import expression_mesh, mesh_displacement, surface_points
+from flamenerf.meshes import (expression_mesh, mesh_displacement, nearest_vertex,
+                               surface_points)
 from flamenerf.model.field import ProposalField, make_field
 from flamenerf.model.render import (composite, interlevel_loss, render_weights, sample_pdf,
                                     stratified_samples)
@@ -27,26 +27,6 @@ from flamenerf.model.warp import SE3Field
 
 GATE_CUTOFF = 3.0
 """Per-control prior: gates are exp(-(d/r)²), cut to 0 beyond d = 3r (exp(-9) ≈ 1e-4)."""
-
-
-def nearest_vertex(pts: Tensor, verts: Tensor, bound: float) -> tuple[Tensor, Tensor]:
-    """Distance to, and index of, the nearest of verts (V, 3) for pts (P, 3); points farther
-    than `bound` get d = inf and index 0. A k-d tree on a CPU (the brute-force distances
-    were a third of a 256 px frame's time), brute force on a GPU. -> (P,), (P,) long."""
-    if len(pts) == 0:
-        return pts.new_zeros(0), torch.zeros(0, dtype=torch.long, device=pts.device)
-    if pts.device.type == "cpu":
-        from scipy.spatial import cKDTree
-
-        d, i = cKDTree(verts.double().numpy()).query(
-            pts.double().numpy(), distance_upper_bound=bound,
-            workers=max(1, torch.get_num_threads()))
-        far = ~np.isfinite(d)
-        i[far] = 0
-        return torch.from_numpy(d).to(pts.dtype), torch.from_numpy(i).long()
-    d, i = torch.cdist(pts, verts).min(-1)
-    far = d > bound
-    return d.masked_fill(far, float("inf")), i.masked_fill(far, 0)
 
 
 class FlameNeRF(nn.Module):
