@@ -1,6 +1,7 @@
 """Face-mesh helpers shared by the model, rendering and evaluation: points on a mesh, the
-per-subject linear expression model β -> mesh, and the displacement a mesh change induces
-on nearby space.
+per-subject linear expression model β -> mesh (optionally limited per control to parts of
+the face), the displacement a mesh change induces on nearby space, and the nearest vertex
+of many points (the per-control prior's gates).
 
 The expression model is what lets a commanded β move the face: fitted on the training
 frames' tracked meshes, it gives the mesh of any β (re-animation, the viewer's sliders, the
