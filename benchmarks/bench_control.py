@@ -11,6 +11,9 @@ prints the issue's targets next to the figures and writes JSON + Markdown.
 The scene is made first when missing (`flamenerf synth SCENE --size 128 --frames 120`).
 Variants: `--variants fast,nerfies` (default) and any `name:key=value,...` overrides of
 `fast` (e.g. `plain:model.mesh_guide.enabled=False`), trained with the same schedule.
+`--scene` may also be a preprocessed real clip (`flamenerf preprocess`): everything but the
+ground-truth sections then runs, the control response as a sweep at frame 0's camera (e.g.
+`--scene D --fit-steps 100 --variants "r10:model.expression_regions.radius=0.1"`).
 """
 
 from __future__ import annotations
