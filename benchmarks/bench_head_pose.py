@@ -30,7 +30,9 @@ TARGETS = """targets (issue 12, fast on the built-in scene with head motion): dr
 background PSNR within 1 dB of the refitted (held-out) protocol's; novel-pose re-animation
 face PSNR >= 26 dB vs ground truth."""
 
-VARIANTS = {"follow": {"model.head.follow": "True"}, "static": {"model.head.follow": "False"}}
+VARIANTS = {"follow": {"model.head.follow": "True", "model.head.region_scale": "1.0"},
+            "follow_wide": {"model.head.follow": "True", "model.head.region_scale": "1.3"},
+            "static": {"model.head.follow": "False"}}
 
 
 def main() -> None:
