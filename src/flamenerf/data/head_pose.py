@@ -133,27 +133,10 @@ def control_transform(key: HeadPoseKey, region: HeadRegion) -> np.ndarray:
 
 def parse_head_key(item: str, where: str = "--head-pose") -> HeadPoseKey:
     """`yaw=20,pitch=-5` (degrees; x, y, z in metres) -> a HeadPoseKey."""
-    key = HeadPoseKey()
-    names = list(HeadPoseKey.__dataclass_fields__)
-    for part in item.split(","):
-        part = part.strip()
-        if not part:
-            continue
-        if "=" not in part:
-            raise UserError(f"{where} {item!r}: expected name=value with name one of "
-                            f"{', '.join(names)}, got {part!r}")
-        name, val = (s.strip() for s in part.split("=", 1))
-        if name not in names:
-            raise UserError(f"{where} {item!r}: unknown name {name!r} (use "
-                            f"{', '.join(names)})")
-        try:
-            v = float(val)
-        except ValueError:
-            raise UserError(f"{where} {item!r}: {val!r} is not a number") from None
-        if not np.isfinite(v):
-            raise UserError(f"{where} {item!r}: {name} must be finite")
-        setattr(key, name, v)
-    return key
+    from flamenerf.keyvalues import parse_assignments
+
+    return HeadPoseKey(**parse_assignments(item, list(HeadPoseKey.__dataclass_fields__),
+                                           where))
 
 
 def key_array(key: HeadPoseKey) -> np.ndarray:

@@ -19,7 +19,6 @@ Accepted `--expressions` values:
 
 from __future__ import annotations
 
-import difflib
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,6 +27,7 @@ from typing import Callable
 import numpy as np
 
 from flamenerf.errors import UserError
+from flamenerf.keyvalues import parse_assignments, suggest
 
 FILE_SUFFIXES = (".json", ".npy", ".csv")
 
@@ -48,11 +48,6 @@ class ExpressionSequence:
         return len(self.values)
 
 
-def _suggest(name: str, names: list[str]) -> str:
-    close = difflib.get_close_matches(name, names, n=1)
-    return f"; did you mean {close[0]!r}?" if close else ""
-
-
 def map_by_name(values: np.ndarray, src_names: list[str], names: list[str], where: str,
                 strict: bool, what: str = "controls", hint: str = ""
                 ) -> tuple[np.ndarray, list[str]]:
@@ -63,7 +58,7 @@ def map_by_name(values: np.ndarray, src_names: list[str], names: list[str], wher
     index = {n: i for i, n in enumerate(names)}
     unknown = [n for n in src_names if n not in index]
     if strict and unknown:
-        raise UserError(f"{where}: unknown control {unknown[0]!r}{_suggest(unknown[0], names)} "
+        raise UserError(f"{where}: unknown control {unknown[0]!r}{suggest(unknown[0], names)} "
                         f"(this run's controls: {', '.join(names)})")
     if len(unknown) == len(src_names):
         raise UserError(f"{where}: none of its {what} ({', '.join(src_names[:6])}"
@@ -80,24 +75,8 @@ def parse_keyframe(item: str, names: list[str], base: np.ndarray) -> np.ndarray:
     """`name=value[,name=value...]` -> the base expression with those controls set."""
     vec = np.array(base, np.float32, copy=True)
     index = {n: i for i, n in enumerate(names)}
-    for part in item.split(","):
-        part = part.strip()
-        if not part:
-            continue
-        if "=" not in part:
-            raise UserError(f"--expressions {item!r}: expected name=value, got {part!r} (or "
-                            f"a .json/.npy/.csv file)")
-        name, val = (s.strip() for s in part.split("=", 1))
-        if name not in index:
-            raise UserError(f"--expressions {item!r}: unknown control {name!r}"
-                            f"{_suggest(name, names)} (this run's controls: "
-                            f"{', '.join(names)})")
-        try:
-            v = float(val)
-        except ValueError:
-            raise UserError(f"--expressions {item!r}: {val!r} is not a number") from None
-        if not np.isfinite(v):
-            raise UserError(f"--expressions {item!r}: {name} must be finite")
+    for name, v in parse_assignments(item, names, "--expressions", "control",
+                                     " (or a .json/.npy/.csv file)").items():
         vec[index[name]] = v
     return vec
 
@@ -193,7 +172,7 @@ def _named_rows(rows: list[dict], names: list[str], where: str) -> np.ndarray:
     for t, row in enumerate(rows):
         for k, v in row.items():
             if k not in index:
-                raise UserError(f"{where}: unknown control {k!r}{_suggest(k, names)} (this "
+                raise UserError(f"{where}: unknown control {k!r}{suggest(k, names)} (this "
                                 f"run's controls: {', '.join(names)})")
             if not isinstance(v, (int, float)) or isinstance(v, bool) or not np.isfinite(v):
                 raise UserError(f"{where}: {k} must be a finite number, got {v!r}")
