@@ -90,6 +90,21 @@ def test_cpu_kernel_builds_here():
     assert hashgrid_library() is not None, "the C hash-grid kernel did not build"
 
 
+def test_cpu_kernel_builds_without_native_flags(monkeypatch, tmp_path):
+    """A compiler that rejects the CPU-specific flag still gets the portable kernel; the
+    CPU-specific build is cached under a name that includes the CPU."""
+    from flamenerf.model import cpu_kernels
+
+    monkeypatch.setenv("FLAMENERF_CACHE", str(tmp_path))
+    monkeypatch.setattr(cpu_kernels, "_tried", False)
+    monkeypatch.setattr(cpu_kernels, "_lib", None)
+    monkeypatch.setattr(cpu_kernels, "_NATIVE", ["-mno-such-flag-here"])
+    lib = cpu_kernels.hashgrid_library()
+    assert lib is not None
+    assert len(list((tmp_path / "kernels").glob("hashgrid-*.so"))) == 1
+    assert cpu_kernels.cpu_identity()
+
+
 def test_cpu_kernel_matches_the_pytorch_reference():
     torch.manual_seed(0)
     # dense coarse levels and hashed fine ones (2^10 entries < (r+1)^3 from r = 10 on)

@@ -16,7 +16,7 @@ from flamenerf.model.render import render_weights
 from flamenerf.model.render_image import render_image
 
 E = 3
-EXACT = RenderSettings(warp_grid=0, proposal_grid=0, min_transmittance=0.0)
+EXACT = RenderSettings(warp_grid=0, proposal_grid=0, min_transmittance=0.0, half=False)
 
 
 def toy_model(sampler: str = "proposal", mode: str = "masked") -> FlameNeRF:
@@ -155,6 +155,49 @@ def test_fused_mlp_equals_plain():
         with fused_cpu_inference():
             fused = m(x, cond)
     assert torch.allclose(plain, fused, atol=1e-5)
+
+
+def test_bf16_mlp_stays_close_to_float32(monkeypatch):
+    """The bfloat16 layers (CPUs with native bfloat16) give float32 results within
+    bfloat16's rounding, per-ray conditioning included; forced on here, so that the path
+    runs on any CPU (oneDNN emulates bfloat16 where the CPU lacks it)."""
+    import flamenerf.model.mlp as mlp
+
+    monkeypatch.setattr(mlp, "native_bf16", lambda: True)
+    torch.manual_seed(0)
+    m = MLP(10 + 4, 32, 3, (1,), out_dim=5)
+    x, cond = torch.randn(6, 7, 10), torch.randn(6, 1, 4)
+    with torch.no_grad():
+        plain = m(x, cond)
+        with fused_cpu_inference(bf16=True):
+            half = m(x, cond)
+        with fused_cpu_inference():
+            full = m(x, cond)
+    assert half.dtype == torch.float32
+    err = (half - plain).abs().max() / plain.abs().max()
+    assert 0 < err < 0.03, err  # bfloat16 (8-bit mantissa), not float32 (that path: 1e-5)
+    assert torch.allclose(full, plain, atol=1e-5)
+
+
+def test_bf16_weights_follow_training(monkeypatch):
+    """The cached bfloat16 copy of a layer is renewed when an optimiser changes it."""
+    import flamenerf.model.mlp as mlp
+
+    monkeypatch.setattr(mlp, "native_bf16", lambda: True)
+    torch.manual_seed(0)
+    m = MLP(3, 16, 1, (), out_dim=2)
+    x = torch.randn(50, 3)
+    with torch.no_grad(), fused_cpu_inference(bf16=True):
+        before = m(x)
+    opt = torch.optim.SGD(m.parameters(), lr=1.0)
+    m(x).square().sum().backward()
+    opt.step()
+    with torch.no_grad():
+        plain = m(x)
+        with fused_cpu_inference(bf16=True):
+            after = m(x)
+    assert (after - before).abs().max() > 0.1
+    assert torch.allclose(after, plain, atol=0.05 * float(plain.abs().max()))
 
 
 def test_warp_bake_follows_the_code_and_the_weights():

@@ -21,18 +21,30 @@ _fusing = threading.local()
 
 
 @contextlib.contextmanager
-def fused_cpu_inference() -> Iterator[None]:
+def fused_cpu_inference(bf16: bool = False) -> Iterator[None]:
     """Within this block (in this thread), MLPs on float32 CPU tensors without autograd run
     each layer as one oneDNN matmul with its bias and ReLU fused in: 2x faster than
     matmul, bias add and ReLU as separate passes (a `fast` density head, 65k samples, one
     thread: 5.5 ms vs 11.1 ms). Rounding differs from the plain path in the last bits, so
-    the training forward (and eval, which renders with it) never uses it."""
-    old = getattr(_fusing, "on", False)
+    the training forward (and eval, which renders with it) never uses it.
+
+    `bf16`: on a CPU with native bfloat16 arithmetic (AVX-512 BF16 or AMX), the layers run
+    in bfloat16 between a float32 input and a float32 output (2.3x faster per 64-wide layer
+    on the Zen 4 development machine); elsewhere it is ignored."""
+    old = getattr(_fusing, "on", False), getattr(_fusing, "bf16", False)
     _fusing.on = _oneDNN_linear() is not None
+    _fusing.bf16 = _fusing.on and bf16 and native_bf16()
     try:
         yield
     finally:
-        _fusing.on = old
+        _fusing.on, _fusing.bf16 = old
+
+
+def native_bf16() -> bool:
+    """Whether this CPU multiplies bfloat16 natively (else oneDNN emulates it, slowly)."""
+    cpu = getattr(torch, "cpu", None)
+    checks = ("_is_avx512_bf16_supported", "_is_amx_tile_supported")
+    return any(bool(getattr(cpu, c, lambda: False)()) for c in checks)
 
 
 def _oneDNN_linear():
@@ -42,28 +54,49 @@ def _oneDNN_linear():
     return op
 
 
-def _fused_linear(layer: nn.Linear, parts: list[Tensor], relu: bool) -> Tensor:
+def _fused_linear(layer: nn.Linear, parts: list[Tensor], relu: bool, bf16: bool = False
+                  ) -> Tensor:
     """relu?(layer(cat(parts, -1))) as linear_of_concat broadcasts them; parts[0] holds one
-    row per sample, later parts may be per ray (broadcastable, added after the matmul)."""
+    row per sample, later parts may be per ray (broadcastable, added after the matmul).
+    `bf16`: the per-sample matmul in bfloat16 (the result is bfloat16)."""
     op = torch.ops.mkldnn._linear_pointwise
     lead = parts[0].shape[:-1]
     rows = parts[0].numel() // parts[0].shape[-1]
+    weight, bias = _bf16_params(layer) if bf16 else (layer.weight, layer.bias)
     out, small, start = None, None, 0
     for p in parts:
         k = p.shape[-1]
-        w = layer.weight[:, start:start + k]
         start += k
         if p.shape[:-1] == lead:
+            p = p.to(weight.dtype)
             if len(parts) == 1:  # bias and ReLU inside the matmul
-                return op(p.reshape(rows, k), layer.weight, layer.bias,
+                return op(p.reshape(rows, k), weight, bias,
                           "relu" if relu else "none", [], "").view(*lead, -1)
-            y = op(p.reshape(rows, k), w.contiguous(), None, "none", [], "").view(*lead, -1)
+            w = weight[:, start - k:start].contiguous()
+            y = op(p.reshape(rows, k), w, None, "none", [], "").view(*lead, -1)
             out = y if out is None else out.add_(y)
         else:
-            y = F.linear(p, w)
+            y = F.linear(p, layer.weight[:, start - k:start])
             small = y if small is None else small + y
-    small = layer.bias if small is None else small + layer.bias
-    return torch.ops.aten._add_relu_(out, small) if relu else out.add_(small)
+    small = (layer.bias if small is None else small + layer.bias).to(out.dtype)
+    if not relu:
+        return out.add_(small)
+    # _add_relu_ (one pass) is float32-only
+    return torch.ops.aten._add_relu_(out, small) if out.dtype == torch.float32 \
+        else out.add_(small).relu_()
+
+
+def _bf16_params(layer: nn.Linear) -> tuple[Tensor, Tensor | None]:
+    """The layer's weight and bias in bfloat16, cached until the parameters change (an
+    optimiser step bumps their version)."""
+    key = (layer.weight._version, layer.weight.data_ptr(),
+           None if layer.bias is None else layer.bias._version)
+    cached = getattr(layer, "_flamenerf_bf16", None)
+    if cached is None or cached[0] != key:
+        cached = (key, layer.weight.detach().bfloat16(),
+                  None if layer.bias is None else layer.bias.detach().bfloat16())
+        layer._flamenerf_bf16 = cached
+    return cached[1], cached[2]
 
 
 def linear_of_concat(layer: nn.Linear, parts: list[Tensor]) -> Tensor:
@@ -116,10 +149,11 @@ class MLP(nn.Module):
         return self.out(h)
 
     def _forward_fused(self, inputs: list[Tensor]) -> Tensor:
+        bf16 = getattr(_fusing, "bf16", False)
         h = None
         for i, layer in enumerate(self.layers):
             parts = inputs if h is None else [h, *inputs] if i in self.skips else [h]
-            h = _fused_linear(layer, parts, relu=True)
-        if self.out is None:
-            return h
-        return _fused_linear(self.out, inputs if h is None else [h], relu=False)
+            h = _fused_linear(layer, parts, relu=True, bf16=bf16)
+        if self.out is not None:
+            h = _fused_linear(self.out, inputs if h is None else [h], relu=False, bf16=bf16)
+        return h.float()
