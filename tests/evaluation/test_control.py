@@ -44,6 +44,37 @@ def test_control_response_tells_a_working_control_from_a_dead_one():
     assert abs(res["controls"]["eyeBlinkLeft"]["gain"]) < 1e-9
 
 
+def test_control_response_with_companions_sweeps_what_a_keyframe_renders():
+    """A model that learned the closed eye only with the eye looking down: the blink swept
+    alone does nothing, swept with its companion (as a keyframe renders it) it closes."""
+    from flamenerf.data.companions import fit_companions
+
+    names = ["eyeBlinkLeft", "eyeLookDownLeft", "jawOpen"]
+    rng = np.random.default_rng(0)
+    blink = rng.uniform(0, 1, 60)
+    train = np.stack([blink, 0.9 * blink, rng.uniform(0, 0.5, 60)], 1)
+    comp = fit_companions(names, "arkit", 468, train)
+
+    def track(img):  # the eye shows closed as far as both controls agree
+        return {"eyeBlinkLeft": min(img[0], img[1] / 0.9), "jawOpen": img[2]}
+
+    renders = []
+
+    def render(beta):
+        renders.append(beta)
+        return beta
+
+    res = C.control_response(render, names, np.zeros(3), train, track, steps=4,
+                             companions=comp)
+    blink_row, jaw = res["controls"]["eyeBlinkLeft"], res["controls"]["jawOpen"]
+    assert abs(blink_row["gain"]) < 1e-9
+    assert blink_row["gain_with_companions"] == pytest.approx(1.0, abs=0.05)
+    assert blink_row["companions"] == ["eyeLookDownLeft"]
+    assert "gain_with_companions" not in jaw  # no companion in this model
+    assert len(renders) == 4 * 2 + 4 * 2 + 4  # the two eye controls twice, the jaw once
+    assert res["mean_gain_with_companions"] > res["mean_gain"]
+
+
 def test_drive_response_correlates_driving_and_retracked_over_time():
     names = ["jawOpen", "eyeBlinkLeft", "browInnerUp"]
     t = np.linspace(0, 2 * np.pi, 12)

@@ -19,6 +19,23 @@ def test_keyframes_override_named_controls_only():
     np.testing.assert_allclose(v, [0.8, 0.2, 1.0])
 
 
+def test_keyframes_move_companions_and_say_so():
+    """With a dataset's companions a keyframe also moves the controls the tracker reads
+    with the named one (here mouthSmileLeft with the jaw); without them it does not."""
+    from flamenerf.data.companions import fit_companions
+
+    rng = np.random.default_rng(0)
+    jaw = rng.uniform(0, 1, 50)
+    train = np.stack([jaw, 0.5 * jaw, rng.uniform(0, 1, 50)], 1)
+    comp = fit_companions(NAMES, "arkit", 468, train)
+    seq = X.from_items(["jawOpen=0.6"], NAMES, BASE, 9, comp)
+    np.testing.assert_allclose(seq.values[4], [0.6, 0.2 + 0.5 * 0.5, 0.3], atol=0.02)
+    assert any("mouthSmileLeft" in n for n in seq.notes)
+    plain = X.from_items(["jawOpen=0.9"], NAMES, BASE, 9)
+    np.testing.assert_allclose(plain.values[4], [0.9, 0.2, 0.3])
+    assert not plain.notes
+
+
 def test_unknown_control_names_the_problem():
     with pytest.raises(UserError, match="unknown control 'jawOpn'; did you mean 'jawOpen'"):
         X.from_items(["jawOpn=1"], NAMES, BASE, 10)

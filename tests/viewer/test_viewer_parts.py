@@ -181,3 +181,43 @@ def test_masker_poses_the_mesh_by_the_head_pose(tiny_scene):
     T = control_transform(HeadPoseKey(yaw=35, x=0.02), head_region(ds))
     turned = masker(intr, c2w, None, T)
     assert turned.any() and (turned != still).mean() > 0.01
+
+
+def test_a_slider_moves_its_companions_unless_unticked(tiny_run):
+    """With companions (an ARKit dataset's; made by hand here for the tiny run's controls)
+    dragging control 0 moves control 1 along; unticking "Move companions" stops it."""
+    import socket
+    from types import SimpleNamespace
+
+    from flamenerf.data.companions import Companions
+    from flamenerf.training.run import load_run
+    from flamenerf.viewer.app import Viewer
+    from flamenerf.viewer.options import ViewerOptions
+
+    run = load_run(tiny_run, device="cpu")
+    names = run.expression_names
+    rng = np.random.default_rng(0)
+    train = rng.uniform(0, 0.2, (30, len(names)))
+    train[:, 0] = rng.uniform(0, 1, 30)
+    train[:, 1] = 0.5 * train[:, 0]
+    follows = np.zeros((len(names), len(names)), bool)
+    follows[0, 1] = True
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    v = Viewer(run, ViewerOptions(port=port, resolution=16, verbose=False))
+    v.companions = Companions(list(names), follows, train)
+    v.start()
+    try:
+        v.set_expression(v.neutral)
+        drag = v._slider_cb(0)
+        drag(SimpleNamespace(client=object(), target=SimpleNamespace(value=0.4)))
+        e = v.worker.expression()
+        assert e[0] == pytest.approx(0.4) and e[1] == pytest.approx(0.2, abs=0.01)
+        assert v.g_sliders[1].value == pytest.approx(e[1], abs=1e-3)
+        v.g_companions.value = False
+        drag(SimpleNamespace(client=object(), target=SimpleNamespace(value=0.8)))
+        e2 = v.worker.expression()
+        assert e2[0] == pytest.approx(0.8) and e2[1] == pytest.approx(e[1])
+    finally:
+        v.stop()

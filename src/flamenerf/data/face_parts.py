@@ -53,6 +53,15 @@ def _part_of(name: str) -> str | None:
     return None
 
 
+def part_and_side(name: str) -> tuple[str | None, str]:
+    """An ARKit control's part of the face (None: unknown name, "none": no place) and side
+    ("Left", "Right", or "" for controls that act on both sides)."""
+    part = _part_of(name)
+    if part is None or name in _UNSIDED:
+        return part, ""
+    return part, next((s for s in ("Left", "Right") if name.endswith(s)), "")
+
+
 def _band(h: np.ndarray, lo: float, hi: float) -> np.ndarray:
     """1 on [lo, hi], fading linearly to 0 over _EDGE outside it."""
     below = np.clip((h - (lo - _EDGE)) / _EDGE, 0, 1) if np.isfinite(lo) else 1.0
@@ -101,9 +110,6 @@ def control_weights(kind: str, names: list[str], vertices: np.ndarray) -> np.nda
             "Right": np.clip((_MIDLINE - s) / (2 * _MIDLINE), 0, 1)}
     cols = []
     for name, part in zip(names, parts):
-        w = weight[part]
-        for suffix, ws in side.items():
-            if part is not None and name.endswith(suffix) and name not in _UNSIDED:
-                w = w * ws
-        cols.append(w)
+        sided = part_and_side(name)[1]
+        cols.append(weight[part] * side[sided] if sided else weight[part])
     return np.stack(cols, 1).astype(np.float32)

@@ -332,8 +332,10 @@ def control_section(run, ds: Dataset, intr, omega0, phi0, opts: EvalOptions,
             renders.append(render(beta))
             return renders[-1]
 
+        from flamenerf.data.companions import dataset_companions
+
         res = C.control_response(keep, names, ds.expression_matrix([fr])[0], train_e, track,
-                                 opts.control_steps)
+                                 opts.control_steps, companions=dataset_companions(ds))
         res["source"] = f"sweep over the training range at frame {pos}'s camera"
         if images is not None and res["controls"]:
             images["control.png"], res["figure_rows"] = _control_figure(res, renders)
@@ -345,15 +347,18 @@ def control_section(run, ds: Dataset, intr, omega0, phi0, opts: EvalOptions,
 def _control_figure(res: dict[str, Any], renders: list[np.ndarray], rows: int = 6
                     ) -> tuple[np.ndarray, list[str]]:
     """The sweep's renders, one row per control (the `rows` with the largest gain), from the
-    low end of its range to the high end. -> image, the rows' control names."""
+    low end of its range to the high end; with its companions where it has some (what a
+    keyframe renders). -> image, the rows' control names."""
     from flamenerf.images import hstack, vstack
 
-    per, at = {}, 0
+    per, at, gain = {}, 0, {}
     for name, c in res["controls"].items():
-        per[name] = renders[at:at + len(c["commanded"])]
-        at += len(c["commanded"])
-    gain = {n: c["gain"] if np.isfinite(c["gain"]) else -np.inf
-            for n, c in res["controls"].items()}
+        n = len(c["commanded"])
+        both = "gain_with_companions" in c
+        per[name] = renders[at + n * both:at + n * (1 + both)]
+        at += n * (1 + both)
+        g = c["gain_with_companions"] if both else c["gain"]
+        gain[name] = g if np.isfinite(g) else -np.inf
     names = sorted(per, key=lambda n: -gain[n])[:rows]
     return vstack([hstack(per[n], gap=2) for n in names], gap=2), names
 

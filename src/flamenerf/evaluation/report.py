@@ -166,18 +166,26 @@ def eval_markdown(res: dict[str, Any]) -> str:
     ct = res.get("control")
     if ct and ct.get("controls"):
         gt = any("gt_gain" in c for c in ct["controls"].values())
+        comp = "mean_gain_with_companions" in ct
         L += ["", f"**Control response** ({ct.get('source')}): renders re-tracked with "
               "MediaPipe's landmarker; gain = slope of re-tracked on commanded"
-              + (", gt = the same for the ground-truth images" if gt else ""), "",
-              "| control | gain | correlation |" + (" gt gain | gt correlation |" if gt else ""),
-              "|---|--:|--:|" + ("--:|--:|" if gt else "")]
+              + (", gt = the same for the ground-truth images" if gt else "")
+              + ("; *with companions*: swept with the controls the tracker reads with it "
+                 "(same part of the face and side), as `render --expressions` keyframes do"
+                 if comp else ""), "",
+              "| control | gain | correlation |" + (" gt gain | gt correlation |" if gt else "")
+              + (" gain with companions | correlation with companions |" if comp else ""),
+              "|---|--:|--:|" + ("--:|--:|" if gt else "") + ("--:|--:|" if comp else "")]
         for n, c in ct["controls"].items():
             L.append(f"| {n} | {fmt(c['gain'])} | {fmt(c['correlation'])} |"
                      + (f" {fmt(c.get('gt_gain'))} | {fmt(c.get('gt_correlation'))} |"
-                        if gt else ""))
+                        if gt else "")
+                     + (f" {fmt(c.get('gain_with_companions'))} | "
+                        f"{fmt(c.get('correlation_with_companions'))} |" if comp else ""))
         L.append(f"| **mean** | **{fmt(ct.get('mean_gain'))}** | "
                  f"{fmt(ct.get('mean_correlation'))} |"
-                 + (f" {fmt(ct.get('mean_gt_gain'))} | |" if gt else ""))
+                 + (f" {fmt(ct.get('mean_gt_gain'))} | |" if gt else "")
+                 + (f" **{fmt(ct.get('mean_gain_with_companions'))}** | |" if comp else ""))
         if ct.get("figure_rows"):
             L.append(f"\n`images/control.png`: the sweep's renders, one row per control "
                      f"(low to high): {', '.join(ct['figure_rows'])}.")

@@ -14,7 +14,9 @@ Accepted `--expressions` values:
   FILE.csv    one vector per row; an optional header row of control names.
   KEYFRAMES   one or more items `name=value[,name=value...]`: the video eases from the base
               expression (frame 0's by default) to each keyframe in turn and back; controls
-              a keyframe does not name keep the base's value.
+              a keyframe does not name keep the base's value, except, by default, their
+              companions: the controls of the same part of the face and side that the
+              tracker reads with them (data/companions.py).
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ from typing import Callable
 
 import numpy as np
 
+from flamenerf.data.companions import Companions
 from flamenerf.errors import UserError
 from flamenerf.keyvalues import parse_assignments, suggest
 
@@ -71,13 +74,18 @@ def map_by_name(values: np.ndarray, src_names: list[str], names: list[str], wher
     return out, unknown
 
 
-def parse_keyframe(item: str, names: list[str], base: np.ndarray) -> np.ndarray:
-    """`name=value[,name=value...]` -> the base expression with those controls set."""
-    vec = np.array(base, np.float32, copy=True)
+def parse_keyframe(item: str, names: list[str], base: np.ndarray,
+                   companions: Companions | None = None) -> np.ndarray:
+    """`name=value[,name=value...]` -> the base expression with those controls set, and
+    with their companions (data/companions.py) moved along when given."""
     index = {n: i for i, n in enumerate(names)}
-    for name, v in parse_assignments(item, names, "--expressions", "control",
-                                     " (or a .json/.npy/.csv file)").items():
-        vec[index[name]] = v
+    values = {index[name]: v for name, v in parse_assignments(
+        item, names, "--expressions", "control", " (or a .json/.npy/.csv file)").items()}
+    if companions is not None:
+        return companions.complete(np.asarray(base, np.float32), values)
+    vec = np.array(base, np.float32, copy=True)
+    for k, v in values.items():
+        vec[k] = v
     return vec
 
 
@@ -97,16 +105,25 @@ def is_file_arg(items: list[str]) -> bool:
                                 or Path(items[0]).is_file())
 
 
-def from_items(items: list[str], names: list[str], base: np.ndarray, num: int
-               ) -> ExpressionSequence:
-    """`--expressions` values: one file, or keyframes."""
+def from_items(items: list[str], names: list[str], base: np.ndarray, num: int,
+               companions: Companions | None = None) -> ExpressionSequence:
+    """`--expressions` values: one file, or keyframes (with `companions`: the controls the
+    tracker reads with the named ones move too; files are taken as they are)."""
     if not items:
         raise UserError("--expressions: give a file or name=value keyframes")
     if is_file_arg(items):
         return load_file(Path(items[0]), names)
-    keys = np.stack([parse_keyframe(it, names, base) for it in items])
+    keys = np.stack([parse_keyframe(it, names, base, companions) for it in items])
+    notes = ()
+    if companions is not None:
+        moved = sorted({names[j] for key in keys for j in np.nonzero(key != base)[0]}
+                       - {n for it in items for n in parse_assignments(
+                           it, names, "--expressions", "control")})
+        if moved:
+            notes = (f"keyframes also move {', '.join(moved)}: the controls the tracker reads "
+                     "with the named ones (--no-companions to leave them)",)
     return ExpressionSequence(keyframe_sequence(keys, base, num), label="keyframes",
-                              resizable=True)
+                              resizable=True, notes=notes)
 
 
 def _vectors(arr, where: str, names: list[str]) -> np.ndarray:

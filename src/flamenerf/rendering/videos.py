@@ -59,6 +59,10 @@ class RenderOptions:
             the clip).
         relative: With --drive on a dataset of the same expression model, transfer
             expressions relative to each subject's neutral face.
+        companions: Keyframes also move the controls the tracker reads with the named ones
+            (same part of the face and side, by a regression on the training frames:
+            e.g. eyeBlinkLeft brings eyeLookDownLeft, without which the eye barely
+            closes). ARKit-named datasets from `preprocess`; others have none.
         landmarker: face_landmarker.task for --drive (default: as for preprocess).
         chunk: Rays per forward pass (0: the renderer's choice, 2048 on a CPU and 65536
             on a GPU; lower it if memory runs out).
@@ -88,6 +92,7 @@ class RenderOptions:
     dilate_px: int | None = None
     max_frames: int | None = None
     relative: bool = True
+    companions: bool = True
     landmarker: Path | None = None
     chunk: int = 0
     exact: bool = False
@@ -139,8 +144,9 @@ def render_intrinsics(run, ds: Dataset, size: int | None) -> Intrinsics:
 
 
 def expression_source(opts: RenderOptions, ds: Dataset, names: list[str], intr: Intrinsics,
-                      base: np.ndarray, log=print) -> X.ExpressionSequence:
-    """The sequence --split, --drive or --expressions name; else `base` held."""
+                      base: np.ndarray, log=print, companions=None) -> X.ExpressionSequence:
+    """The sequence --split, --drive or --expressions name (keyframes with `companions`);
+    else `base` held."""
     if opts.split:
         return X.from_split(ds, opts.split, (intr.h, intr.w))
     if opts.drive:
@@ -152,8 +158,17 @@ def expression_source(opts: RenderOptions, ds: Dataset, names: list[str], intr: 
                 f"plays at their rate ({seq.fps:.3g} fps) unless --fps is given")
         return seq
     if opts.expressions:
-        return X.from_items(opts.expressions, names, base, opts.frames)
+        return X.from_items(opts.expressions, names, base, opts.frames, companions)
     return held_expression(base, opts.frames, "reference")
+
+
+def keyframe_companions(opts: RenderOptions, ds: Dataset, names: list[str]):
+    """The dataset's companions for --expressions keyframes, unless --no-companions."""
+    from flamenerf.data.companions import dataset_companions
+
+    if not opts.companions or ds.expression_names != names:
+        return None
+    return dataset_companions(ds)
 
 
 def held_expression(base: np.ndarray, num: int, label: str) -> X.ExpressionSequence:
@@ -161,7 +176,7 @@ def held_expression(base: np.ndarray, num: int, label: str) -> X.ExpressionSeque
 
 
 def camera_poses(opts: RenderOptions, seq: X.ExpressionSequence, rig: C.CameraRig,
-                 names: list[str], base: np.ndarray, log=print
+                 names: list[str], base: np.ndarray, log=print, companions=None
                  ) -> tuple[np.ndarray, str, X.ExpressionSequence]:
     """--camera -> poses (T, 4, 4), the path's label, and the expression sequence (re-made
     when a pose file fixes the length of a keyframe/held sequence)."""
@@ -176,7 +191,8 @@ def camera_poses(opts: RenderOptions, seq: X.ExpressionSequence, rig: C.CameraRi
         return C.camera_path(camera, len(seq), rig, opts.amplitude), camera, seq
     poses = C.load_poses(Path(camera))
     if seq.resizable and len(poses) != len(seq):
-        seq = (X.from_items(opts.expressions, names, base, len(poses)) if opts.expressions
+        seq = (X.from_items(opts.expressions, names, base, len(poses), companions)
+               if opts.expressions
                else held_expression(base, len(poses), seq.label))
     elif len(poses) != len(seq):
         log(f"note: {camera} has {len(poses)} poses for {len(seq)} frames; resampled")
@@ -303,10 +319,12 @@ def render_videos(opts: RenderOptions, log=print) -> RenderSummary:
     base = (ds.frames[ref].expression.astype(np.float32) if opts.expression_base == "reference"
             else np.zeros(len(names), np.float32))
 
-    seq = expression_source(opts, ds, names, intr, base, log)
+    comp = keyframe_companions(opts, ds, names)
+    seq = expression_source(opts, ds, names, intr, base, log, comp)
     for note in seq.notes:
         log(f"note: {note}")
-    poses, cam_label, seq = camera_poses(opts, seq, C.rig_from_dataset(ds), names, base, log)
+    poses, cam_label, seq = camera_poses(opts, seq, C.rig_from_dataset(ds), names, base, log,
+                                         comp)
     n = len(seq) if opts.max_frames is None else min(len(seq), opts.max_frames)
     values, poses = seq.values[:n], poses[:n]
     T = head_transforms(opts, run, ds, n, log, seq)

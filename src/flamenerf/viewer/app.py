@@ -63,6 +63,10 @@ class Viewer:
         fi = self.ds.frames[self.home.frame_position]
         self.frame0_expression = np.clip(fi.expression, self.lo, self.hi).astype(np.float32)
         self.neutral = np.clip(np.zeros(len(self.names), np.float32), self.lo, self.hi)
+        from flamenerf.data.companions import dataset_companions
+
+        self.companions = (dataset_companions(self.ds) if self.ds.expression_names == self.names
+                           else None)
         self.tracks: list[Track] = [load_track_file(p, self.names) for p in opts.track]
         self.tracks += dataset_tracks(self.ds)
         h = opts.resolution or run.train_intrinsics(self.ds).h
@@ -158,6 +162,13 @@ class Viewer:
                 "Reset to neutral", hint="Every control to 0 (no expression).")
             self.g_frame0 = gui.add_button(
                 "Frame 0 expression", hint="The expression of the capture's first frame.")
+            self.g_companions = None
+            if self.companions is not None:
+                self.g_companions = gui.add_checkbox(
+                    "Move companions", True,
+                    hint="A slider also moves the controls the tracker reads with it (same "
+                         "part of the face and side; e.g. eyeBlinkLeft brings "
+                         "eyeLookDownLeft): without them a blink alone barely closes the eye.")
             self.g_sliders = []
             step = 0.01 if self.hi - self.lo <= 2 else 0.05
             for j, name in enumerate(self.names):
@@ -219,7 +230,13 @@ class Viewer:
             if event.client is None:  # our own update (reset, playback)
                 return
             self.pause()
-            self.worker.set_expression_value(j, float(event.target.value))
+            value = float(event.target.value)
+            if self.g_companions is not None and self.g_companions.value \
+                    and self.companions.of(self.names[j]):
+                self.set_expression(self.companions.complete(self.worker.expression(),
+                                                             {j: value}))
+            else:
+                self.worker.set_expression_value(j, value)
         return cb
 
     def set_expression(self, values: np.ndarray, pause: bool = True) -> None:
