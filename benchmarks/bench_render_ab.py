@@ -1,0 +1,102 @@
+"""Render speed of two source trees side by side, for machines whose speed drifts.
+
+On a shared machine the same frame's time drifts by up to ~35 % between runs minutes apart,
+so a before/after figure from two separate `bench_render.py` runs says little. This script
+times one frame of a trained run with each source tree (`--src`, e.g. a `git worktree` of the
+old commit and this checkout) in fresh processes, alternating them for `--rounds` rounds, and
+reports each tree's best and median time per size.
+
+    git worktree add /tmp/old HEAD~1
+    python benchmarks/bench_render_ab.py --run RUN --dataset SCENE --src /tmp/old/src src \
+        --json docs/bench/render_ab.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from flamenerf.runtime import TUNED_ALLOCATOR
+
+# one process: load the run, render frame 0's view at each size (warm-up, then `repeats`)
+_CHILD = r"""
+import json, sys, time
+import numpy as np, torch
+torch.set_num_threads(int(sys.argv[3]))
+from flamenerf.training.run import load_run
+from flamenerf.model.render_image import render_image
+from flamenerf.model.inference import FAST
+from flamenerf.data.prior import dataset_dilation, mesh_function, prior_mask
+run = load_run(sys.argv[1], "cpu")
+ds = run.dataset(sys.argv[2] or None)
+fr = [f for f in ds.frames if f.frame_index == 0][0]
+omega, phi = run.frame_codes(0)
+beta = np.asarray(fr.expression, np.float32)
+out = {}
+for size in json.loads(sys.argv[4]):
+    intr = ds.intrinsics.scaled(size / ds.intrinsics.w)
+    mask = prior_mask(ds, mesh_function(run.model, ds)(beta), fr.c2w, intr, dataset_dilation(ds))
+    args = (run.model, intr, fr.c2w, omega, phi, torch.as_tensor(beta), mask)
+    render_image(*args, settings=FAST)
+    ts = []
+    for _ in range(int(sys.argv[5])):
+        t = time.perf_counter()
+        render_image(*args, settings=FAST)
+        ts.append(time.perf_counter() - t)
+    out[str(size)] = ts
+print(json.dumps(out))
+"""
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--run", type=Path, required=True)
+    ap.add_argument("--dataset", type=Path, default=None)
+    ap.add_argument("--src", nargs=2, required=True, metavar=("A", "B"),
+                    help="two source trees (folders holding the flamenerf package)")
+    ap.add_argument("--sizes", type=int, nargs="+", default=[128, 256])
+    ap.add_argument("--rounds", type=int, default=3)
+    ap.add_argument("--repeats", type=int, default=4)
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--json", type=Path, default=None)
+    a = ap.parse_args()
+    times: dict[str, dict[str, list[float]]] = {s: {} for s in a.src}
+    for r in range(a.rounds):
+        for src in a.src:
+            # glibc tuned as `flamenerf` tunes it (runtime.py), the tree under test first
+            env = dict(os.environ, **TUNED_ALLOCATOR, PYTHONPATH=str(Path(src).resolve()))
+            proc = subprocess.run(
+                [sys.executable, "-c", _CHILD, str(a.run), str(a.dataset or ""),
+                 str(a.threads), json.dumps(a.sizes), str(a.repeats)],
+                env=env, capture_output=True, text=True, check=True)
+            got = json.loads(proc.stdout.strip().splitlines()[-1])
+            for size, ts in got.items():
+                times[src].setdefault(size, []).extend(ts)
+            print(f"round {r + 1} {src}: " + ", ".join(
+                f"{s} px {min(ts):.3f} s" for s, ts in got.items()), flush=True)
+    res = {"benchmark": "render_ab", "command": "python benchmarks/bench_render_ab.py "
+           + " ".join(sys.argv[1:]), "machine": f"{platform.processor() or platform.machine()}, "
+           f"{os.cpu_count()} cores, {a.threads} threads", "results": {}}
+    for src, per in times.items():
+        res["results"][src] = {s: {"best_s": round(min(ts), 3), "median_s":
+                                   round(float(np.median(ts)), 3), "n": len(ts)}
+                               for s, ts in per.items()}
+        for s, v in res["results"][src].items():
+            print(f"{src}: {s} px best {v['best_s']:.3f} s, median {v['median_s']:.3f} s "
+                  f"({v['n']} frames)")
+    if a.json is not None:
+        a.json.parent.mkdir(parents=True, exist_ok=True)
+        a.json.write_text(json.dumps(res, indent=1) + "\n")
+        print(f"wrote {a.json}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
