@@ -26,7 +26,7 @@ def fused_cpu_inference(bf16: bool = False) -> Iterator[None]:
     each layer as one oneDNN matmul with its bias and ReLU fused in: 2x faster than
     matmul, bias add and ReLU as separate passes (a `fast` density head, 65k samples, one
     thread: 5.5 ms vs 11.1 ms). Rounding differs from the plain path in the last bits, so
-    the training forward (and eval, which renders with it) never uses it.
+    the training forward (and eval's PSNR figures, rendered with it) never uses it.
 
     `bf16`: on a CPU with native bfloat16 arithmetic (AVX-512 BF16 or AMX), the layers run
     in bfloat16 between a float32 input and a float32 output (2.3x faster per 64-wide layer

@@ -66,7 +66,7 @@ class RenderOptions:
         landmarker: face_landmarker.task for --drive (default: as for preprocess).
         chunk: Rays per forward pass (0: the renderer's choice, 2048 on a CPU and 65536
             on a GPU; lower it if memory runs out).
-        exact: Render with the training forward pass (what `flamenerf eval` measures)
+        exact: Render with the training forward pass (what `flamenerf eval`'s PSNR uses)
             instead of the inference path, which is several times faster on a CPU and
             within 0.05 dB of it on the built-in scene (docs/bench/render.md).
         device: `auto` (CUDA when present), `cpu` or `cuda`.
