@@ -75,6 +75,51 @@ def test_control_response_with_companions_sweeps_what_a_keyframe_renders():
     assert res["mean_gain_with_companions"] > res["mean_gain"]
 
 
+def _face(mouth: float, eye_l: float, eye_r: float, scale: float = 1.0) -> np.ndarray:
+    """478 landmarks with the eye centres 2·scale apart and the given gaps (in units of
+    that distance)."""
+    p = np.zeros((478, 3))
+    p[[263, 362], 0], p[[33, 133], 0] = scale, -scale  # eye centres at x = ±scale
+    d = 2 * scale
+    p[13, 1], p[14, 1] = 0, mouth * d
+    p[386, 1], p[374, 1] = 0, eye_l * d
+    p[159, 1], p[145, 1] = 0, eye_r * d
+    return p
+
+
+def test_openings_are_gaps_over_the_eye_distance_at_any_scale():
+    for scale in (1.0, 37.0):
+        o = C.openings(_face(0.3, 0.1, 0.05, scale))
+        assert o["mouth_open"] == pytest.approx(0.3)
+        assert o["eye_open_left"] == pytest.approx(0.1)
+        assert o["eye_open_right"] == pytest.approx(0.05)
+
+
+def test_geometry_response_compares_driver_and_render_openings():
+    """A render whose mouth follows the driver's at 0.5, whose eyes do not move, and one
+    frame where the render has no face."""
+    from types import SimpleNamespace
+
+    t = np.linspace(0, 2 * np.pi, 10)
+    mouth = 0.2 + 0.15 * np.sin(t)
+    drivers = [("d", i) for i in range(10)]
+    renders = [("r", i) for i in range(10)]
+
+    def detect(img):
+        who, i = img
+        if who == "r" and i == 4:
+            return None
+        m = mouth[i] if who == "d" else 0.05 + 0.5 * mouth[i]
+        eyes = 0.1 + 0.05 * np.cos(t[i]) if who == "d" else 0.1
+        return SimpleNamespace(landmarks=_face(m, eyes, eyes, 10.0))
+
+    res = C.geometry_response(drivers, renders, detect)
+    m = res["measures"]["mouth_open"]
+    assert m["correlation"] == pytest.approx(1.0) and m["gain"] == pytest.approx(0.5)
+    assert m["detected"] == 9 and np.isnan(m["retracked"][4])
+    assert abs(res["measures"]["eye_open_left"]["gain"]) < 1e-9
+
+
 def test_drive_response_correlates_driving_and_retracked_over_time():
     names = ["jawOpen", "eyeBlinkLeft", "browInnerUp"]
     t = np.linspace(0, 2 * np.pi, 12)

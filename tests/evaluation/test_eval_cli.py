@@ -68,6 +68,7 @@ def test_eval_drive_reports_the_driving_correlation(toy_run, astronaut_video, tm
     assert dv["frames"] == 4 and dv["video"] == str(astronaut_video)
     # a still photo drives nothing enough to measure, and the report says so
     assert dv["controls"] == {} and dv["skipped"]
+    assert dv["geometry"]["measures"] == {} and "mouth_open" in dv["geometry"]["skipped"]
     assert "images/drive.png" in res["images"]
     assert iio.imread(out / "images" / "drive.png").shape[0] > 16  # driving over render
     assert "**Drive**" in (out / "metrics.md").read_text()

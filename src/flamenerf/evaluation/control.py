@@ -116,17 +116,22 @@ class Retracker:
         self._lm = FaceLandmarker()
         self.names = blendshape_names()
 
-    def __call__(self, img: np.ndarray) -> dict[str, float] | None:
-        """img (H, W, 3) float in [0, 1] -> {control: score}, or None when no face is found."""
+    def detect(self, img: np.ndarray):
+        """img (H, W, 3) float in [0, 1] or uint8 -> the landmarker's Detection (landmarks in
+        the upscaled image's pixels), or None when no face is found."""
         from PIL import Image
 
-        u8 = (np.clip(img, 0, 1) * 255 + 0.5).astype(np.uint8)
+        u8 = img if img.dtype == np.uint8 else (np.clip(img, 0, 1) * 255 + 0.5).astype(np.uint8)
         h, w = u8.shape[:2]
         s = max(1.0, self.min_size / min(h, w))
         if s > 1:
             u8 = np.asarray(Image.fromarray(u8).resize((round(w * s), round(h * s)),
                                                       Image.BICUBIC))
-        det = self._lm.detect(u8)
+        return self._lm.detect(u8)
+
+    def __call__(self, img: np.ndarray) -> dict[str, float] | None:
+        """img (H, W, 3) float in [0, 1] -> {control: score}, or None when no face is found."""
+        det = self.detect(img)
         if det is None:
             return None
         return dict(zip(self.names, map(float, det.blendshapes)))
@@ -254,6 +259,56 @@ def drive_response(render: RenderFn, names: list[str], values: np.ndarray, track
     out["mean_gain"] = float(np.mean(gains)) if gains else float("nan")
     out["mean_correlation"] = float(np.mean(corrs)) if corrs else float("nan")
     return out, preds
+
+
+# MediaPipe face-mesh landmarks: inner lip centres; each eye's upper and lower lid centre
+# ("left" is the subject's left, MediaPipe's left eye); the eye corners, for the scale
+_LIPS = (13, 14)
+_LIDS = {"eye_open_left": (386, 374), "eye_open_right": (159, 145)}
+_EYE_CORNERS = ((263, 362), (33, 133))
+
+
+def openings(landmarks: np.ndarray) -> dict[str, float]:
+    """How open the mouth and each eye are: the inner-lip gap and the lid gaps over the
+    distance between the eye centres. landmarks (478 or 468, 2+) -> {mouth_open,
+    eye_open_left, eye_open_right}. Unlike blendshape scores this does not depend on how
+    the tracker splits an expression into controls (an open mouth read as jawOpen on one
+    face and mouthLowerDown on another), so it compares a driver with another face."""
+    p = np.asarray(landmarks, np.float64)[:, :2]
+    eyes = [p[list(c)].mean(0) for c in _EYE_CORNERS]
+    scale = max(float(np.linalg.norm(eyes[0] - eyes[1])), 1e-9)
+    out = {"mouth_open": float(np.linalg.norm(p[_LIPS[0]] - p[_LIPS[1]])) / scale}
+    for name, (a, b) in _LIDS.items():
+        out[name] = float(np.linalg.norm(p[a] - p[b])) / scale
+    return out
+
+
+def geometry_response(driving: list[np.ndarray], renders: list[np.ndarray],
+                      detect: Callable, min_range: float = 0.02) -> dict[str, Any]:
+    """The mouth's and eyes' openings (`openings`) of each driving frame and of its render:
+    per measure the driving and re-tracked series, their correlation over time and the gain
+    (slope of the render's on the driver's); measures the driver moves by less than
+    `min_range` are skipped. detect: image -> Detection or None."""
+    def measure(images):
+        out = []
+        for im in images:
+            det = detect(im)
+            out.append(None if det is None else openings(det.landmarks))
+        return out
+
+    drv, got = measure(driving), measure(renders)
+    res: dict[str, Any] = {"measures": {}, "skipped": {}}
+    for key in ("mouth_open", *_LIDS):
+        x = np.array([math.nan if d is None else d[key] for d in drv])
+        y = np.array([math.nan if g is None else g[key] for g in got])
+        ok = np.isfinite(x) & np.isfinite(y)
+        if ok.sum() < 3 or np.ptp(x[ok]) < min_range:
+            res["skipped"][key] = f"the driving frames move it by less than {min_range}"
+            continue
+        gain, corr = fit_line(x[ok], y[ok])
+        res["measures"][key] = {"driving": x.tolist(), "retracked": y.tolist(), "gain": gain,
+                                "correlation": corr, "detected": int(ok.sum())}
+    return res
 
 
 def model_renderer(model: FlameNeRF, ds: Dataset, intr: Intrinsics, c2w: np.ndarray,

@@ -382,6 +382,8 @@ def drive_section(run, ds: Dataset, intr, omega0, phi0, opts: EvalOptions
     track = C.Retracker()
     try:
         res, preds = C.drive_response(render, names, seq.values, track)
+        res["geometry"] = C.geometry_response([seq.driving(i) for i in range(len(preds))],
+                                              preds, track.detect)
     finally:
         track.close()
     res["video"] = str(opts.drive)

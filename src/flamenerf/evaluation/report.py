@@ -205,6 +205,13 @@ def eval_markdown(res: dict[str, Any]) -> str:
         if not dv["controls"]:
             L.append("\nThe driving video moves no control the landmarker reports enough to "
                      "measure.")
+        geo = (dv.get("geometry") or {}).get("measures")
+        if geo:
+            L += ["", "Openings from the landmarks (lip and lid gaps over the eye distance; "
+                  "comparable across faces, whatever the tracker's split into controls):", "",
+                  "| measure | correlation | gain |", "|---|--:|--:|"]
+            L += [f"| {n} | {fmt(m['correlation'])} | {fmt(m['gain'])} |"
+                  for n, m in geo.items()]
     lk = res.get("leakage")
     if lk:
         L += ["", f"**Background leakage** ({lk['num_frames']} frames, fixed camera, expression "
