@@ -214,15 +214,18 @@ def control_response(render: RenderFn, names: list[str], base: np.ndarray,
                        gain_with_companions=gain_c, correlation_with_companions=corr_c)
         out["controls"][name] = row
     rows = out["controls"].values()
-    gains = [c["gain"] for c in rows if math.isfinite(c["gain"])]
-    corrs = [c["correlation"] for c in rows if math.isfinite(c["correlation"])]
-    out["mean_gain"] = float(np.mean(gains)) if gains else float("nan")
-    out["mean_correlation"] = float(np.mean(corrs)) if corrs else float("nan")
+    out["mean_gain"] = finite_mean(c["gain"] for c in rows)
+    out["mean_correlation"] = finite_mean(c["correlation"] for c in rows)
     if companions is not None:
-        best = [c.get("gain_with_companions", c["gain"]) for c in rows]
-        best = [g for g in best if math.isfinite(g)]
-        out["mean_gain_with_companions"] = float(np.mean(best)) if best else float("nan")
+        out["mean_gain_with_companions"] = finite_mean(
+            c.get("gain_with_companions", c["gain"]) for c in rows)
     return out
+
+
+def finite_mean(values) -> float:
+    """The mean of the finite values (a control the landmarker never saw has NaN), or NaN."""
+    vals = [v for v in values if math.isfinite(v)]
+    return float(np.mean(vals)) if vals else float("nan")
 
 
 def drive_response(render: RenderFn, names: list[str], values: np.ndarray, track: Callable,
@@ -253,11 +256,8 @@ def drive_response(render: RenderFn, names: list[str], values: np.ndarray, track
         gain, corr = fit_line(x[ok], got[ok]) if ok.sum() >= 3 else (math.nan, math.nan)
         out["controls"][name] = {"commanded": x.tolist(), "retracked": got.tolist(),
                                  "gain": gain, "correlation": corr, "detected": int(ok.sum())}
-    gains = [c["gain"] for c in out["controls"].values() if math.isfinite(c["gain"])]
-    corrs = [c["correlation"] for c in out["controls"].values()
-             if math.isfinite(c["correlation"])]
-    out["mean_gain"] = float(np.mean(gains)) if gains else float("nan")
-    out["mean_correlation"] = float(np.mean(corrs)) if corrs else float("nan")
+    out["mean_gain"] = finite_mean(c["gain"] for c in out["controls"].values())
+    out["mean_correlation"] = finite_mean(c["correlation"] for c in out["controls"].values())
     return out, preds
 
 
@@ -313,24 +313,19 @@ def geometry_response(driving: list[np.ndarray], renders: list[np.ndarray],
 
 def model_renderer(model: FlameNeRF, ds: Dataset, intr: Intrinsics, c2w: np.ndarray,
                    omega: torch.Tensor, phi: torch.Tensor, mesh_of: Callable,
-                   dilate_px: int, chunk: int = 16384) -> RenderFn:
+                   dilate_px: int) -> RenderFn:
     """β -> the model's render at camera c2w, with the prior's mask from β's mesh, by the
     inference path that `flamenerf render` and the viewer use (what a user sees; within
-    0.01 dB of the training forward, 2-3x faster on a CPU; `chunk` is for a GPU)."""
+    0.01 dB of the training forward and 2-3x faster on a CPU), in its own chunks."""
     from flamenerf.model.inference import FAST
 
     def render(beta: np.ndarray) -> np.ndarray:
         mask = prior_mask(ds, mesh_of(beta), c2w, intr, dilate_px)
         b = torch.as_tensor(np.asarray(beta, np.float32))
-        return render_image(model, intr, c2w, omega, phi, b, mask,
-                            chunk=chunk if model_device(model).type != "cpu" else None,
-                            settings=FAST)["rgb"].numpy()
+        return render_image(model, intr, c2w, omega, phi, b, mask, settings=FAST
+                            )["rgb"].numpy()
 
     return render
-
-
-def model_device(model: torch.nn.Module) -> torch.device:
-    return next(model.parameters()).device
 
 
 def sweep_response(fs: FrameSet, preds: list[np.ndarray], track: Callable) -> dict[str, Any]:

@@ -324,8 +324,7 @@ def control_section(run, ds: Dataset, intr, omega0, phi0, opts: EvalOptions,
         pos = reference_position(ds)
         fr = ds.frames[pos]
         render = C.model_renderer(run.model, ds, intr, fr.c2w, omega0, phi0,
-                                  mesh_function(run.model, ds), dataset_dilation(ds),
-                                  opts.chunk)
+                                  mesh_function(run.model, ds), dataset_dilation(ds))
         renders: list[np.ndarray] = []
 
         def keep(beta):
@@ -378,7 +377,7 @@ def drive_section(run, ds: Dataset, intr, omega0, phi0, opts: EvalOptions
                      panel_height=intr.h)
     fr = ds.frames[reference_position(ds)]
     render = C.model_renderer(run.model, ds, intr, fr.c2w, omega0, phi0,
-                              mesh_function(run.model, ds), dataset_dilation(ds), opts.chunk)
+                              mesh_function(run.model, ds), dataset_dilation(ds))
     track = C.Retracker()
     try:
         res, preds = C.drive_response(render, names, seq.values, track)

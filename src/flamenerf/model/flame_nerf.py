@@ -161,6 +161,8 @@ class FlameNeRF(nn.Module):
         if len(rows) == 0:
             return out
         neutral = self.normalize(self.mesh_neutral)
+        # settled per dataset when a run is built (trainer.settle_dataset_defaults); a model
+        # made without a dataset (tests, untrained benchmarks) has no face parts
         r = (self.cfg.expression_regions.resolved_radius(False)
              * float((neutral.amax(0) - neutral.amin(0)).norm()))
         # one mesh per distinct β (a batch holds a few frames' β; an image or a viewer
