@@ -104,6 +104,8 @@ def figures(res: dict) -> dict[str, float]:
             "heldout_face": h["psnr_face"], "driven_psnr": d["psnr"],
             "driven_background": d["psnr_background"], "driven_face": d["psnr_face"],
             "driven_minus_refit_background": d["psnr_background"] - h["psnr_background"],
+            "heldout_scene": h.get("psnr_scene", nan), "driven_scene": d.get("psnr_scene", nan),
+            "driven_minus_refit_scene": d.get("psnr_scene", nan) - h.get("psnr_scene", nan),
             "reanimate_face": r.get("psnr_face", nan),
             "novel_pose_psnr": n.get("psnr", nan), "novel_pose_face": n.get("psnr_face", nan),
             "novel_pose_background": n.get("psnr_background", nan)}

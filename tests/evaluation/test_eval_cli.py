@@ -34,8 +34,10 @@ def test_eval_writes_the_documented_schema(evaluated):
     assert res["resolution"] == [16, 16]
     assert res["protocol"]["fit_steps"] == 3 and res["protocol"]["split"] == "val"
     h = res["heldout"]
-    for k in ("mse", "psnr", "ssim", "psnr_face", "psnr_background", "fit_seconds"):
+    for k in ("mse", "psnr", "ssim", "psnr_face", "psnr_background", "psnr_scene",
+              "fit_seconds"):
         assert isinstance(h[k], float), k
+    assert isinstance(res["driven"]["psnr_scene"], float)
     assert h["num_frames"] == len(h["frames"]) == 2
     assert h["psnr"] == pytest.approx(np.mean([f["psnr"] for f in h["frames"]]))
     assert {f["frame_index"] for f in h["frames"]} == {4, 5}

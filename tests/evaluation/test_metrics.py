@@ -72,3 +72,26 @@ def test_summarize_skips_nan_frames():
     assert s["mse"] == pytest.approx(0.02)
     assert s["psnr"] == pytest.approx(25.0)
     assert s["psnr_face"] == pytest.approx(25.0)
+
+
+def test_scene_masks_leave_out_the_person(tiny_scene):
+    """The scene region excludes every face pixel and more around it (hair, neck), and keeps
+    the image's top corners (the room)."""
+    from flamenerf.data.dataset import load_dataset
+    from flamenerf.data.scene import FrameSet
+    from flamenerf.evaluation.protocol import image_metrics, scene_masks
+
+    ds = load_dataset(tiny_scene)
+    fs = FrameSet(ds, ds.split("train")[:4], ds.intrinsics)
+    scene = scene_masks(fs)
+    face = fs.masks.numpy()
+    assert scene.shape == face.shape
+    assert not (scene & face).any()
+    assert (~scene & ~face).sum() > 0.5 * face.sum()  # the person is larger than the face
+    assert scene[:, 0, 0].all() and scene[:, 0, -1].all()
+    gt = fs.images[0].numpy()
+    pred = gt.copy()
+    pred[~scene[0]] = 1 - pred[~scene[0]]  # errors only on the person: the scene is exact
+    m = image_metrics(pred, gt, face[0], scene[0])
+    assert m["psnr_scene"] == float("inf") or m["psnr_scene"] > 90
+    assert m["psnr_background"] < 40

@@ -57,24 +57,30 @@ def region_masks(ds: Dataset, fs: FrameSet, faces: np.ndarray) -> np.ndarray:
 
 
 def region_metrics(pred: np.ndarray, gt: np.ndarray, face: np.ndarray,
-                   region: np.ndarray) -> dict[str, float]:
-    """pred, gt (H, W, 3); face, region (H, W) bool -> PSNR/SSIM on the whole image, PSNR on
-    the face, the background and the expressive region."""
-    return {"psnr": M.psnr(pred, gt), "ssim": M.ssim(pred, gt),
-            "psnr_face": M.psnr(pred, gt, face), "psnr_background": M.psnr(pred, gt, ~face),
-            "psnr_expressive": M.psnr(pred, gt, region)}
+                   region: np.ndarray, scene: np.ndarray) -> dict[str, float]:
+    """pred, gt (H, W, 3); face, region, scene (H, W) bool -> PSNR/SSIM on the whole image,
+    PSNR on the face, the background, the scene (protocol.scene_masks) and the expressive
+    region."""
+    from flamenerf.evaluation.protocol import image_metrics
+
+    out = image_metrics(pred, gt, face, scene)
+    del out["mse"]
+    out["psnr_expressive"] = M.psnr(pred, gt, region)
+    return out
 
 
-DRIVEN_KEYS = ("psnr", "ssim", "psnr_face", "psnr_background", "psnr_expressive")
+DRIVEN_KEYS = ("psnr", "ssim", "psnr_face", "psnr_background", "psnr_scene",
+               "psnr_expressive")
 
 
 def driven(model: FlameNeRF, ds: Dataset, fs: FrameSet, omega0: torch.Tensor,
            phi0: torch.Tensor, chunk: int = 16384) -> tuple[dict[str, Any], list[np.ndarray]]:
     """Frames of `fs` rendered with their own camera, β and prior mask and frame 0's codes
     (what a re-animation has), against their images. -> (summary with rows, renders)."""
-    from flamenerf.evaluation.protocol import summarize
+    from flamenerf.evaluation.protocol import scene_masks, summarize
 
     regions = region_masks(ds, fs, expressive_faces(ds))
+    scenes = scene_masks(fs)
     rows, preds = [], []
     for i in range(fs.n):
         out = render_image(model, fs.intr, fs.c2w[i], omega0, phi0, fs.expressions[i],
@@ -82,7 +88,8 @@ def driven(model: FlameNeRF, ds: Dataset, fs: FrameSet, omega0: torch.Tensor,
         pred = out["rgb"].numpy()
         preds.append(pred)
         row = {"position": fs.frames[i].position}
-        row.update(region_metrics(pred, fs.images[i].numpy(), fs.masks[i].numpy(), regions[i]))
+        row.update(region_metrics(pred, fs.images[i].numpy(), fs.masks[i].numpy(), regions[i],
+                                  scenes[i]))
         rows.append(row)
     res = summarize(rows, DRIVEN_KEYS)
     res["frames"] = rows

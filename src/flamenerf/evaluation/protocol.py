@@ -4,7 +4,9 @@ Everything is measured at the run's training resolution (ground truth area-resiz
 
 held-out (`val`)  the paper's protocol: freeze the model, fit only each frame's deformation
                   code ω (from ω_0, with φ_0; `fit_deformation_codes`), render, compare:
-                  MSE, PSNR, SSIM, and PSNR inside / outside the face mask. All frames are
+                  MSE, PSNR, SSIM, and PSNR inside / outside the face mask and on the
+                  *scene* (outside a generous region around the person: `scene_masks`,
+                  whether the static world registers apart from hair and body). All frames are
                   fitted together: each frame's ω gets `fit_steps` Adam updates from about
                   fit_batch_rays / N of its own rays each (stated in the results).
 driven (`val`)    the same frames with nothing fitted: frame 0's codes and each frame's own
@@ -75,19 +77,43 @@ class EvalOptions:
 # ------------------------------------------------------------------------- per image
 
 
-def image_metrics(pred: np.ndarray, gt: np.ndarray, face: np.ndarray) -> dict[str, float]:
-    """pred, gt (H, W, 3) in [0, 1]; face (H, W) bool."""
+def scene_masks(fs: FrameSet) -> np.ndarray:
+    """Where each frame of `fs` shows only the static scene: outside the generous region
+    around the person that the camera solve masks out (an ellipse around the projected face
+    mesh for the head and hair, a widening band below the chin for neck and shoulders;
+    tracking.background.person_mask). "Background" (outside the face mask) also holds hair,
+    neck and shoulders, which no rigid motion carries; the scene is what should register
+    across frames. -> (N, H, W) bool."""
+    from flamenerf.geometry import project_points
+    from flamenerf.tracking.background import person_mask
+
+    out = []
+    for i in range(fs.n):
+        px, _ = project_points(fs.face_vertices[i].numpy().astype(np.float64), fs.intr,
+                               fs.c2w[i].numpy().astype(np.float64))
+        out.append(~person_mask(px, fs.intr.w, fs.intr.h))
+    return np.stack(out)
+
+
+def image_metrics(pred: np.ndarray, gt: np.ndarray, face: np.ndarray,
+                  scene: np.ndarray | None = None) -> dict[str, float]:
+    """pred, gt (H, W, 3) in [0, 1]; face (H, W) bool; scene (H, W) bool (`scene_masks`;
+    None: no psnr_scene)."""
     m = M.mse(pred, gt)
-    return {"mse": m, "psnr": M.psnr(pred, gt), "ssim": M.ssim(pred, gt),
-            "psnr_face": M.psnr(pred, gt, face), "psnr_background": M.psnr(pred, gt, ~face)}
+    out = {"mse": m, "psnr": M.psnr(pred, gt), "ssim": M.ssim(pred, gt),
+           "psnr_face": M.psnr(pred, gt, face), "psnr_background": M.psnr(pred, gt, ~face)}
+    if scene is not None:
+        out["psnr_scene"] = M.psnr(pred, gt, scene)
+    return out
 
 
 def summarize(per_frame: list[dict[str, Any]], keys=("mse", "psnr", "ssim", "psnr_face",
-                                                     "psnr_background")) -> dict[str, Any]:
+                                                     "psnr_background", "psnr_scene")
+              ) -> dict[str, Any]:
     """Means over frames (frames where a value is NaN, e.g. no face pixels, are skipped)."""
     out: dict[str, Any] = {"num_frames": len(per_frame)}
     for k in keys:
-        v = np.array([f[k] for f in per_frame], np.float64)
+        v = np.array([f.get(k, np.nan) for f in per_frame], np.float64)
         v = v[np.isfinite(v)]
         out[k] = float(v.mean()) if v.size else float("nan")
     return out
@@ -107,10 +133,11 @@ def render_frames(model: FlameNeRF, fs: FrameSet, omega: torch.Tensor, phi: torc
 
 def _compare(fs: FrameSet, preds: list[np.ndarray]) -> list[dict[str, Any]]:
     rows = []
+    scenes = scene_masks(fs)
     for i, pred in enumerate(preds):
         fr = fs.frames[i]
         row = {"position": fr.position, "frame_index": fr.frame_index}
-        row.update(image_metrics(pred, fs.images[i].numpy(), fs.masks[i].numpy()))
+        row.update(image_metrics(pred, fs.images[i].numpy(), fs.masks[i].numpy(), scenes[i]))
         rows.append(row)
     return rows
 
