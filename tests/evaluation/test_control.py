@@ -142,6 +142,26 @@ def test_drive_response_correlates_driving_and_retracked_over_time():
     assert "browInnerUp" in res["skipped"]  # the driving sequence holds it still
 
 
+def test_drive_response_renders_the_clamped_sequence_against_the_driver():
+    """What is rendered may be clamped (the training range); commanded stays the driver's."""
+    names = ["jawOpen"]
+    values = np.linspace(0, 1, 6)[:, None]
+    rendered = np.clip(values, 0, 0.5)
+    seen = []
+
+    def render(beta):
+        seen.append(float(beta[0]))
+        return beta
+
+    res, _ = C.drive_response(render, names, values, lambda img: {"jawOpen": float(img[0])},
+                              rendered=rendered)
+    assert seen == pytest.approx(rendered[:, 0].tolist())
+    jaw = res["controls"]["jawOpen"]
+    assert jaw["commanded"] == pytest.approx(values[:, 0].tolist())
+    assert jaw["retracked"] == pytest.approx(rendered[:, 0].tolist())
+    assert jaw["gain"] < 0.6  # the clamp shows: the re-tracked value stops at 0.5
+
+
 @pytest.fixture(scope="module")
 def face_scene(tmp_path_factory):
     """The built-in scene at a size the landmarker can read, with its leakage sweep."""

@@ -63,3 +63,33 @@ def test_prior_mask_reproduces_the_dataset_masks(toy_dataset):
         np.testing.assert_array_equal(m, ds.load_mask(fr))
     small = prior_mask(ds, ds.face_vertices[0], ds.frames[0].c2w, ds.intrinsics.scaled(0.5), 1)
     assert small.shape == (8, 8) and small.any()
+
+
+def test_controls_beyond_the_training_range_are_clamped_unless_asked(toy_run, tmp_path):
+    """jawOpen=5 renders as the largest jawOpen the training frames show, with a note;
+    --extrapolate renders it as given."""
+    from flamenerf.data.expression_range import training_range
+    from flamenerf.rendering.videos import render_videos
+
+    from flamenerf.training.run import load_run
+
+    rng = training_range(load_run(toy_run, "cpu").dataset())
+    hi = rng.hi[rng.names.index("jawOpen")]
+    assert 0 < hi < 5
+
+    def frames(value, extrapolate=False):
+        notes = []
+        out = tmp_path / f"{value}_{extrapolate}.mp4"
+        render_videos(RenderOptions(toy_run, out=out, expressions=[f"jawOpen={value}"],
+                                    frames=3, extrapolate=extrapolate, device="cpu"),
+                      log=notes.append)
+        return np.stack(read_frames(out)).astype(int), notes
+
+    clamped, notes = frames(5)
+    assert any("clamped" in n and "jawOpen up to 5.00" in n for n in notes)
+    at_hi, notes_hi = frames(f"{hi:.6f}")
+    assert not any("clamped" in n for n in notes_hi)
+    assert np.abs(clamped - at_hi).max() <= 1  # the same expression (video rounding)
+    given, notes_x = frames(5, extrapolate=True)
+    assert not any("clamped" in n for n in notes_x)
+    assert np.abs(given - at_hi).max() > 1

@@ -161,9 +161,10 @@ def test_viewer_controls_without_a_browser(tiny_run, tmp_path):
         v.g_track.value = v.tracks[1].name  # the capture
         assert v.g_frame.max == v.tracks[1].num_frames - 1
         assert np.allclose(v.worker.expression(), v.tracks[1].frames[0])
-        v.set_expression(v.neutral)
-        assert np.all(v.worker.expression() == 0)
-        assert [s.value for s in v.g_sliders] == [0.0] * len(names)
+        v.set_expression(v.neutral)  # zeros, within the training frames' range
+        want = v.range.clamp(np.zeros(len(names), np.float32))
+        assert np.allclose(v.worker.expression(), want)
+        assert np.allclose([s.value for s in v.g_sliders], want, atol=1e-4)
         v.set_expression(v.frame0_expression)
         assert np.allclose([s.value for s in v.g_sliders], v.frame0_expression, atol=1e-4)
     finally:
@@ -207,6 +208,7 @@ def test_a_slider_moves_its_companions_unless_unticked(tiny_run):
         port = s.getsockname()[1]
     v = Viewer(run, ViewerOptions(port=port, resolution=16, verbose=False))
     v.companions = Companions(list(names), follows, train)
+    v.range = None  # not what this test is about: any value, as given
     v.start()
     try:
         v.set_expression(v.neutral)
@@ -219,5 +221,41 @@ def test_a_slider_moves_its_companions_unless_unticked(tiny_run):
         drag(SimpleNamespace(client=object(), target=SimpleNamespace(value=0.8)))
         e2 = v.worker.expression()
         assert e2[0] == pytest.approx(0.8) and e2[1] == pytest.approx(e[1])
+    finally:
+        v.stop()
+
+
+def test_a_slider_stops_at_the_training_range_unless_unticked(tiny_run):
+    """Dragging a control past what the training frames show stops it there (the slider
+    too); unticking "Stay within the clip's range" lets it through."""
+    import socket
+    from types import SimpleNamespace
+
+    from flamenerf.data.expression_range import ExpressionRange
+    from flamenerf.training.run import load_run
+    from flamenerf.viewer.app import Viewer
+    from flamenerf.viewer.options import ViewerOptions
+
+    run = load_run(tiny_run, device="cpu")
+    names = run.expression_names
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    v = Viewer(run, ViewerOptions(port=port, resolution=16, verbose=False))
+    assert v.range is not None  # the run's own dataset: its training range
+    v.range = ExpressionRange(list(names), np.zeros(len(names)), np.full(len(names), 0.3))
+    v.companions = None
+    v.start()
+    try:
+        v.set_expression(v.neutral)
+        drag = v._slider_cb(0)
+        drag(SimpleNamespace(client=object(), target=SimpleNamespace(value=0.8)))
+        assert v.worker.expression()[0] == pytest.approx(0.3)
+        assert v.g_sliders[0].value == pytest.approx(0.3)
+        drag(SimpleNamespace(client=object(), target=SimpleNamespace(value=0.2)))
+        assert v.worker.expression()[0] == pytest.approx(0.2)
+        v.g_within.value = False
+        drag(SimpleNamespace(client=object(), target=SimpleNamespace(value=0.8)))
+        assert v.worker.expression()[0] == pytest.approx(0.8)
     finally:
         v.stop()

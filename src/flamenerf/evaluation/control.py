@@ -236,19 +236,22 @@ def finite_mean(values) -> float:
 
 
 def drive_response(render: RenderFn, names: list[str], values: np.ndarray, track: Callable,
-                   min_range: float = 0.05, controls: list[str] | None = None
+                   min_range: float = 0.05, controls: list[str] | None = None,
+                   rendered: np.ndarray | None = None
                    ) -> tuple[dict[str, Any], list[np.ndarray]]:
     """Render a driving sequence and re-track it: per control that the sequence moves, the
     correlation over time of commanded (the driving video's tracked value, mapped onto the
     run) and re-tracked, and the gain (slope of re-tracked on commanded).
 
-    values (T, E) the sequence in the run's control order. -> ({"controls": {name:
+    values (T, E) the sequence in the run's control order; rendered (T, E) what is rendered
+    for it (default: values; `render` clamps them to the training range, and the gain and
+    correlation are still against what the driver did). -> ({"controls": {name:
     {commanded, retracked, gain, correlation, detected}}, "mean_gain", "mean_correlation",
     "frames", "skipped": {name: why}}, the renders).
     """
     want = controls if controls is not None else trackable_controls(names)
     preds, scores = [], []
-    for beta in values:
+    for beta in (values if rendered is None else rendered):
         preds.append(render(np.asarray(beta, np.float32)))
         scores.append(track(preds[-1]))
     out: dict[str, Any] = {"controls": {}, "skipped": {}, "frames": len(values)}

@@ -405,15 +405,24 @@ def drive_section(run, ds: Dataset, intr, omega0, phi0, opts: EvalOptions
     fr = ds.frames[reference_position(ds)]
     render = C.model_renderer(run.model, ds, intr, fr.c2w, omega0, phi0,
                               mesh_function(run.model, ds), dataset_dilation(ds))
+    rendered, notes = seq.values, list(seq.notes)
+    if ds.expression_names == names:  # as `render` does by default
+        from flamenerf.data.expression_range import training_range
+
+        rng = training_range(ds)
+        if over := rng.beyond(seq.values):
+            rendered = rng.clamp(seq.values)
+            notes.append("rendered clamped to the range the training frames cover (as "
+                         f"`render` does unless --extrapolate): {'; '.join(over)}")
     track = C.Retracker()
     try:
-        res, preds = C.drive_response(render, names, seq.values, track)
+        res, preds = C.drive_response(render, names, seq.values, track, rendered=rendered)
         res["geometry"] = C.geometry_response([seq.driving(i) for i in range(len(preds))],
                                               preds, track.detect)
     finally:
         track.close()
     res["video"] = str(opts.drive)
-    res["notes"] = list(seq.notes)
+    res["notes"] = notes
     pick = np.unique(np.linspace(0, len(preds) - 1, min(6, len(preds))).round().astype(int))
     return res, hstack([vstack([seq.driving(int(i)), preds[i]], gap=2) for i in pick], gap=4)
 

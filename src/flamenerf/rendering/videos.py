@@ -63,6 +63,10 @@ class RenderOptions:
             (same part of the face and side, by a regression on the training frames:
             e.g. eyeBlinkLeft brings eyeLookDownLeft, without which the eye barely
             closes). ARKit-named datasets from `preprocess`; others have none.
+        extrapolate: Render keyframes, files and driving videos as given. By default each
+            control is clamped to the range the training frames cover (with a note): past
+            it the model has learnt nothing, and a control pushed far beyond (a smile at 1
+            on a clip whose smiles reach 0.1) breaks the face into patches.
         landmarker: face_landmarker.task for --drive (default: as for preprocess).
         chunk: Rays per forward pass (0: the renderer's choice, 2048 on a CPU and 65536
             on a GPU; lower it if memory runs out).
@@ -93,6 +97,7 @@ class RenderOptions:
     max_frames: int | None = None
     relative: bool = True
     companions: bool = True
+    extrapolate: bool = False
     landmarker: Path | None = None
     chunk: int = 0
     exact: bool = False
@@ -169,6 +174,24 @@ def keyframe_companions(opts: RenderOptions, ds: Dataset, names: list[str]):
     if not opts.companions or ds.expression_names != names:
         return None
     return dataset_companions(ds)
+
+
+def within_training_range(opts: RenderOptions, ds: Dataset, names: list[str],
+                          values: np.ndarray, log=print) -> np.ndarray:
+    """What the user asked for (keyframes, a file, a driving video), each control clamped
+    to the training frames' range unless --extrapolate (data/expression_range.py); a
+    split's own expressions are taken as they are."""
+    from flamenerf.data.expression_range import training_range
+
+    if opts.split or opts.extrapolate or ds.expression_names != names:
+        return values
+    rng = training_range(ds)
+    over = rng.beyond(values)
+    if not over:
+        return values
+    log(f"note: clamped to the range the training frames cover, where the model has learnt "
+        f"them (--extrapolate renders them as given): {'; '.join(over)}")
+    return rng.clamp(values)
 
 
 def held_expression(base: np.ndarray, num: int, label: str) -> X.ExpressionSequence:
@@ -326,7 +349,7 @@ def render_videos(opts: RenderOptions, log=print) -> RenderSummary:
     poses, cam_label, seq = camera_poses(opts, seq, C.rig_from_dataset(ds), names, base, log,
                                          comp)
     n = len(seq) if opts.max_frames is None else min(len(seq), opts.max_frames)
-    values, poses = seq.values[:n], poses[:n]
+    values, poses = within_training_range(opts, ds, names, seq.values[:n], log), poses[:n]
     T = head_transforms(opts, run, ds, n, log, seq)
     if seq.vertices is not None and not opts.head_pose:  # a split's own (posed) meshes
         verts = seq.vertices[:n]

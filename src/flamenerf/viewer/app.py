@@ -65,8 +65,11 @@ class Viewer:
         self.neutral = np.clip(np.zeros(len(self.names), np.float32), self.lo, self.hi)
         from flamenerf.data.companions import dataset_companions
 
-        self.companions = (dataset_companions(self.ds) if self.ds.expression_names == self.names
-                           else None)
+        from flamenerf.data.expression_range import training_range
+
+        same = self.ds.expression_names == self.names
+        self.companions = dataset_companions(self.ds) if same else None
+        self.range = training_range(self.ds) if same else None
         self.tracks: list[Track] = [load_track_file(p, self.names) for p in opts.track]
         self.tracks += dataset_tracks(self.ds)
         h = opts.resolution or run.train_intrinsics(self.ds).h
@@ -162,6 +165,13 @@ class Viewer:
                 "Reset to neutral", hint="Every control to 0 (no expression).")
             self.g_frame0 = gui.add_button(
                 "Frame 0 expression", hint="The expression of the capture's first frame.")
+            self.g_within = None
+            if self.range is not None:
+                self.g_within = gui.add_checkbox(
+                    "Stay within the clip's range", True,
+                    hint="A slider stops at the largest (and smallest) value the training "
+                         "frames show: beyond it the model has learnt nothing and the face "
+                         "breaks into patches. Off: any value, as given.")
             self.g_companions = None
             if self.companions is not None:
                 self.g_companions = gui.add_checkbox(
@@ -231,10 +241,15 @@ class Viewer:
                 return
             self.pause()
             value = float(event.target.value)
+            if self.within():
+                value = float(np.clip(value, self.range.lo[j], self.range.hi[j]))
             if self.g_companions is not None and self.g_companions.value \
                     and self.companions.of(self.names[j]):
                 self.set_expression(self.companions.complete(self.worker.expression(),
                                                              {j: value}))
+            elif value != float(event.target.value):  # stopped at the range: show where
+                self.set_expression(np.where(np.arange(len(self.names)) == j, value,
+                                             self.worker.expression()))
             else:
                 self.worker.set_expression_value(j, value)
         return cb
@@ -244,8 +259,18 @@ class Viewer:
         if pause:
             self.pause()
         v = np.clip(np.asarray(values, np.float32), self.lo, self.hi)
+        if self.within():
+            v = self.range.clamp(v)
         self.worker.set_expression(v)
         self._sync_sliders(v)
+
+    def within(self) -> bool:
+        """Whether expressions are kept within the training frames' range (the checkbox;
+        on by default, and before the GUI exists)."""
+        if self.range is None:
+            return False
+        box = getattr(self, "g_within", None)
+        return box is None or bool(box.value)
 
     def _sync_sliders(self, v: np.ndarray) -> None:
         if self.server is None:

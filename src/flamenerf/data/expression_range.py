@@ -1,0 +1,53 @@
+"""The range of each control that a run's training frames cover.
+
+A model learns what an expression control does only over the values its training frames
+show. Past them it extrapolates: the expression fields are linear in β, so a keyframe
+`mouthSmileLeft=1` on a clip whose smiles reach 0.10 adds ten times the learnt change, and
+the face breaks into patches instead of smiling more (seen on the shared expressions clip:
+smile, browInnerUp and eyeWide at 1 against a training maximum near 0.1). What users
+command (keyframes, expression files, a driving video, the viewer's sliders) is therefore
+clamped to this range by default — the largest smile the clip shows, not a broken face —
+with a note saying what was clamped; `render --extrapolate` and the viewer's checkbox
+render values as given.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class ExpressionRange:
+    names: list[str]
+    lo: np.ndarray
+    """(E,) each control's smallest value in the training frames."""
+    hi: np.ndarray
+    """(E,) its largest."""
+
+    def clamp(self, values: np.ndarray) -> np.ndarray:
+        """values (..., E) -> the same, each control within [lo, hi]."""
+        v = np.asarray(values)
+        return np.clip(v, self.lo, self.hi).astype(v.dtype, copy=False)
+
+    def beyond(self, values: np.ndarray, tol: float = 0.02) -> list[str]:
+        """values (..., E) -> what `clamp` changes, one line per control that leaves the
+        range by more than `tol` (smaller clamps are applied but not worth a line):
+        'name up to 1.00 (the clip: 0.00-0.10)'."""
+        v = np.asarray(values, np.float64).reshape(-1, len(self.names))
+        out = []
+        for k, name in enumerate(self.names):
+            top, bottom = v[:, k].max(), v[:, k].min()
+            if top > self.hi[k] + tol or bottom < self.lo[k] - tol:
+                far = top if top - self.hi[k] >= self.lo[k] - bottom else bottom
+                out.append(f"{name} {'up' if far > self.hi[k] else 'down'} to {far:.2f} "
+                           f"(the clip: {self.lo[k]:.2f}-{self.hi[k]:.2f})")
+        return out
+
+
+def training_range(ds) -> ExpressionRange:
+    """The range of a dataset's training frames (its capture frames without a split)."""
+    frames = ds.split("train") or [f for f in ds.frames if f.frame_index is not None]
+    x = ds.expression_matrix(frames).astype(np.float64)
+    return ExpressionRange(list(ds.expression_names), x.min(0), x.max(0))
