@@ -66,6 +66,16 @@ def test_report_lists_dropped_frames_and_qa_files(dataset):
     assert all(d["reason"] == "no face detected" for d in rep["dropped"])
     assert rep["reprojection_error_px"]["rigid_median_out"] < 2.0
     assert len(rep["frames"]) == 10
+    # what the training frames cover: each control's range (what renders clamp to)
+    cov = rep["expressions"]
+    assert sorted(cov["varying"] + cov["barely_moving"]) == sorted(cov["controls"])
+    ds = load_dataset(dataset)
+    train = ds.expression_matrix(ds.split("train"))
+    for k, name in enumerate(ds.expression_names):
+        c = cov["controls"][name]
+        assert c["min"] == pytest.approx(train[:, k].min(), abs=1e-6)
+        assert c["max"] == pytest.approx(train[:, k].max(), abs=1e-6)
+        assert (name in cov["varying"]) == (c["p95"] - c["p5"] >= 0.1)
 
 
 def test_overwrite_and_no_half_written_output(tmp_path, astronaut_video, capsys):

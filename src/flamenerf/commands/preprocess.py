@@ -45,6 +45,14 @@ def preprocess(
           f"({err['rigid_median_source']:.2f} px in the source); "
           f"fov {rep['camera']['fov_x_deg']:.1f} deg; "
           f"{rep['frames_per_second']:.1f} frames/s")
+    cov = rep.get("expressions")
+    if cov:
+        top = sorted(cov["varying"], key=lambda n: -(cov["controls"][n]["p95"]
+                                                      - cov["controls"][n]["p5"]))
+        print(f"expressions: {len(cov['varying'])} of {len(cov['controls'])} controls vary in "
+              f"the training frames ({', '.join(top[:6])}{', ...' if len(top) > 6 else ''}); "
+              f"renders and the viewer keep each within its range "
+              f"(qa/tracking_report.json: expressions)")
     for d in rep["dropped"][:10]:
         print(f"  dropped frame {d['source_frame']} ({d['time']:.2f}s): {d['reason']}")
     if len(rep["dropped"]) > 10:

@@ -46,8 +46,32 @@ class ExpressionRange:
         return out
 
 
+    @classmethod
+    def of(cls, names: list[str], expressions: np.ndarray) -> "ExpressionRange":
+        """The range of training expressions (N, E)."""
+        x = np.asarray(expressions, np.float64)
+        return cls(list(names), x.min(0), x.max(0))
+
+
+SPAN_QUANTILES = (5.0, 95.0)
+MIN_SPAN = 0.1
+
+
+def span(values: np.ndarray) -> tuple[float, float]:
+    """The part of its range a control covers in most frames: its 5th and 95th percentile
+    over values (N,). What `eval` sweeps, and what `preprocess` reports."""
+    lo, hi = np.percentile(np.asarray(values, np.float64), SPAN_QUANTILES)
+    return float(lo), float(hi)
+
+
+def varies(values: np.ndarray) -> bool:
+    """Whether a control moves enough in the frames (N,) for a model to learn it: its
+    5th-95th percentile span is at least MIN_SPAN."""
+    lo, hi = span(values)
+    return hi - lo >= MIN_SPAN
+
+
 def training_range(ds) -> ExpressionRange:
     """The range of a dataset's training frames (its capture frames without a split)."""
     frames = ds.split("train") or [f for f in ds.frames if f.frame_index is not None]
-    x = ds.expression_matrix(frames).astype(np.float64)
-    return ExpressionRange(list(ds.expression_names), x.min(0), x.max(0))
+    return ExpressionRange.of(ds.expression_names, ds.expression_matrix(frames))

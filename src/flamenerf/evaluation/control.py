@@ -155,14 +155,14 @@ def trackable_controls(names: list[str]) -> list[str]:
     return [n for n in names if n in known]
 
 
-def sweep_values(values: np.ndarray, steps: int, lo_q: float = 5.0, hi_q: float = 95.0
-                 ) -> np.ndarray | None:
-    """`steps` values across the range a control covers in the training frames (its 5th to
-    95th percentile); None when it barely varies (less than 0.1)."""
-    lo, hi = np.percentile(values, [lo_q, hi_q])
-    if hi - lo < 0.1:
+def sweep_values(values: np.ndarray, steps: int) -> np.ndarray | None:
+    """`steps` values across the span a control covers in the training frames (its 5th to
+    95th percentile, data/expression_range.span); None when it barely varies."""
+    from flamenerf.data.expression_range import span, varies
+
+    if not varies(values):
         return None
-    return np.linspace(lo, hi, steps)
+    return np.linspace(*span(values), steps)
 
 
 RenderFn = Callable[[np.ndarray], np.ndarray]

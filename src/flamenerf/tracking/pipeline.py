@@ -297,7 +297,7 @@ def write_dataset(video: Path, out: Path, opts: PreprocessOptions, clip, sol, sc
                    "fit": t["fit"] - t["solve"], "write": t_write - t["fit"]}
         report = R.tracking_report(video, clip, sol, scene, intr, crop, crop_facts,
                                    n_tracked, cam_dist, near, far, kind, names, splits,
-                                   per_frame, timings)
+                                   per_frame, timings, expressions)
         if video_out is not None:
             video_out.close()
             R.write_qa(writer.tmp / "qa", report, sheet_frames, sol, scene, clip, splits,

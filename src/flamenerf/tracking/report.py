@@ -36,9 +36,10 @@ def scene_report(scene) -> dict:
 def tracking_report(video: Path, clip, sol, scene, intr, crop, crop_facts, n_tracked: int,
                     cam_dist: np.ndarray, near: float, far: float, kind: str,
                     names: list[str], splits: list[str], per_frame: list[dict],
-                    timings: dict[str, float]) -> dict:
+                    timings: dict[str, float], expressions: np.ndarray | None = None) -> dict:
     """What preprocessing found and kept: video, frames, scene, cameras, crop, errors,
-    bounds."""
+    bounds, and the expressions the training frames cover (expressions (N, E), one row per
+    kept frame, in the order of `splits`)."""
     info, N = clip.info, len(clip.frames)
     return {
         "video": {"path": str(video), "width": info.width, "height": info.height,
@@ -70,10 +71,32 @@ def tracking_report(video: Path, clip, sol, scene, intr, crop, crop_facts, n_tra
         },
         "near": near, "far": far,
         "expression_model": {"kind": kind, "dim": len(names)},
+        "expressions": (None if expressions is None
+                        else expression_coverage(expressions, names, splits)),
         "splits": {s: splits.count(s) for s in sorted(set(splits))},
         "timings_s": timings,
         "frames": per_frame,
     }
+
+
+def expression_coverage(expressions: np.ndarray, names: list[str], splits: list[str]
+                        ) -> dict:
+    """What a model of this clip can learn about each control: over the training frames,
+    its range (what `render` and the viewer clamp to, data/expression_range.py) and the
+    span of most frames (5th-95th percentile; `eval` sweeps the controls whose span is at
+    least 0.1). -> {"varying": [...], "barely_moving": [...], "controls": {name: {...}}}"""
+    from flamenerf.data.expression_range import ExpressionRange, span, varies
+
+    x = np.asarray(expressions, np.float64)
+    train = np.array([s == "train" for s in splits]) if "train" in splits else np.ones(len(x),
+                                                                                         bool)
+    rng = ExpressionRange.of(names, x[train])
+    controls, moving, still = {}, [], []
+    for k, n in enumerate(names):
+        lo, hi = span(x[train, k])
+        controls[n] = {"min": float(rng.lo[k]), "max": float(rng.hi[k]), "p5": lo, "p95": hi}
+        (moving if varies(x[train, k]) else still).append(n)
+    return {"varying": moving, "barely_moving": still, "controls": controls}
 
 
 def frame_entry(k: int, source_frame: int, clip, sol, crop, split: str, mask: np.ndarray,
