@@ -70,7 +70,6 @@ def test_controls_beyond_the_training_range_are_clamped_unless_asked(toy_run, tm
     --extrapolate renders it as given."""
     from flamenerf.data.expression_range import training_range
     from flamenerf.rendering.videos import render_videos
-
     from flamenerf.training.run import load_run
 
     rng = training_range(load_run(toy_run, "cpu").dataset())

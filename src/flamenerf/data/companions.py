@@ -22,6 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from flamenerf.data.expression_range import ExpressionRange
 from flamenerf.data.face_parts import applies, part_and_side
 
 RIDGE = 1e-3
@@ -51,7 +52,7 @@ class Companions:
         for k in named:
             out[k] = values[k]
         x = self.expressions - self.expressions.mean(0)
-        lo, hi = self.expressions.min(0), self.expressions.max(0)
+        rng = ExpressionRange.of(self.names, self.expressions)
         for j in range(len(self.names)):
             ks = [k for k in named if self.follows[k, j] and j not in values]
             if not ks:
@@ -61,7 +62,7 @@ class Companions:
             gram += RIDGE * max(float(np.trace(gram)), 1e-12) * np.eye(len(ks))
             coef = np.linalg.solve(gram, a.T @ x[:, j])
             step = np.array([values[k] - base[k] for k in ks]) @ coef
-            out[j] = np.clip(base[j] + step, lo[j], hi[j])
+            out[j] = np.clip(base[j] + step, rng.lo[j], rng.hi[j])
         return out.astype(np.asarray(base).dtype, copy=False)
 
 
@@ -83,8 +84,7 @@ def fit_companions(names: list[str], kind: str, num_vertices: int,
 
 
 def dataset_companions(ds) -> Companions | None:
-    """`fit_companions` on a dataset's training frames (its capture frames without a
-    split)."""
-    frames = ds.split("train") or [f for f in ds.frames if f.frame_index is not None]
+    """`fit_companions` on a dataset's training frames."""
     return fit_companions(ds.expression_names, ds.expression_kind,
-                          int(ds.face_vertices.shape[1]), ds.expression_matrix(frames))
+                          int(ds.face_vertices.shape[1]),
+                          ds.expression_matrix(ds.training_frames()))

@@ -117,6 +117,12 @@ class Dataset:
             )
         return [self.frames[i] for i in self.splits[name]]
 
+    def training_frames(self) -> list[Frame]:
+        """The frames a model of this dataset learns from: the `train` split, or every
+        capture frame (one with a frame index) when there is none."""
+        train = self.split("train") if "train" in self.splits else []
+        return train or [f for f in self.frames if f.frame_index is not None]
+
     def load_image(self, frame: Frame) -> np.ndarray:
         """(H, W, 3) float32 in [0, 1]."""
         img = _read_png(self.root / frame.file_path, self.intrinsics)

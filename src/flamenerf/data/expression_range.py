@@ -2,9 +2,10 @@
 
 A model learns what an expression control does only over the values its training frames
 show. Past them it extrapolates: the expression fields are linear in β, so a keyframe
-`mouthSmileLeft=1` on a clip whose smiles reach 0.10 adds ten times the learnt change, and
-the face breaks into patches instead of smiling more (seen on the shared expressions clip:
-smile, browInnerUp and eyeWide at 1 against a training maximum near 0.1). What users
+`mouthSmileRight=1` on a clip whose largest smile is 0.29 adds over three times the largest
+learnt change, and the face breaks into patches instead of smiling more (seen on the shared
+expressions clip: smiles, browInnerUp and eyeWide at 1 against training maxima of
+0.17-0.54). What users
 command (keyframes, expression files, a driving video, the viewer's sliders) is therefore
 clamped to this range by default — the largest smile the clip shows, not a broken face —
 with a note saying what was clamped; `render --extrapolate` and the viewer's checkbox
@@ -45,7 +46,6 @@ class ExpressionRange:
                            f"(the clip: {self.lo[k]:.2f}-{self.hi[k]:.2f})")
         return out
 
-
     @classmethod
     def of(cls, names: list[str], expressions: np.ndarray) -> "ExpressionRange":
         """The range of training expressions (N, E)."""
@@ -72,6 +72,5 @@ def varies(values: np.ndarray) -> bool:
 
 
 def training_range(ds) -> ExpressionRange:
-    """The range of a dataset's training frames (its capture frames without a split)."""
-    frames = ds.split("train") or [f for f in ds.frames if f.frame_index is not None]
-    return ExpressionRange.of(ds.expression_names, ds.expression_matrix(frames))
+    """The range of a dataset's training frames."""
+    return ExpressionRange.of(ds.expression_names, ds.expression_matrix(ds.training_frames()))

@@ -48,7 +48,7 @@ def fit_dataset_expression_model(ds: Dataset, ridge: float = 1e-3, face_parts: b
     `face_parts`, each named control moves only its part of the face where the dataset's
     controls and mesh say which (data/face_parts.py).
     -> neutral (V, 3), basis (E, V, 3) in world units."""
-    train = ds.split("train") or [f for f in ds.frames if f.frame_index is not None]
+    train = ds.training_frames()
     verts = canonical_vertices(ds, train)
     weights = (control_weights(ds.expression_kind, ds.expression_names, verts.mean(0))
                if face_parts else None)

@@ -40,7 +40,7 @@ def expressive_faces(ds: Dataset, fraction: float = 0.2) -> np.ndarray:
     exceeds `fraction` of the largest. -> (F', 3) int."""
     from flamenerf.data.head_pose import canonical_vertices
 
-    train = ds.split("train") or [f for f in ds.frames if f.frame_index is not None]
+    train = ds.training_frames()
     v = canonical_vertices(ds, train).astype(np.float64)
     v = v - v.mean(1, keepdims=True)
     motion = np.sqrt(((v - v.mean(0)) ** 2).sum(-1).mean(0))  # (V,)
@@ -58,15 +58,13 @@ def region_masks(ds: Dataset, fs: FrameSet, faces: np.ndarray) -> np.ndarray:
 
 def region_metrics(pred: np.ndarray, gt: np.ndarray, face: np.ndarray,
                    region: np.ndarray, scene: np.ndarray) -> dict[str, float]:
-    """pred, gt (H, W, 3); face, region, scene (H, W) bool -> PSNR/SSIM on the whole image,
-    PSNR on the face, the background, the scene (protocol.scene_masks) and the expressive
-    region."""
+    """pred, gt (H, W, 3); face, region, scene (H, W) bool -> `protocol.image_metrics`
+    (MSE, PSNR/SSIM of the whole image, PSNR of the face, the background and the scene) and
+    PSNR of the expressive region."""
     from flamenerf.evaluation.protocol import image_metrics
 
-    out = image_metrics(pred, gt, face, scene)
-    del out["mse"]
-    out["psnr_expressive"] = M.psnr(pred, gt, region)
-    return out
+    return {**image_metrics(pred, gt, face, scene),
+            "psnr_expressive": M.psnr(pred, gt, region)}
 
 
 DRIVEN_KEYS = ("psnr", "ssim", "psnr_face", "psnr_background", "psnr_scene",

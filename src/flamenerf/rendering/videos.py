@@ -66,7 +66,7 @@ class RenderOptions:
         extrapolate: Render keyframes, files and driving videos as given. By default each
             control is clamped to the range the training frames cover (with a note): past
             it the model has learnt nothing, and a control pushed far beyond (a smile at 1
-            on a clip whose smiles reach 0.1) breaks the face into patches.
+            on a clip whose largest is 0.3) breaks the face into patches.
         landmarker: face_landmarker.task for --drive (default: as for preprocess).
         chunk: Rays per forward pass (0: the renderer's choice, 2048 on a CPU and 65536
             on a GPU; lower it if memory runs out).

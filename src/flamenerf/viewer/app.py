@@ -64,7 +64,6 @@ class Viewer:
         self.frame0_expression = np.clip(fi.expression, self.lo, self.hi).astype(np.float32)
         self.neutral = np.clip(np.zeros(len(self.names), np.float32), self.lo, self.hi)
         from flamenerf.data.companions import dataset_companions
-
         from flamenerf.data.expression_range import training_range
 
         same = self.ds.expression_names == self.names
@@ -162,23 +161,22 @@ class Viewer:
         self.expr_folder = gui.add_folder("Expression")
         with self.expr_folder:
             self.g_neutral = gui.add_button(
-                "Reset to neutral", hint="Every control to 0 (no expression).")
+                "Reset to neutral", hint="Every control to 0 (no expression); within the "
+                "clip's range, to the lowest value it shows.")
             self.g_frame0 = gui.add_button(
                 "Frame 0 expression", hint="The expression of the capture's first frame.")
-            self.g_within = None
-            if self.range is not None:
-                self.g_within = gui.add_checkbox(
-                    "Stay within the clip's range", True,
-                    hint="A slider stops at the largest (and smallest) value the training "
-                         "frames show: beyond it the model has learnt nothing and the face "
-                         "breaks into patches. Off: any value, as given.")
-            self.g_companions = None
-            if self.companions is not None:
-                self.g_companions = gui.add_checkbox(
-                    "Move companions", True,
-                    hint="A slider also moves the controls the tracker reads with it (same "
-                         "part of the face and side; e.g. eyeBlinkLeft brings "
-                         "eyeLookDownLeft): without them a blink alone barely closes the eye.")
+            # options that exist only for datasets that have what they use; ticked by default
+            self.g_within, self.g_companions = (
+                gui.add_checkbox(label, True, hint=hint) if present else None
+                for present, label, hint in (
+                    (self.range is not None, "Stay within the clip's range",
+                     "A slider stops at the largest (and smallest) value the training frames "
+                     "show: beyond it the model has learnt nothing and the face breaks into "
+                     "patches. Off: any value, as given."),
+                    (self.companions is not None, "Move companions",
+                     "A slider also moves the controls the tracker reads with it (same part "
+                     "of the face and side; e.g. eyeBlinkLeft brings eyeLookDownLeft): "
+                     "without them a blink alone barely closes the eye.")))
             self.g_sliders = []
             step = 0.01 if self.hi - self.lo <= 2 else 0.05
             for j, name in enumerate(self.names):
