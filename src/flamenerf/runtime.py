@@ -6,11 +6,15 @@ from __future__ import annotations
 import contextlib
 import os
 import sys
-from collections.abc import Iterator
-from typing import TYPE_CHECKING
+from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
+from typing import TYPE_CHECKING, TypeVar
 
 if TYPE_CHECKING:
     import torch
+
+T = TypeVar("T")
+R = TypeVar("R")
 
 TUNED_ALLOCATOR = {"MALLOC_MMAP_MAX_": "0", "MALLOC_TRIM_THRESHOLD_": "100000000000"}
 
@@ -72,5 +76,27 @@ def torch_threads(threads: int) -> Iterator[None]:
     torch.set_num_threads(threads)
     try:
         yield
+    finally:
+        torch.set_num_threads(before)
+
+
+def map_single_threaded(fn: Callable[[T], R], items: list[T], workers: int) -> list[R]:
+    """[fn(x) for x in items] in `workers` Python threads that each run torch with one CPU
+    thread, taking items in order as they come free; results in the items' order.
+
+    For many small, independent pieces of torch work (chunks of rays at inference): one
+    thread's Python overhead then overlaps another's arithmetic, where one Python thread
+    driving all cores leaves them waiting between small ops (a 256 px `fast` frame on
+    2 cores: 1.11 -> 0.88 s). The process's thread count is restored afterwards; torch work
+    that other threads start meanwhile gets one thread too."""
+    import torch
+
+    if workers <= 1 or len(items) <= 1:
+        return [fn(x) for x in items]
+    before = torch.get_num_threads()
+    try:
+        with ThreadPoolExecutor(workers, initializer=torch.set_num_threads,
+                                initargs=(1,)) as pool:
+            return list(pool.map(fn, items))
     finally:
         torch.set_num_threads(before)

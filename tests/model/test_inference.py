@@ -14,6 +14,7 @@ from flamenerf.model.inference import FAST, REFERENCE, RenderSettings, march
 from flamenerf.model.mlp import MLP, fused_cpu_inference
 from flamenerf.model.render import render_weights
 from flamenerf.model.render_image import render_image
+from flamenerf.runtime import map_single_threaded, torch_threads
 
 E = 3
 EXACT = RenderSettings(warp_grid=0, proposal_grid=0, min_transmittance=0.0, half=False)
@@ -222,3 +223,36 @@ def test_settings_chunk_changes_nothing_but_speed():
     a = render(m, dataclasses.replace(FAST, chunk=7))
     b = render(m, dataclasses.replace(FAST, chunk=1000))
     assert torch.allclose(a["rgb"], b["rgb"], atol=1e-5)
+
+
+def test_threads_render_the_same_image_and_restore_the_thread_count():
+    """Chunks rendered side by side in Python threads (each with one torch thread) give the
+    image one thread gives, and the process keeps its thread count."""
+    m = toy_model()
+    before = torch.get_num_threads()
+    with torch_threads(2):
+        one = render(m, dataclasses.replace(FAST, chunk=7, threads=1))
+        two = render(m, dataclasses.replace(FAST, chunk=7, threads=2))
+        assert torch.get_num_threads() == 2
+    assert torch.get_num_threads() == before
+    for k in one:
+        assert torch.allclose(one[k], two[k], atol=1e-5), k
+    assert FAST.render_threads(torch.device("cpu")) == torch.get_num_threads()
+    assert REFERENCE.render_threads(torch.device("cpu")) == 1
+
+
+def test_map_single_threaded_keeps_order_and_gives_each_worker_one_thread():
+    import threading
+
+    seen = []
+
+    def work(i):
+        seen.append((threading.get_ident(), torch.get_num_threads()))
+        return i * i
+
+    with torch_threads(2):
+        assert map_single_threaded(work, list(range(20)), 2) == [i * i for i in range(20)]
+        assert torch.get_num_threads() == 2
+    assert all(n == 1 for _, n in seen)
+    assert threading.get_ident() not in {t for t, _ in seen}
+    assert map_single_threaded(work, [3], 2) == [9]  # one item: no threads

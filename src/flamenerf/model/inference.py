@@ -56,6 +56,16 @@ class RenderSettings:
     """Half precision where the device has it natively: the fields in float16 on CUDA, the
     MLP layers in bfloat16 on CPUs with AVX-512 BF16 or AMX (model/mlp.py)."""
 
+    threads: int = 0
+    """On a CPU: Python threads that render chunks side by side, each with one torch thread
+    (runtime.map_single_threaded); 0: as many as torch's CPU threads; 1: one thread driving
+    all of them. Only the inference path (`fast`) uses more than one."""
+
+    def render_threads(self, device: torch.device) -> int:
+        if not self.fast or device.type != "cpu":
+            return 1
+        return self.threads if self.threads > 0 else torch.get_num_threads()
+
     def rays_per_chunk(self, device: torch.device) -> int:
         if self.chunk > 0:
             return self.chunk
@@ -113,14 +123,39 @@ def _autocast(device: torch.device, settings: RenderSettings):
     return contextlib.nullcontext()
 
 
+def _bakes_warp(model, settings: RenderSettings) -> bool:
+    return model.warp is not None and settings.warp_grid > 0 and not model.warp_expression
+
+
+def _bakes_proposal(model, settings: RenderSettings) -> bool:
+    return model.cfg.sampler.kind == "proposal" and settings.proposal_grid > 0
+
+
+def prepare(model, deform_code: Tensor, settings: RenderSettings) -> None:
+    """Make, in this thread, what every chunk of rays with the code ω (D,) shares: the bakes
+    and the CPU kernels. Before chunks render side by side (model/render_image.py), so that
+    they do not each make them, and so that the bakes use every CPU thread."""
+    if not settings.fast:
+        return
+    dev = deform_code.device
+    with torch.inference_mode():
+        if _bakes_warp(model, settings):
+            baked_warp(model.warp, deform_code, settings.warp_grid)
+        if _bakes_proposal(model, settings):
+            baked_proposal_logits(model.proposal, settings.proposal_grid, dev)
+    if dev.type == "cpu":
+        from flamenerf.model.cpu_kernels import hashgrid_library
+
+        hashgrid_library()
+
+
 def _warp_fn(model, rays: RayBatch, settings: RenderSettings):
     """points (n, k, 3), rows (n,) -> canonical points: the bake when every ray has the same
     ω, else the warp MLP."""
     if model.warp is None:
         return lambda xn, rows, e: xn
     codes = rays.deform_code
-    if (settings.warp_grid > 0 and not model.warp_expression
-            and bool((codes == codes[:1]).all())):
+    if _bakes_warp(model, settings) and bool((codes == codes[:1]).all()):
         baked = baked_warp(model.warp, codes[0], settings.warp_grid)
         return lambda xn, rows, e: baked(xn)
     return lambda xn, rows, e: model.warp_points(xn, codes[rows, None], e)
@@ -172,7 +207,7 @@ def _render_rays(model, rays: RayBatch, settings: RenderSettings) -> dict[str, T
         t_p = stratified_samples(model.near, model.far, 1, P, False, dev)[0]
 
         baked = (baked_proposal_logits(model.proposal, settings.proposal_grid, dev)
-                 if settings.proposal_grid > 0 else None)
+                 if _bakes_proposal(model, settings) else None)
         zero = (torch.ones(R, dtype=torch.bool, device=dev) if expr is None
                 else (expr == 0).all(-1))
 

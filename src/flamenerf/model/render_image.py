@@ -11,7 +11,8 @@ import torch
 from flamenerf.data.dataset import Intrinsics
 from flamenerf.data.rays import camera_rays
 from flamenerf.model.flame_nerf import FlameNeRF, RayBatch
-from flamenerf.model.inference import REFERENCE, RenderSettings, render_rays
+from flamenerf.model.inference import REFERENCE, RenderSettings, prepare, render_rays
+from flamenerf.runtime import map_single_threaded
 
 
 @torch.no_grad()
@@ -34,17 +35,22 @@ def render_image(model: FlameNeRF, intr: Intrinsics, c2w: np.ndarray | torch.Ten
     o, d = origins.reshape(-1, 3), dirs.reshape(-1, 3)
     mask = torch.as_tensor(np.asarray(face_mask), device=dev).reshape(-1).bool()
     n = o.shape[0]
-    outs: dict[str, list[torch.Tensor]] = {"rgb": [], "depth": [], "acc": []}
-    for s in range(0, n, chunk):
+
+    def chunk_out(s: int) -> dict[str, torch.Tensor]:
         m = min(chunk, n - s)
         rays = RayBatch(o[s:s + m], d[s:s + m], deform_code.to(dev).expand(m, -1),
                         appearance_code.to(dev).expand(m, -1), expression.to(dev).expand(m, -1),
                         mask[s:s + m], None if head is None else head.to(dev).expand(m, -1))
         out = render_rays(model, rays, settings) if settings.fast else model(rays)
-        for k in outs:
-            outs[k].append(out[k].cpu())
+        return {k: out[k].cpu() for k in ("rgb", "depth", "acc")}
+
+    threads = settings.render_threads(dev)
+    if threads > 1:  # pieces enough for every thread to stay busy to the end
+        chunk = min(chunk, max(512, -(-n // (2 * threads))))
+        prepare(model, deform_code.to(dev), settings)
+    outs = map_single_threaded(chunk_out, list(range(0, n, chunk)), threads)
     return {
-        "rgb": torch.cat(outs["rgb"]).view(intr.h, intr.w, 3).clamp(0, 1),
-        "depth": torch.cat(outs["depth"]).view(intr.h, intr.w),
-        "acc": torch.cat(outs["acc"]).view(intr.h, intr.w),
+        "rgb": torch.cat([part["rgb"] for part in outs]).view(intr.h, intr.w, 3).clamp(0, 1),
+        "depth": torch.cat([part["depth"] for part in outs]).view(intr.h, intr.w),
+        "acc": torch.cat([part["acc"] for part in outs]).view(intr.h, intr.w),
     }

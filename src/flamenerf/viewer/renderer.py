@@ -77,7 +77,7 @@ class _Stale(Exception):
 class RenderWorker:
     def __init__(self, model, deform_code: torch.Tensor, appearance_code: torch.Tensor,
                  masker, expression: np.ndarray, display: DisplayFn, height: int = 128,
-                 settle_s: float = 0.25, band_rays: int = 8192,
+                 settle_s: float = 0.25, band_rays: int = 16384,
                  on_error: Callable[[object, BaseException], None] | None = None,
                  settings: RenderSettings = FAST):
         self.model = model
@@ -88,8 +88,9 @@ class RenderWorker:
         self.on_error = on_error
         self.settle_s = settle_s
         # rays per band: each band pays the per-image work once (the silhouette's mesh, its
-        # k-d tree); 8192 made a 128 px update 0.29 -> 0.26 s on the 2-core CPU (4096 before),
-        # still abandoning a stale image within ~0.1 s
+        # k-d tree) and is split among the CPU's threads (render_image); 16384 (a whole 128 px
+        # update) made it 0.31 -> 0.26 s on the 2-core CPU (8192 before, 4096 before that),
+        # still abandoning a stale image within ~0.25 s
         self.band_rays = band_rays
         self.shared = Shared(expression=np.asarray(expression, np.float32).copy(),
                              height=int(height))
