@@ -11,6 +11,8 @@ ground truth. Prints the issue's targets next to the figures and writes JSON.
     python benchmarks/bench_head_pose.py --size 80 --frames 60 --steps 300 \
         --json docs/bench/head_pose.json
     python benchmarks/bench_head_pose.py --device cuda --size 128 --frames 120   # longer
+    python benchmarks/bench_head_pose.py --scene DATASET --size 128 \
+        --variants "wide:model.head.region_scale=1.3;wider:model.head.region_scale=1.6"
 
 An existing scene or run is reused (a run is resumed to --steps).
 """
@@ -73,8 +75,12 @@ def main() -> None:
                "scene": str(scene), "size": a.size, "frames": a.frames,
                "synth_seconds": time.perf_counter() - t0, "steps": a.steps,
                "fit_steps": a.fit_steps, "variants": {}}
-    for name in a.variants.split(","):
-        cfg = override(preset("fast"), VARIANTS[name])
+    for spec in a.variants.split(";") if ";" in a.variants else a.variants.split(","):
+        # a named variant, or `name:key=value,...` overrides of `fast` (separate with ';')
+        name, _, sets = spec.partition(":")
+        overrides = VARIANTS[name] if not sets else dict(
+            kv.split("=", 1) for kv in filter(None, sets.split(",")))
+        cfg = override(preset("fast"), overrides)
         cfg.train.downscale = ds.intrinsics.w / a.size
         cfg.train.num_threads = a.threads
         run = a.runs / name
@@ -86,7 +92,7 @@ def main() -> None:
         r = load_run(run, a.device)
         res = evaluate_run(r, ds, EvalOptions(fit_steps=a.fit_steps, control=False),
                            out_dir=run / "eval", quiet=True)
-        results["variants"][name] = {"overrides": VARIANTS[name], "train_seconds": train_s,
+        results["variants"][name] = {"overrides": overrides, "train_seconds": train_s,
                                      "figures": figures(res), "eval": res}
         print(f"[{name}] " + ", ".join(f"{k} {v:.2f}" for k, v in figures(res).items()))
         write(a.json, results)  # after every variant: a long benchmark keeps what it has

@@ -109,3 +109,24 @@ def _json(tmp_path, rows):
     p.write_text(json.dumps([dict(zip(("yaw", "pitch", "roll"), map(float, r[:3])))
                              for r in rows]))
     return p
+
+
+def test_train_options_grow_the_head_region(tmp_path):
+    """`train --head-region-scale/--head-band` reach the run's config and its model's
+    ellipsoid; a non-positive value is a one-line error."""
+    from flamenerf.cli import main
+    from flamenerf.data.head_pose import head_region
+    from flamenerf.synthetic.scene import make_scene
+    from flamenerf.training.run import load_run
+
+    ds = make_scene(tmp_path / "scene", seed=3, size=24, frames=4, sway=0.0, reanimate=0,
+                    leakage_steps=0, workers=1, head_motion=True)
+    out = tmp_path / "run"
+    assert main(["train", str(ds), "--out", str(out), "--steps", "1", "--batch-rays", "32",
+                 "--head-region-scale", "1.3", "--head-band", "0.6"]) == 0
+    run = load_run(out, "cpu")
+    assert run.config.model.head.region_scale == 1.3 and run.config.model.head.band == 0.6
+    base = head_region(run.dataset(None), 1.0)
+    assert np.allclose(run.model.head_radii.cpu().numpy(), 1.3 * base.radii, rtol=1e-5)
+    assert main(["train", str(ds), "--out", str(tmp_path / "bad"), "--steps", "1",
+                 "--head-band", "0"]) == 2

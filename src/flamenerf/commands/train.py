@@ -24,6 +24,8 @@ def train(
     accumulate: int | None = None,
     face_reg_weight: float | None = None,
     expression_mode: Literal["masked", "none", "everywhere"] | None = None,
+    head_region_scale: float | None = None,
+    head_band: float | None = None,
     resume: bool = False,
     device: str = "auto",
     threads: int = 0,
@@ -57,6 +59,11 @@ def train(
         expression_mode: The ablations of any preset: `masked` (β through the spatial prior,
             FLAME-in-NeRF), `none` (no β: the Nerfies variant), `everywhere` (β at every
             point: no prior). Default: the preset's.
+        head_region_scale: Datasets with head poses: grow the region that turns with the
+            head (an ellipsoid around the face) by this factor. Long hair that turns with the
+            head may want 1.3 with --head-band 0.6 (docs/head_pose.md). Default: 1.0.
+        head_band: Datasets with head poses: the width of the blend from the head's motion to
+            the still world, a fraction of the region's radius. Default: 0.35.
         resume: Continue the run in OUT from its latest checkpoint.
         device: `auto` (CUDA when present), `cpu` or `cuda`.
         threads: CPU threads for torch (0 = default).
@@ -98,9 +105,13 @@ def train(
         if downscale < 1:
             raise UserError("--downscale must be >= 1")
         cfg.train.downscale = downscale
+    for flag, v in (("--head-region-scale", head_region_scale), ("--head-band", head_band)):
+        if v is not None and not v > 0:
+            raise UserError(f"{flag} {v}: must be positive")
     override(cfg, {"train.batch_rays": batch_rays, "train.face_reg_weight": face_reg_weight,
                    "model.expression_mode": expression_mode, "train.num_threads": threads,
-                   "train.accumulate": accumulate})
+                   "train.accumulate": accumulate, "model.head.region_scale": head_region_scale,
+                   "model.head.band": head_band})
     res = run_train(dataset, out, cfg, resume=resume, device=device, steps=steps)
     if not ranks.main:  # rank 0 speaks for the job
         if res.interrupted:
