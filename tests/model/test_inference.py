@@ -256,3 +256,16 @@ def test_map_single_threaded_keeps_order_and_gives_each_worker_one_thread():
     assert all(n == 1 for _, n in seen)
     assert threading.get_ident() not in {t for t, _ in seen}
     assert map_single_threaded(work, [3], 2) == [9]  # one item: no threads
+
+
+def test_distinct_rows_matches_unique():
+    from flamenerf.model.flame_nerf import distinct_rows
+
+    same = torch.tensor([[0.5, -1.0, 2.0]]).repeat(7, 1)
+    u, inv = distinct_rows(same)
+    assert torch.equal(u, same[:1]) and torch.equal(inv, torch.zeros(7, dtype=torch.long))
+    mixed = torch.tensor([[1.0, 0.0], [0.0, 1.0], [1.0, 0.0], [0.0, 0.0]])
+    u, inv = distinct_rows(mixed)
+    assert torch.equal(u[inv], mixed) and len(u) == 3
+    u, inv = distinct_rows(mixed[:0])
+    assert len(u) == 0 and len(inv) == 0
