@@ -33,13 +33,13 @@ variant; the paper protocol's held-out PSNR within 0.5 dB of 29.2 dB."""
 
 
 def parse_variant(spec: str):
-    from flamenerf.config import override, preset
+    from flamenerf.config import override, parse_overrides, preset
 
     name, _, sets = spec.partition(":")
     cfg = preset("fast")
     if name == "nerfies":
         cfg.model.expression_mode = "none"
-    return name, override(cfg, dict(kv.split("=") for kv in filter(None, sets.split(","))))
+    return name, override(cfg, parse_overrides(sets))
 
 
 def main() -> None:

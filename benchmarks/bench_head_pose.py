@@ -52,7 +52,7 @@ def main() -> None:
     ap.add_argument("--json", type=Path, default=Path("docs/bench/head_pose.json"))
     a = ap.parse_args()
 
-    from flamenerf.config import override, preset
+    from flamenerf.config import override, parse_overrides, preset
     from flamenerf.data.dataset import load_dataset
     from flamenerf.evaluation.protocol import EvalOptions, evaluate_run
     from flamenerf.synthetic.scene import make_scene
@@ -78,8 +78,7 @@ def main() -> None:
     for spec in a.variants.split(";") if ";" in a.variants else a.variants.split(","):
         # a named variant, or `name:key=value,...` overrides of `fast` (separate with ';')
         name, _, sets = spec.partition(":")
-        overrides = VARIANTS[name] if not sets else dict(
-            kv.split("=", 1) for kv in filter(None, sets.split(",")))
+        overrides = VARIANTS[name] if not sets else parse_overrides(sets)
         cfg = override(preset("fast"), overrides)
         cfg.train.downscale = ds.intrinsics.w / a.size
         cfg.train.num_threads = a.threads

@@ -49,3 +49,21 @@ def test_override_sets_dotted_fields_and_skips_none():
 
     with pytest.raises(UserError, match="train.nope"):
         override(cfg, {"train.nope": 1})
+
+
+def test_parse_overrides_reads_key_values_and_rejects_the_rest():
+    import pytest
+
+    from flamenerf.config import override, parse_overrides, preset
+    from flamenerf.errors import UserError
+
+    d = parse_overrides("model.head.band=0.6, model.field.dir_freqs=0,")
+    assert d == {"model.head.band": "0.6", "model.field.dir_freqs": "0"}
+    cfg = override(preset("fast"), d)
+    assert cfg.model.head.band == 0.6 and cfg.model.field.dir_freqs == 0
+    assert parse_overrides("") == {}
+    # an optional field whose default is None (settled per dataset) takes a number too
+    cfg = override(preset("fast"), parse_overrides("model.expression_regions.radius=0.1"))
+    assert cfg.model.expression_regions.radius == 0.1
+    with pytest.raises(UserError):
+        parse_overrides("model.head.band")

@@ -311,11 +311,34 @@ def override(cfg: Config, values: dict[str, Any]) -> Config:
             old = getattr(obj, parts[-1])
         except AttributeError:
             raise UserError(f"{key}: no such configuration field") from None
-        if isinstance(val, str) and not isinstance(old, str):
+        if isinstance(val, str) and old is None:  # an optional field left to its default
+            val = None if val.lower() == "none" else _number_or_text(val)
+        elif isinstance(val, str) and not isinstance(old, str):
             val = (val.lower() in ("1", "true", "yes") if isinstance(old, bool)
                    else type(old)(float(val)))
         setattr(obj, parts[-1], val)
     return cfg
+
+
+def _number_or_text(val: str) -> float | str:
+    try:
+        return float(val)
+    except ValueError:
+        return val
+
+
+def parse_overrides(text: str) -> dict[str, str]:
+    """`key=value,key=value` (dotted fields, as `override` takes them) -> a dict of strings;
+    the benchmarks' variant specs (`name:key=value,...`)."""
+    from flamenerf.errors import UserError
+
+    out = {}
+    for item in filter(None, (t.strip() for t in text.split(","))):
+        key, eq, val = item.partition("=")
+        if not eq or not key:
+            raise UserError(f"{item!r}: not key=value")
+        out[key.strip()] = val.strip()
+    return out
 
 
 def from_dict(d: dict[str, Any]) -> Config:

@@ -1,7 +1,8 @@
 """Render whole images in memory-bounded chunks of rays: the one entry point of eval,
 render, the viewer and training previews. `settings` picks the path: the training forward
 (REFERENCE, the default, what eval measures) or the inference path (`RenderSettings()`,
-model/inference.py)."""
+model/inference.py). On a CPU the inference path renders the chunks side by side in Python
+threads with one torch thread each (`RenderSettings.threads`, runtime.map_single_threaded)."""
 
 from __future__ import annotations
 
