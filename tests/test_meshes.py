@@ -5,7 +5,7 @@ import torch
 
 from flamenerf.data.dataset import load_dataset
 from flamenerf.meshes import (expression_mesh, fit_expression_model, mesh_displacement,
-                              surface_points)
+                              nearest_vertices, surface_points)
 
 
 def test_expression_model_reproduces_the_training_meshes(synth_scene):
@@ -39,6 +39,27 @@ def test_displacement_moves_vertices_exactly_and_far_points_not_at_all():
     probe = mesh[:1] + torch.tensor([[0.0, 0.0, 1.0]]) * torch.tensor([[0.02], [0.05], [0.1]])
     mags = mesh_displacement(probe, mesh, target, falloff=0.05).norm(dim=-1)
     assert mags[0] > mags[1] > mags[2]
+
+
+def test_displacement_by_k_d_tree_matches_every_vertex_blended():
+    # the CPU path finds the k nearest vertices with a k-d tree and drops points beyond the
+    # cutoff; the blend over brute-force distances to every vertex is the reference
+    g = torch.Generator().manual_seed(2)
+    mesh = torch.rand(300, 3, generator=g) * 0.2
+    target = mesh + 0.01 * torch.randn(300, 3, generator=g)
+    x = torch.rand(4000, 3, generator=g) * 0.5 - 0.15
+    falloff = 0.03
+    d2, idx = torch.topk(torch.cdist(x, mesh).square(), 4, dim=-1, largest=False)
+    w = 1.0 / (d2 + 1e-10)
+    w = w / w.sum(-1, keepdim=True)
+    ref = (w[..., None] * (target - mesh)[idx]).sum(1) * torch.exp(-d2[:, :1] / falloff**2)
+    got = mesh_displacement(x, mesh, target, falloff)
+    assert (got - ref).abs().max() < 1e-5  # float32 cdist against a float64 tree
+    assert (ref.norm(dim=-1) > 1e-3).sum() > 200  # the comparison covers moving points
+    kd2, kidx = nearest_vertices(x, mesh, 4, bound=1.0)
+    assert torch.allclose(kd2, d2, atol=1e-6) and bool((kidx == idx).all())
+    far2, _ = nearest_vertices(x, mesh, 4, bound=0.01)
+    assert bool(torch.isinf(far2).any()) and bool(torch.isfinite(far2).any())
 
 
 def test_surface_points_lie_in_their_triangles():

@@ -104,7 +104,12 @@ class MeshGuideConfig:
     face's motion is a function of β that any commanded β reproduces. The mesh of a β comes
     from a per-subject linear model fitted on the training frames' tracked meshes."""
 
-    enabled: bool = False
+    enabled: bool | None = False
+    """None: on where the face parts apply (`face_parts` on MediaPipe meshes with ARKit
+    names: tracked clips), off elsewhere; settled per dataset when a run is built. On the
+    shared expressions clip it raised the controls' mean re-tracked gain with companions
+    from 0.30 to 0.41 (two trainings each) at no cost in PSNR; on the built-in scene it cost
+    control and 0.5 dB (docs/bench/control_exploration.md)."""
     falloff: float = 0.15
     """Distance (fraction of the neutral mesh's bounding-box diagonal) over which the motion
     fades out away from the mesh."""
@@ -116,6 +121,9 @@ class MeshGuideConfig:
     face (brows, eyes, mid face, lower face) on MediaPipe meshes: the tracker's scores
     co-vary, and a free fit lets brow controls open the jaw (data/face_parts.py). Used by
     every preset that fits the model (per-control prior, mesh guide, driven silhouettes)."""
+
+    def resolved_enabled(self, face_parts: bool) -> bool:
+        return face_parts if self.enabled is None else bool(self.enabled)
 
 
 RADIUS_PARTS, RADIUS_FREE = 0.1, 0.05
@@ -257,6 +265,9 @@ def _fast() -> Config:
     # frames that show a control (docs/bench/control_exploration.md)
     cfg.model.field.expr_rank, cfg.model.field.expr_direct = 8, False
     cfg.model.expression_regions.enabled = True
+    # the mesh-guided deformation on tracked clips only: it helped the one real clip's
+    # controls and cost the built-in scene (docs/bench/control_exploration.md)
+    cfg.model.mesh_guide.enabled = None
     cfg.model.sampler = SamplerConfig(kind="proposal", num_proposal=48, num_main=32,
                                       proposal_levels=5, proposal_max_res=128)
     # 680 steps: what fits in 10 minutes on the 2-core CPU (548 s uninterrupted), so that the
@@ -312,7 +323,7 @@ def override(cfg: Config, values: dict[str, Any]) -> Config:
         except AttributeError:
             raise UserError(f"{key}: no such configuration field") from None
         if isinstance(val, str) and old is None:  # an optional field left to its default
-            val = None if val.lower() == "none" else _number_or_text(val)
+            val = _optional_value(val)
         elif isinstance(val, str) and not isinstance(old, str):
             val = (val.lower() in ("1", "true", "yes") if isinstance(old, bool)
                    else type(old)(float(val)))
@@ -320,7 +331,10 @@ def override(cfg: Config, values: dict[str, Any]) -> Config:
     return cfg
 
 
-def _number_or_text(val: str) -> float | str:
+def _optional_value(val: str) -> float | bool | str | None:
+    low = val.lower()
+    if low in ("none", "true", "false"):
+        return {"none": None, "true": True, "false": False}[low]
     try:
         return float(val)
     except ValueError:

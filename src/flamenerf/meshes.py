@@ -76,6 +76,11 @@ def expression_mesh(neutral: Tensor, basis: Tensor, expression: Tensor) -> Tenso
     return neutral + torch.einsum("...e,evc->...vc", expression.to(basis), basis)
 
 
+GUIDE_CUTOFF = 4.0
+"""Points farther than this many falloffs from the mesh do not move (their motion would be
+below exp(-16) ≈ 1e-7 of the vertices')."""
+
+
 def mesh_displacement(x: Tensor, mesh: Tensor, target: Tensor, falloff: float, k: int = 4
                       ) -> Tensor:
     """The displacement that carries space near `mesh` along with its vertices to `target`.
@@ -83,18 +88,45 @@ def mesh_displacement(x: Tensor, mesh: Tensor, target: Tensor, falloff: float, k
     x (P, 3) points; mesh, target (V, 3) the same vertices in two poses; `falloff` the
     distance at which the motion has faded to 1/e (points far from the face stay put).
     Each point moves by the inverse-square-distance blend of its k nearest vertices'
-    motions, scaled by exp(-(d_min / falloff)^2). -> (P, 3).
+    motions, scaled by exp(-(d_min / falloff)^2), and not at all beyond GUIDE_CUTOFF
+    falloffs. -> (P, 3).
     """
     if x.shape[0] == 0:
         return torch.zeros_like(x)
-    d2 = torch.cdist(x, mesh).square()  # (P, V)
     k = min(k, mesh.shape[0])
-    d2k, idx = torch.topk(d2, k, dim=-1, largest=False)  # (P, k)
-    w = 1.0 / (d2k + 1e-10)
-    w = w / w.sum(-1, keepdim=True)
+    d2k, idx = nearest_vertices(x, mesh, k, GUIDE_CUTOFF * falloff)  # (P, k), inf: none
+    w = torch.where(torch.isfinite(d2k), 1.0 / (d2k + 1e-10), torch.zeros_like(d2k))
+    w = w / w.sum(-1, keepdim=True).clamp_min(1e-30)
     motion = (target - mesh)[idx]  # (P, k, 3)
-    fade = torch.exp(-d2k[:, :1] / (falloff * falloff))  # (P, 1)
+    fade = torch.exp(-d2k[:, :1] / (falloff * falloff))  # (P, 1): 0 where none is near
     return (w[..., None] * motion).sum(1) * fade
+
+
+def nearest_vertices(pts: Tensor, verts: Tensor, k: int, bound: float
+                     ) -> tuple[Tensor, Tensor]:
+    """Squared distances to, and indices of, the k nearest of verts (V, 3) for pts (P, 3),
+    nearest first; neighbours farther than `bound` get d² = inf and index 0. A k-d tree on
+    a CPU (brute-force distances to every vertex were over a third of a mesh-guided frame's time),
+    brute force elsewhere. -> (P, k), (P, k) long."""
+    if pts.device.type == "cpu":
+        from scipy.spatial import cKDTree
+
+        d, i = cKDTree(verts.double().numpy()).query(
+            pts.double().numpy(), k=k, distance_upper_bound=bound,
+            workers=_tree_workers(len(pts)))
+        d, i = d.reshape(len(pts), k), i.reshape(len(pts), k)
+        far = ~np.isfinite(d)
+        i[far] = 0
+        return torch.from_numpy(np.square(d)).to(pts.dtype), torch.from_numpy(i).long()
+    d2, i = torch.topk(torch.cdist(pts, verts).square(), k, dim=-1, largest=False)
+    far = d2 > bound * bound
+    return d2.masked_fill(far, float("inf")), i.masked_fill(far, 0)
+
+
+def _tree_workers(n: int) -> int:
+    # a training batch queries one small tree per distinct β: starting threads for each
+    # query cost more than the query (a third of a mesh-guided step's guide)
+    return max(1, torch.get_num_threads()) if n >= 65536 else 1
 
 
 def nearest_vertex(pts: Tensor, verts: Tensor, bound: float) -> tuple[Tensor, Tensor]:
@@ -108,7 +140,7 @@ def nearest_vertex(pts: Tensor, verts: Tensor, bound: float) -> tuple[Tensor, Te
 
         d, i = cKDTree(verts.double().numpy()).query(
             pts.double().numpy(), distance_upper_bound=bound,
-            workers=max(1, torch.get_num_threads()))
+            workers=_tree_workers(len(pts)))
         far = ~np.isfinite(d)
         i[far] = 0
         return torch.from_numpy(d).to(pts.dtype), torch.from_numpy(i).long()

@@ -92,3 +92,11 @@ def test_the_prior_radius_follows_whether_the_parts_apply(dataset_dir):
     assert cfg.model.expression_regions.resolved_radius(True) == RADIUS_PARTS
     m = build_for_dataset(cfg, load_dataset(dataset_dir))  # the built-in scene: no parts
     assert cfg.model.expression_regions.radius == RADIUS_FREE == m.cfg.expression_regions.radius
+    # the mesh guide: on for tracked clips (where the parts apply), off on the built-in scene
+    assert preset("fast").model.mesh_guide.enabled is None
+    assert preset("fast").model.mesh_guide.resolved_enabled(True) is True
+    assert cfg.model.mesh_guide.enabled is False and not m.mesh_guided
+    off = preset("fast")
+    off.model.mesh_guide.enabled = False
+    assert off.model.mesh_guide.resolved_enabled(True) is False
+    assert preset("flame-in-nerf").model.mesh_guide.resolved_enabled(True) is False

@@ -49,7 +49,7 @@ class FlameNeRF(nn.Module):
         self.init_args = dict(num_codes=num_codes, expr_dim=expr_dim, near=near, far=far,
                               box_min=list(map(float, box_min)),
                               box_max=list(map(float, box_max)))
-        self.mesh_guided = cfg.mesh_guide.enabled and cfg.expression_mode != "none"
+        self.mesh_guided = bool(cfg.mesh_guide.enabled) and cfg.expression_mode != "none"
         self.expression_regions = (cfg.expression_regions.enabled
                                    and cfg.expression_mode != "none")
         self.uses_mesh_model = self.mesh_guided or self.expression_regions

@@ -67,14 +67,16 @@ def may_skip_parameters(model: FlameNeRF) -> bool:
 
 
 def settle_dataset_defaults(cfg: Config, ds: Dataset) -> Config:
-    """Fill the config's dataset-dependent defaults in place (the per-control prior's radius),
-    so that a run's config.json holds what it trained with. -> cfg."""
+    """Fill the config's dataset-dependent defaults in place (the per-control prior's radius,
+    whether the deformation is mesh-guided), so that a run's config.json holds what it
+    trained with. -> cfg."""
     from flamenerf.data.face_parts import applies
 
+    parts = cfg.model.mesh_guide.face_parts and applies(
+        ds.expression_kind, ds.expression_names, ds.face_vertices.shape[1])
     regions = cfg.model.expression_regions
-    regions.radius = regions.resolved_radius(
-        cfg.model.mesh_guide.face_parts
-        and applies(ds.expression_kind, ds.expression_names, ds.face_vertices.shape[1]))
+    regions.radius = regions.resolved_radius(parts)
+    cfg.model.mesh_guide.enabled = cfg.model.mesh_guide.resolved_enabled(parts)
     return cfg
 
 
