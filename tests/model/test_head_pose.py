@@ -86,6 +86,24 @@ def test_head_points_move_the_head_and_leave_the_background():
     assert _model(None).head_points(x, d, xi[None])[0] is x
 
 
+def test_head_points_match_the_per_point_screw_everywhere():
+    # the head and the still world take a shortcut (one matrix per ray, or nothing); the
+    # blend band the per-point screw exp(w ξ): together they equal the screw at every point
+    m = _model(REGION)
+    rng = np.random.default_rng(4)
+    xi = torch.from_numpy(np.stack([se3_log(np.linalg.inv(_rigid(rng))) for _ in range(6)])
+                          ).float()
+    x = torch.from_numpy(rng.normal(0, 0.2, (6, 40, 3))).float()
+    d = torch.nn.functional.normalize(torch.randn(6, 3), dim=-1)
+    xc, dc = m.head_points(x, d, xi)
+    w = m.head_weight(apply_se3(xi[:, None, :3], xi[:, None, 3:], x))[..., None]
+    assert bool((w >= 1).any() and (w == 0).any() and ((w > 0) & (w < 1)).any())
+    ref = apply_se3(w * xi[:, None, :3], w * xi[:, None, 3:], x)
+    assert (xc - ref).abs().max() < 1e-5
+    ref_d = apply_se3(w.amax(1) * xi[:, :3], torch.zeros_like(d), d)
+    assert (dc - ref_d).abs().max() < 1e-6
+
+
 def test_zero_head_twists_render_exactly_as_no_head_poses():
     from test_model import rays
 

@@ -21,7 +21,7 @@ from flamenerf.meshes import (expression_mesh, mesh_displacement, nearest_vertex
 from flamenerf.model.field import ProposalField, make_field
 from flamenerf.model.render import (composite, interlevel_loss, render_weights, sample_pdf,
                                     stratified_samples)
-from flamenerf.model.se3 import apply_se3
+from flamenerf.model.se3 import apply_se3, exp_se3
 from flamenerf.model.warp import SE3Field
 
 
@@ -233,10 +233,19 @@ class FlameNeRF(nn.Module):
         Without a head region or twists: x and dirs unchanged."""
         if not self.follows_head or head is None:
             return x, dirs
-        w_rot, v = head[:, None, :3], head[:, None, 3:]
-        w = self.head_weight(apply_se3(w_rot, v, x))[..., None]  # (R, S, 1)
-        xc = apply_se3(w * w_rot, w * v, x)
-        dc = apply_se3(w.amax(1) * head[:, :3], torch.zeros_like(dirs), dirs)
+        R, p = exp_se3(head[:, :3], head[:, 3:])  # the full motion, one matrix per ray
+        full = torch.baddbmm(p[:, None], x, R.transpose(1, 2))  # (R, S, 3)
+        w = self.head_weight(full)  # (R, S)
+        # inside the head (w = 1) and the still world (w = 0) need no per-point screw, and a
+        # render's samples are mostly one or the other: half the time of the per-point
+        # screw everywhere (4096 rays x 48 samples, one thread; a 128 px frame of the
+        # expressions clip 0.36 -> 0.31 s, 256 px unchanged)
+        xc = torch.where((w >= 1)[..., None], full, x)
+        band = (w > 0) & (w < 1)
+        if bool(band.any()):
+            rows, wb = band.nonzero()[:, 0], w[band][:, None]
+            xc[band] = apply_se3(wb * head[rows, :3], wb * head[rows, 3:], x[band])
+        dc = apply_se3(w.amax(1, keepdim=True) * head[:, :3], torch.zeros_like(dirs), dirs)
         return xc, dc
 
     def normalize(self, x: Tensor) -> Tensor:
