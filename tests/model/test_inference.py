@@ -20,11 +20,13 @@ E = 3
 EXACT = RenderSettings(warp_grid=0, proposal_grid=0, min_transmittance=0.0, half=False)
 
 
-def toy_model(sampler: str = "proposal", mode: str = "masked") -> FlameNeRF:
+def toy_model(sampler: str = "proposal", mode: str = "masked", guided: bool = False
+              ) -> FlameNeRF:
     """tests/toy.py's `fast` machinery with weights that make the scene partly opaque."""
     from toy import toy_config
 
     cfg = toy_config(mode).model
+    cfg.mesh_guide.enabled = guided
     if sampler == "hierarchical":
         cfg.sampler.kind, cfg.field.kind = "hierarchical", "mlp"
         cfg.field.width, cfg.field.depth, cfg.field.skips = 32, 3, (2,)
@@ -78,6 +80,16 @@ def test_exact_inference_path_equals_reference(sampler):
         assert 0.2 < float(ref["acc"].mean()) < 0.999  # opaque and transparent rays
     for k in ("rgb", "acc"):
         assert torch.allclose(fast[k], ref[k], atol=2e-4), (k, (fast[k] - ref[k]).abs().max())
+
+
+def test_mesh_guided_inference_equals_reference():
+    # tracked clips train mesh-guided (fast's default there): the inference path's guide
+    # (nearest vertices by k-d tree) is the training forward's
+    m = toy_model(guided=True)
+    assert m.mesh_guided
+    ref, fast = render(m, REFERENCE), render(m, EXACT)
+    assert torch.allclose(fast["rgb"], ref["rgb"], atol=2e-4)
+    assert (ref["rgb"] - render(toy_model(), REFERENCE)["rgb"]).abs().max() > 1e-3  # it acts
 
 
 @pytest.mark.parametrize("kernel", ["1", "0"])
