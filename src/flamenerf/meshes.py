@@ -131,19 +131,10 @@ def _tree_workers(n: int) -> int:
 
 def nearest_vertex(pts: Tensor, verts: Tensor, bound: float) -> tuple[Tensor, Tensor]:
     """Distance to, and index of, the nearest of verts (V, 3) for pts (P, 3); points farther
-    than `bound` get d = inf and index 0. A k-d tree on a CPU (the brute-force distances
-    were a third of a 256 px frame's time), brute force on a GPU. -> (P,), (P,) long."""
+    than `bound` get d = inf and index 0 (`nearest_vertices` with k = 1: a k-d tree on a CPU,
+    where the brute-force distances were a third of a 256 px frame's time). -> (P,), (P,)
+    long."""
     if len(pts) == 0:
         return pts.new_zeros(0), torch.zeros(0, dtype=torch.long, device=pts.device)
-    if pts.device.type == "cpu":
-        from scipy.spatial import cKDTree
-
-        d, i = cKDTree(verts.double().numpy()).query(
-            pts.double().numpy(), distance_upper_bound=bound,
-            workers=_tree_workers(len(pts)))
-        far = ~np.isfinite(d)
-        i[far] = 0
-        return torch.from_numpy(d).to(pts.dtype), torch.from_numpy(i).long()
-    d, i = torch.cdist(pts, verts).min(-1)
-    far = d > bound
-    return d.masked_fill(far, float("inf")), i.masked_fill(far, 0)
+    d2, i = nearest_vertices(pts, verts, 1, bound)
+    return d2[:, 0].sqrt(), i[:, 0]

@@ -233,8 +233,8 @@ class FlameNeRF(nn.Module):
         Without a head region or twists: x and dirs unchanged."""
         if not self.follows_head or head is None:
             return x, dirs
-        R, p = exp_se3(head[:, :3], head[:, 3:])  # the full motion, one matrix per ray
-        full = torch.baddbmm(p[:, None], x, R.transpose(1, 2))  # (R, S, 3)
+        rot, p = exp_se3(head[:, :3], head[:, 3:])  # the full motion, one matrix per ray
+        full = torch.baddbmm(p[:, None], x, rot.transpose(1, 2))  # (R, S, 3)
         w = self.head_weight(full)  # (R, S)
         # inside the head (w = 1) and the still world (w = 0) need no per-point screw, and a
         # render's samples are mostly one or the other: half the time of the per-point
