@@ -108,8 +108,9 @@ class MeshGuideConfig:
     """None: on where the face parts apply (`face_parts` on MediaPipe meshes with ARKit
     names: tracked clips), off elsewhere; settled per dataset when a run is built. On the
     shared expressions clip it raised the controls' mean re-tracked gain with companions
-    from 0.30 to 0.41 (two trainings each) at no cost in PSNR; on the built-in scene it cost
-    control and 0.5 dB (docs/bench/control_exploration.md)."""
+    from 0.30 to 0.41 (two trainings each) at no cost in PSNR; on the built-in scene it did
+    not help (two trainings: driven face -0.3 to -0.6 dB, the rest mixed;
+    docs/bench/control_exploration.md)."""
     falloff: float = 0.15
     """Distance (fraction of the neutral mesh's bounding-box diagonal) over which the motion
     fades out away from the mesh."""
@@ -266,7 +267,7 @@ def _fast() -> Config:
     cfg.model.field.expr_rank, cfg.model.field.expr_direct = 8, False
     cfg.model.expression_regions.enabled = True
     # the mesh-guided deformation on tracked clips only: it helped the one real clip's
-    # controls and cost the built-in scene (docs/bench/control_exploration.md)
+    # controls and not the built-in scene (docs/bench/control_exploration.md)
     cfg.model.mesh_guide.enabled = None
     cfg.model.sampler = SamplerConfig(kind="proposal", num_proposal=48, num_main=32,
                                       proposal_levels=5, proposal_max_res=128)
