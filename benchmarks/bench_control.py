@@ -61,7 +61,7 @@ def main() -> None:
     from flamenerf.evaluation.protocol import EvalOptions, evaluate_run
     from flamenerf.synthetic.scene import make_scene
     from flamenerf.training.run import load_run
-    from flamenerf.training.trainer import train
+    from flamenerf.training.trainer import settle_dataset_defaults, train
 
     if a.threads > 0:
         torch.set_num_threads(a.threads)
@@ -76,6 +76,7 @@ def main() -> None:
                "scene": str(a.scene), "size": a.size, "variants": {}}
     for spec in a.variants.split(";") if ";" in a.variants else a.variants.split(","):
         name, cfg = parse_variant(spec)
+        settle_dataset_defaults(cfg, ds)  # so that the line below names what trains
         cfg.train.downscale = ds.intrinsics.w / a.size
         cfg.train.num_threads = a.threads
         run = a.runs / name
