@@ -32,14 +32,13 @@ and >= 3 dB above the Nerfies variant; driven held-out face PSNR >= 2 dB above t
 variant; the paper protocol's held-out PSNR within 0.5 dB of 29.2 dB."""
 
 
-def parse_variant(spec: str):
-    from flamenerf.config import override, parse_overrides, preset
+def variant_config(name: str, overrides: dict[str, str]):
+    from flamenerf.config import override, preset
 
-    name, _, sets = spec.partition(":")
     cfg = preset("fast")
     if name == "nerfies":
         cfg.model.expression_mode = "none"
-    return name, override(cfg, parse_overrides(sets))
+    return override(cfg, overrides)
 
 
 def main() -> None:
@@ -74,8 +73,10 @@ def main() -> None:
                            "cuda": torch.cuda.get_device_name() if torch.cuda.is_available()
                            else None, "torch": torch.__version__},
                "scene": str(a.scene), "size": a.size, "variants": {}}
-    for spec in a.variants.split(";") if ";" in a.variants else a.variants.split(","):
-        name, cfg = parse_variant(spec)
+    from flamenerf.config import parse_variants
+
+    for name, overrides in parse_variants(a.variants):
+        cfg = variant_config(name, overrides)
         settle_dataset_defaults(cfg, ds)  # so that the line below names what trains
         cfg.train.downscale = ds.intrinsics.w / a.size
         cfg.train.num_threads = a.threads
@@ -89,7 +90,7 @@ def main() -> None:
         res = evaluate_run(r, ds, EvalOptions(fit_steps=a.fit_steps), out_dir=run / "eval",
                            quiet=True)
         res["train_seconds_this_invocation"] = train_s
-        results["variants"][name] = {"spec": spec, "eval": res}
+        results["variants"][name] = {"overrides": overrides, "eval": res}
         print(summary_line(name, res))
         write(a.json, results)  # after every variant: a long benchmark keeps what it has
     v = results["variants"]

@@ -52,7 +52,7 @@ def main() -> None:
     ap.add_argument("--json", type=Path, default=Path("docs/bench/head_pose.json"))
     a = ap.parse_args()
 
-    from flamenerf.config import override, parse_overrides, preset
+    from flamenerf.config import override, parse_variants, preset
     from flamenerf.data.dataset import load_dataset
     from flamenerf.evaluation.protocol import EvalOptions, evaluate_run
     from flamenerf.synthetic.scene import make_scene
@@ -75,10 +75,9 @@ def main() -> None:
                "scene": str(scene), "size": a.size, "frames": a.frames,
                "synth_seconds": time.perf_counter() - t0, "steps": a.steps,
                "fit_steps": a.fit_steps, "variants": {}}
-    for spec in a.variants.split(";") if ";" in a.variants else a.variants.split(","):
+    for name, sets in parse_variants(a.variants):
         # a named variant, or `name:key=value,...` overrides of `fast` (separate with ';')
-        name, _, sets = spec.partition(":")
-        overrides = VARIANTS[name] if not sets else parse_overrides(sets)
+        overrides = sets or VARIANTS[name]
         cfg = override(preset("fast"), overrides)
         cfg.train.downscale = ds.intrinsics.w / a.size
         cfg.train.num_threads = a.threads

@@ -67,3 +67,11 @@ def test_parse_overrides_reads_key_values_and_rejects_the_rest():
     assert cfg.model.expression_regions.radius == 0.1
     with pytest.raises(UserError):
         parse_overrides("model.head.band")
+
+
+def test_parse_variants_names_each_with_its_overrides():
+    from flamenerf.config import parse_variants
+
+    assert parse_variants("fast,nerfies") == [("fast", {}), ("nerfies", {})]
+    assert parse_variants("a:model.head.band=0.6,train.seed=1;b") == [
+        ("a", {"model.head.band": "0.6", "train.seed": "1"}), ("b", {})]

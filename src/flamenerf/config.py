@@ -356,6 +356,17 @@ def parse_overrides(text: str) -> dict[str, str]:
     return out
 
 
+def parse_variants(text: str) -> list[tuple[str, dict[str, str]]]:
+    """The benchmarks' `--variants`: `name` or `name:key=value,...`, separated by ';' (or by
+    ',' when no variant has overrides) -> [(name, overrides)] in order."""
+    specs = text.split(";") if ";" in text else text.split(",")
+    out = []
+    for spec in filter(None, (s.strip() for s in specs)):
+        name, _, sets = spec.partition(":")
+        out.append((name.strip(), parse_overrides(sets)))
+    return out
+
+
 def from_dict(d: dict[str, Any]) -> Config:
     """Inverse of Config.to_dict; unknown keys are ignored so old runs stay loadable."""
 

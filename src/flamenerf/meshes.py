@@ -95,8 +95,8 @@ def mesh_displacement(x: Tensor, mesh: Tensor, target: Tensor, falloff: float, k
         return torch.zeros_like(x)
     k = min(k, mesh.shape[0])
     d2k, idx = nearest_vertices(x, mesh, k, GUIDE_CUTOFF * falloff)  # (P, k), inf: none
-    w = torch.where(torch.isfinite(d2k), 1.0 / (d2k + 1e-10), torch.zeros_like(d2k))
-    w = w / w.sum(-1, keepdim=True).clamp_min(1e-30)
+    w = 1.0 / (d2k + 1e-10)  # 0 for the missing (d² = inf)
+    w = w / w.sum(-1, keepdim=True).clamp_min(1e-30)  # rows with none: 0, not 0/0
     motion = (target - mesh)[idx]  # (P, k, 3)
     fade = torch.exp(-d2k[:, :1] / (falloff * falloff))  # (P, 1): 0 where none is near
     return (w[..., None] * motion).sum(1) * fade
@@ -106,8 +106,8 @@ def nearest_vertices(pts: Tensor, verts: Tensor, k: int, bound: float
                      ) -> tuple[Tensor, Tensor]:
     """Squared distances to, and indices of, the k nearest of verts (V, 3) for pts (P, 3),
     nearest first; neighbours farther than `bound` get d² = inf and index 0. A k-d tree on
-    a CPU (brute-force distances to every vertex were over a third of a mesh-guided frame's time),
-    brute force elsewhere. -> (P, k), (P, k) long."""
+    a CPU (brute-force distances to every vertex were over a third of a mesh-guided
+    frame's time), brute force elsewhere. -> (P, k), (P, k) long."""
     if pts.device.type == "cpu":
         from scipy.spatial import cKDTree
 

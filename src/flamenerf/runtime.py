@@ -87,8 +87,9 @@ def map_single_threaded(fn: Callable[[T], R], items: list[T], workers: int) -> l
     For many small, independent pieces of torch work (chunks of rays at inference): one
     thread's Python overhead then overlaps another's arithmetic, where one Python thread
     driving all cores leaves them waiting between small ops (a 256 px `fast` frame on
-    2 cores: median 1.11 -> 0.85 s, docs/bench/render_ab_threads.json). The process's thread count is restored afterwards; torch work
-    that other threads start meanwhile gets one thread too."""
+    2 cores: median 1.11 -> 0.85 s, docs/bench/render_ab_threads.json). The process's
+    thread count is restored afterwards; torch work that other threads start meanwhile gets
+    one thread too."""
     import torch
 
     if workers <= 1 or len(items) <= 1:

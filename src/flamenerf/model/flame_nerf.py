@@ -32,7 +32,8 @@ GATE_CUTOFF = 3.0
 def distinct_rows(x: Tensor) -> tuple[Tensor, Tensor]:
     """torch.unique(x, dim=0, return_inverse=True) for x (N, E), with the common case (an
     image or a viewer update: every row the same) answered without unique's row-by-row
-    comparisons (~4 % of a 128 px viewer update's CPU time under torch's profiler). -> (U, E), (N,) long."""
+    comparisons (~4 % of a 128 px viewer update's CPU time under torch's profiler).
+    -> (U, E), (N,) long."""
     if len(x) and bool((x == x[:1]).all()):
         return x[:1], torch.zeros(len(x), dtype=torch.long, device=x.device)
     return torch.unique(x, dim=0, return_inverse=True)
