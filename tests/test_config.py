@@ -75,3 +75,5 @@ def test_parse_variants_names_each_with_its_overrides():
     assert parse_variants("fast,nerfies") == [("fast", {}), ("nerfies", {})]
     assert parse_variants("a:model.head.band=0.6,train.seed=1;b") == [
         ("a", {"model.head.band": "0.6", "train.seed": "1"}), ("b", {})]
+    assert parse_variants("a:model.head.band=0.6,train.seed=1") == [
+        ("a", {"model.head.band": "0.6", "train.seed": "1"})]

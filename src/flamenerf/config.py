@@ -37,6 +37,13 @@ class WarpConfig:
     expression_input: bool = False
     """Also condition the warp on the masked expression 𝕀β (next to ω): the face's motion
     becomes a smooth function of β that a commanded β reproduces. Off in the paper."""
+    head_only: bool | None = None
+    """Where the model follows a moving head (datasets with head poses): the deformation
+    acts only in the head's region, fading out over the same band as the head's motion, so
+    the background is static in the world and registers without a per-frame code; False:
+    everywhere, as without head poses (the per-frame codes then also move the room, and
+    a re-animation with frame 0's code sees it moved as in frame 0). None: settled to True
+    when a run starts; runs from before this option load as they trained (everywhere)."""
 
 
 @dataclass
@@ -359,7 +366,8 @@ def parse_overrides(text: str) -> dict[str, str]:
 def parse_variants(text: str) -> list[tuple[str, dict[str, str]]]:
     """The benchmarks' `--variants`: `name` or `name:key=value,...`, separated by ';' (or by
     ',' when no variant has overrides) -> [(name, overrides)] in order."""
-    specs = text.split(";") if ";" in text else text.split(",")
+    # "a:x=1,y=2" is one variant with two overrides, not a variant named "y=2"
+    specs = text.split(";") if ";" in text or ":" in text else text.split(",")
     out = []
     for spec in filter(None, (s.strip() for s in specs)):
         name, _, sets = spec.partition(":")

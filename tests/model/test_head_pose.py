@@ -104,6 +104,45 @@ def test_head_points_match_the_per_point_screw_everywhere():
     assert (dc - ref_d).abs().max() < 1e-6
 
 
+def test_the_deformation_stays_in_the_head_region():
+    # with head poses the background is static in the world: the warp leaves every point
+    # outside the head's region where it is, moves those inside by the full warp and
+    # blends in the band; the baked warp of the inference path does the same
+    import copy
+
+    from flamenerf.model.baked import baked_warp
+    from flamenerf.model.flame_nerf import FlameNeRF
+
+    m = _model(REGION)
+    assert not m.warp_in_head  # head_only unset: as trained before the option
+    cfg = copy.deepcopy(m.cfg)
+    cfg.warp.head_only = True
+    h = FlameNeRF(cfg, num_codes=3, expr_dim=5, near=0.5, far=1.5, box_min=[-1] * 3,
+                  box_max=[1] * 3, head_region=REGION)
+    h.load_state_dict(m.state_dict())
+    g = torch.Generator().manual_seed(0)
+    with torch.no_grad():  # a warp that moves points visibly (it starts as the identity)
+        for p in h.warp.parameters():
+            p.add_(0.3 * torch.randn(p.shape, generator=g))
+    code = h.deform_codes.weight[:2].detach()
+    x = torch.rand(2, 400, 3, generator=g) * 1.2 - 0.6
+    with torch.no_grad():
+        out, full = h.warp_points(x, code[:, None]), h.warp(x, code[:, None])
+    w = h.head_weight(x)  # the box is [-1, 1]^3: normalised = world
+    still, head, band = w == 0, w >= 1, (w > 0) & (w < 1)
+    assert bool(still.any() and head.any() and band.any())
+    assert (full[still] - x[still]).abs().max() > 1e-2  # the warp would move them
+    assert torch.equal(out[still], x[still])
+    assert torch.allclose(out[head], full[head], atol=1e-6)
+    blend = x + w[..., None] * (full - x)
+    assert torch.allclose(out[band], blend[band], atol=1e-6)
+    with torch.no_grad():
+        baked = baked_warp(h, code[0], 65)(x[0])
+    assert (baked - out[0]).abs().max() < 0.2 * (full[0] - x[0]).abs().max()
+    far = h.head_weight(0.8 * x[0]) == 0  # still, and over a voxel from the band
+    assert bool(far.any()) and torch.equal(baked[far], x[0][far])
+
+
 def test_zero_head_twists_render_exactly_as_no_head_poses():
     from test_model import rays
 
@@ -118,7 +157,9 @@ def test_zero_head_twists_render_exactly_as_no_head_poses():
 
 def test_still_head_poses_train_exactly_as_no_head_poses(toy_dataset, tmp_path):
     """The same capture with an identity head_pose on every frame: same weights after
-    training, same renders (a dataset without head poses behaves as it always did)."""
+    training, same renders (a dataset without head poses behaves as it always did), when
+    the deformation acts everywhere as without head poses (`warp.head_only` False; with
+    it the still world has no deformation, the test above)."""
     from toy import toy_config
 
     from flamenerf.training.run import load_run
@@ -132,7 +173,9 @@ def test_still_head_poses_train_exactly_as_no_head_poses(toy_dataset, tmp_path):
     (posed / "transforms.json").write_text(json.dumps(meta))
     runs = []
     for name, data in (("plain", toy_dataset), ("posed", posed)):
-        train(data, tmp_path / name, toy_config("masked", 3), device="cpu", quiet=True)
+        cfg = toy_config("masked", 3)
+        cfg.model.warp.head_only = False
+        train(data, tmp_path / name, cfg, device="cpu", quiet=True)
         runs.append(load_run(tmp_path / name, "cpu"))
     a, b = runs
     assert not a.model.follows_head and b.model.follows_head

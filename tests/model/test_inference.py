@@ -107,8 +107,8 @@ def test_bakes_converge_to_the_fields(kernel, monkeypatch):
     code = m.deform_codes.weight[0].detach()
     x = torch.rand(2000, 3, generator=torch.Generator().manual_seed(0)) * 1.6 - 0.8
     with torch.no_grad():
-        exact_w = m.warp(x, code[None])
-        errs = [(baked_warp(m.warp, code, n)(x) - exact_w).abs().max() for n in (9, 33)]
+        exact_w = m.warp_points(x, code[None])
+        errs = [(baked_warp(m, code, n)(x) - exact_w).abs().max() for n in (9, 33)]
         exact_p = m.proposal.raw_density(x, None)
         perr = [(baked_proposal_logits(m.proposal, n, "cpu")(x)[:, 0] - exact_p).abs().mean()
                 for n in (9, 33)]
@@ -216,17 +216,17 @@ def test_bf16_weights_follow_training(monkeypatch):
 def test_warp_bake_follows_the_code_and_the_weights():
     m = toy_model()
     code = m.deform_codes.weight[0].detach()
-    baked_warp(m.warp, code, 8)
+    baked_warp(m, code, 8)
     grid = m.warp._baked[1]
-    baked_warp(m.warp, code, 8)
+    baked_warp(m, code, 8)
     assert m.warp._baked[1] is grid  # reused while nothing changes
-    baked_warp(m.warp, code + 1, 8)
+    baked_warp(m, code + 1, 8)
     assert m.warp._baked[1] is not grid
     x = torch.rand(50, 3) * 2 - 1
-    before = baked_warp(m.warp, code, 8)(x)
+    before = baked_warp(m, code, 8)(x)
     with torch.no_grad():  # an optimiser step changes weights in place
         m.warp.trans.bias.add_(0.1)
-    after = baked_warp(m.warp, code, 8)(x)
+    after = baked_warp(m, code, 8)(x)
     assert (after - before).abs().max() > 0.05
 
 

@@ -81,13 +81,14 @@ def _cached(module: nn.Module, key: tuple, make: Callable[[], DenseGrid]) -> Den
     return grid
 
 
-def baked_warp(warp: nn.Module, code: Tensor, n: int) -> Callable[[Tensor], Tensor]:
-    """The SE3Field `warp` for one code ω (code_dim,) as x + D̃(x): points (*bs, 3) ->
-    canonical (*bs, 3)."""
+def baked_warp(model: nn.Module, code: Tensor, n: int) -> Callable[[Tensor], Tensor]:
+    """FlameNeRF.warp_points (without β) for one code ω (code_dim,) as x + D̃(x): points
+    (*bs, 3) -> canonical (*bs, 3)."""
+    warp = model.warp
     key = ("warp", n, str(code.device), float(warp.alpha),
            tuple(code.detach().float().cpu().tolist()))
-    grid = _cached(warp, key, lambda: DenseGrid(lambda p: warp(p, code[None]) - p, n,
-                                                code.device))
+    grid = _cached(warp, key, lambda: DenseGrid(lambda p: model.warp_points(p, code[None]) - p,
+                                                n, code.device))
 
     def apply(x: Tensor) -> Tensor:
         flat = x.reshape(-1, 3)

@@ -86,6 +86,7 @@ class FlameNeRF(nn.Module):
         self.warp_expression = cfg.warp.enabled and cfg.warp.expression_input and field_expr > 0
         self.warp = (SE3Field(cfg.warp, field_expr if self.warp_expression else 0)
                      if cfg.warp.enabled else None)
+        self.warp_in_head = self.follows_head and bool(cfg.warp.head_only)
         self.field = make_field(cfg.field, field_expr)
         s = cfg.sampler
         if s.kind == "hierarchical":
@@ -261,7 +262,20 @@ class FlameNeRF(nn.Module):
         if self.warp_expression:
             e = code.new_zeros(*code.shape[:-1], self.expr_dim) if expr is None else expr
             code = torch.cat([code, e.expand(*code.shape[:-1], -1)], -1)
-        return self.warp(xn, code)
+        if not self.warp_in_head:
+            return self.warp(xn, code)
+        # x + g(x) (warp(x) - x), g = the head's weight: 1 in the head's region, 0 in the
+        # still world, whose points skip the warp
+        g = self.head_weight(xn * self.half_extent + self.center)
+        live = g > 0
+        if bool(live.all()):
+            return xn + g[..., None] * (self.warp(xn, code) - xn)
+        out = xn.clone()
+        if bool(live.any()):
+            xl, gl = xn[live], g[live][:, None]
+            cl = code.expand(*xn.shape[:-1], code.shape[-1])[live]
+            out[live] = xl + gl * (self.warp(xl, cl) - xl)
+        return out
 
     # ---------------------------------------------------------------- querying
     def _query(self, field: nn.Module, xn: Tensor, dirs: Tensor, code: Tensor, app: Tensor,

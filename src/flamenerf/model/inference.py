@@ -140,7 +140,7 @@ def prepare(model, deform_code: Tensor, settings: RenderSettings) -> None:
     dev = deform_code.device
     with torch.inference_mode():
         if _bakes_warp(model, settings):
-            baked_warp(model.warp, deform_code, settings.warp_grid)
+            baked_warp(model, deform_code, settings.warp_grid)
         if _bakes_proposal(model, settings):
             baked_proposal_logits(model.proposal, settings.proposal_grid, dev)
     if dev.type == "cpu":
@@ -156,7 +156,7 @@ def _warp_fn(model, rays: RayBatch, settings: RenderSettings):
         return lambda xn, rows, e: xn
     codes = rays.deform_code
     if _bakes_warp(model, settings) and bool((codes == codes[:1]).all()):
-        baked = baked_warp(model.warp, codes[0], settings.warp_grid)
+        baked = baked_warp(model, codes[0], settings.warp_grid)
         return lambda xn, rows, e: baked(xn)
     return lambda xn, rows, e: model.warp_points(xn, codes[rows, None], e)
 

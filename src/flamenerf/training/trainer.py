@@ -68,7 +68,7 @@ def may_skip_parameters(model: FlameNeRF) -> bool:
 
 def settle_dataset_defaults(cfg: Config, ds: Dataset) -> Config:
     """Fill the config's dataset-dependent defaults in place (the per-control prior's radius,
-    whether the deformation is mesh-guided), so that a run's config.json holds what it
+    whether the deformation is mesh-guided, whether it stays in the head's region), so that a run's config.json holds what it
     trained with. -> cfg."""
     from flamenerf.data.face_parts import applies
 
@@ -77,6 +77,8 @@ def settle_dataset_defaults(cfg: Config, ds: Dataset) -> Config:
     regions = cfg.model.expression_regions
     regions.radius = regions.resolved_radius(parts)
     cfg.model.mesh_guide.enabled = cfg.model.mesh_guide.resolved_enabled(parts)
+    if cfg.model.warp.head_only is None:
+        cfg.model.warp.head_only = True
     return cfg
 
 
