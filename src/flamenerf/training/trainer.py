@@ -61,9 +61,11 @@ def train_resolution(ds: Dataset, cfg: Config):
 
 def may_skip_parameters(model: FlameNeRF) -> bool:
     """Whether a step's loss can leave parameters out (DDP must then search the graph):
-    the deformation codes without a warp; the expression feature fields in a batch where no
-    sample gets a non-zero β (no face ray, or none near a control's region)."""
-    return model.warp is None or getattr(model.field, "expr_grid", None) is not None
+    the deformation codes without a warp, or with a warp confined to the head's region (a
+    batch with no sample there); the expression feature fields in a batch where no sample
+    gets a non-zero β (no face ray, or none near a control's region)."""
+    return (model.warp is None or model.warp_in_head
+            or getattr(model.field, "expr_grid", None) is not None)
 
 
 def settle_dataset_defaults(cfg: Config, ds: Dataset) -> Config:
