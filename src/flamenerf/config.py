@@ -44,6 +44,10 @@ class WarpConfig:
     everywhere, as without head poses (the per-frame codes then also move the room, and
     a re-animation with frame 0's code sees it moved as in frame 0). None: settled to True
     when a run starts; runs from before this option load as they trained (everywhere)."""
+    band: float | None = None
+    """With `head_only`: the width of the deformation's fade beyond the head's ellipsoid, as
+    a fraction of its radius; None: the head's own band (`model.head.band`). Narrower keeps
+    per-frame codes off the hair and shoulders that a wide head band blends."""
 
 
 @dataclass

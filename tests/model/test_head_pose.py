@@ -141,6 +141,13 @@ def test_the_deformation_stays_in_the_head_region():
     assert (baked - out[0]).abs().max() < 0.2 * (full[0] - x[0]).abs().max()
     far = h.head_weight(0.8 * x[0]) == 0  # still, and over a voxel from the band
     assert bool(far.any()) and torch.equal(baked[far], x[0][far])
+    # the deformation's own, narrower band: points the head's band still blends stay put
+    h.cfg.warp.band = 0.1
+    with torch.no_grad():
+        narrow = h.warp_points(x, code[:, None])
+    outside = (h.head_weight(x, 0.1) == 0) & (w > 0)
+    assert bool(outside.any()) and torch.equal(narrow[outside], x[outside])
+    assert torch.allclose(narrow[head], full[head], atol=1e-6)
 
 
 def test_zero_head_twists_render_exactly_as_no_head_poses():

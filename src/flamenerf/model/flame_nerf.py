@@ -215,12 +215,13 @@ class FlameNeRF(nn.Module):
             e = e * face_ray[:, None].to(e)
         return e
 
-    def head_weight(self, x: Tensor) -> Tensor:
+    def head_weight(self, x: Tensor, band: float | None = None) -> Tensor:
         """How much of the head's motion canonical points x (*bs, 3) (world units) take:
         1 inside the head's ellipsoid, a smoothstep down to 0 at 1 + band times its radius
-        (the neck and hair blend into the static world). -> (*bs,)"""
+        (the neck and hair blend into the static world; band: `model.head.band` unless
+        given). -> (*bs,)"""
         q = ((x - self.head_centre) @ self.head_axes) / self.head_radii
-        band = self.cfg.head.band
+        band = self.cfg.head.band if band is None else band
         s = ((1 + band - q.norm(dim=-1)) / band).clamp(0, 1)
         return s * s * (3 - 2 * s)
 
@@ -264,9 +265,9 @@ class FlameNeRF(nn.Module):
             code = torch.cat([code, e.expand(*code.shape[:-1], -1)], -1)
         if not self.warp_in_head:
             return self.warp(xn, code)
-        # x + g(x) (warp(x) - x), g = the head's weight: 1 in the head's region, 0 in the
-        # still world, whose points skip the warp
-        g = self.head_weight(xn * self.half_extent + self.center)
+        # x + g(x) (warp(x) - x), g = the head's weight (over the warp's own band): 1 in the
+        # head's region, 0 in the still world, whose points skip the warp
+        g = self.head_weight(xn * self.half_extent + self.center, self.cfg.warp.band)
         live = g > 0
         if bool(live.all()):
             return xn + g[..., None] * (self.warp(xn, code) - xn)
