@@ -46,8 +46,9 @@ class WarpConfig:
     when a run starts; runs from before this option load as they trained (everywhere)."""
     band: float | None = None
     """With `head_only`: the width of the deformation's fade beyond the head's ellipsoid, as
-    a fraction of its radius; None: the head's own band (`model.head.band`). Narrower keeps
-    per-frame codes off the hair and shoulders that a wide head band blends."""
+    a fraction of its radius. Narrower than the head's band, it keeps per-frame codes off
+    the hair and shoulders that the head's motion blends. None: settled to 0.15 when a run
+    starts; a run from before this option loads with the head's band, as it trained."""
 
 
 @dataclass
@@ -178,9 +179,11 @@ class HeadConfig:
     """Use the dataset's head poses (off: treat the head as part of the static world)."""
     region_scale: float = 1.0
     """Grows the head's ellipsoid (fitted around frame 0's face mesh) about its centre."""
-    band: float = 0.35
+    band: float = 0.6
     """Width of the blend from head motion to the static world, as a fraction of the
-    ellipsoid's radius: full head motion inside, none beyond 1 + band."""
+    ellipsoid's radius: full head motion inside, none beyond 1 + band (0.6 with the
+    deformation's narrower `warp.band`: both real clips re-animate better than with 0.35,
+    the built-in scene ~0.2 dB worse; docs/head_pose.md)."""
 
 
 @dataclass

@@ -123,9 +123,9 @@ def test_train_options_grow_the_head_region(tmp_path):
                     leakage_steps=0, workers=1, head_motion=True)
     out = tmp_path / "run"
     assert main(["train", str(ds), "--out", str(out), "--steps", "1", "--batch-rays", "32",
-                 "--head-region-scale", "1.3", "--head-band", "0.6"]) == 0
+                 "--head-region-scale", "1.3", "--head-band", "0.5"]) == 0
     run = load_run(out, "cpu")
-    assert run.config.model.head.region_scale == 1.3 and run.config.model.head.band == 0.6
+    assert run.config.model.head.region_scale == 1.3 and run.config.model.head.band == 0.5
     base = head_region(run.dataset(None), 1.0)
     assert np.allclose(run.model.head_radii.cpu().numpy(), 1.3 * base.radii, rtol=1e-5)
     assert main(["train", str(ds), "--out", str(tmp_path / "bad"), "--steps", "1",

@@ -61,9 +61,9 @@ def train(
             point: no prior). Default: the preset's.
         head_region_scale: Datasets with head poses: grow the region that turns with the
             head (an ellipsoid around the face) by this factor. Long hair that turns with the
-            head may want 1.3 with --head-band 0.6 (docs/head_pose.md). Default: 1.0.
+            head may want 1.3 (docs/head_pose.md). Default: 1.0.
         head_band: Datasets with head poses: the width of the blend from the head's motion to
-            the still world, a fraction of the region's radius. Default: 0.35.
+            the still world, a fraction of the region's radius. Default: 0.6.
         resume: Continue the run in OUT from its latest checkpoint.
         device: `auto` (CUDA when present), `cpu` or `cuda`.
         threads: CPU threads for torch (0 = default).

@@ -81,6 +81,8 @@ def settle_dataset_defaults(cfg: Config, ds: Dataset) -> Config:
     cfg.model.mesh_guide.enabled = cfg.model.mesh_guide.resolved_enabled(parts)
     if cfg.model.warp.head_only is None:
         cfg.model.warp.head_only = True
+    if cfg.model.warp.band is None:
+        cfg.model.warp.band = 0.15
     return cfg
 
 
