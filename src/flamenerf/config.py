@@ -39,7 +39,7 @@ class WarpConfig:
     becomes a smooth function of β that a commanded β reproduces. Off in the paper."""
     head_only: bool | None = None
     """Where the model follows a moving head (datasets with head poses): the deformation
-    acts only in the head's region, fading out over the same band as the head's motion, so
+    acts only in the head's region, fading out over `band` beyond the head's ellipsoid, so
     the background is static in the world and registers without a per-frame code; False:
     everywhere, as without head poses (the per-frame codes then also move the room, and
     a re-animation with frame 0's code sees it moved as in frame 0). None: settled to True

@@ -70,8 +70,8 @@ def may_skip_parameters(model: FlameNeRF) -> bool:
 
 def settle_dataset_defaults(cfg: Config, ds: Dataset) -> Config:
     """Fill the config's dataset-dependent defaults in place (the per-control prior's radius,
-    whether the deformation is mesh-guided, whether it stays in the head's region), so that a run's config.json holds what it
-    trained with. -> cfg."""
+    whether the deformation is mesh-guided, whether and how closely it stays in the head's
+    region), so that a run's config.json holds what it trained with. -> cfg."""
     from flamenerf.data.face_parts import applies
 
     parts = cfg.model.mesh_guide.face_parts and applies(
