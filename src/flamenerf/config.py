@@ -50,6 +50,14 @@ class WarpConfig:
     the hair and shoulders that the head's motion blends. None: settled to 0.15 when a run
     starts; a run from before this option loads with the head's band, as it trained."""
 
+    def settle(self) -> None:
+        """The defaults a new run trains with (None stays None in a loaded old run's config,
+        meaning what it trained with: see `head_only` and `band`)."""
+        if self.head_only is None:
+            self.head_only = True
+        if self.band is None:
+            self.band = 0.15
+
 
 @dataclass
 class FieldConfig:

@@ -85,8 +85,8 @@ def baked_warp(model: nn.Module, code: Tensor, n: int) -> Callable[[Tensor], Ten
     """FlameNeRF.warp_points (without β) for one code ω (code_dim,) as x + D̃(x): points
     (*bs, 3) -> canonical (*bs, 3)."""
     warp = model.warp
-    key = ("warp", n, str(code.device), float(warp.alpha),
-           tuple(code.detach().float().cpu().tolist()))
+    key = ("warp", n, str(code.device), float(warp.alpha), model.warp_in_head,
+           model.cfg.warp.band, tuple(code.detach().float().cpu().tolist()))
     grid = _cached(warp, key, lambda: DenseGrid(lambda p: model.warp_points(p, code[None]) - p,
                                                 n, code.device))
 

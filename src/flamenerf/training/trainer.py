@@ -79,10 +79,7 @@ def settle_dataset_defaults(cfg: Config, ds: Dataset) -> Config:
     regions = cfg.model.expression_regions
     regions.radius = regions.resolved_radius(parts)
     cfg.model.mesh_guide.enabled = cfg.model.mesh_guide.resolved_enabled(parts)
-    if cfg.model.warp.head_only is None:
-        cfg.model.warp.head_only = True
-    if cfg.model.warp.band is None:
-        cfg.model.warp.band = 0.15
+    cfg.model.warp.settle()
     return cfg
 
 
