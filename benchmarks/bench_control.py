@@ -148,7 +148,8 @@ def summary_line(name: str, res: dict) -> str:
                             f"(ground truth {c.get('mean_gt_gain', float('nan')):.3f})")
     return (f"[{name}] held-out {h['psnr']:.2f} dB; driven face {d['psnr_face']:.2f} / "
             f"expressive {d['psnr_expressive']:.2f} / background {d['psnr_background']:.2f} / "
-            f"scene {d.get('psnr_scene', float('nan')):.2f} dB; "
+            f"scene {d.get('psnr_scene', float('nan')):.2f} dB, face depth error "
+            f"{1000 * d.get('face_depth_error', float('nan')):.1f} mm; "
             f"re-animation {r.get('psnr', float('nan')):.2f} dB, face "
             f"{r.get('psnr_face', float('nan')):.2f} dB{ctl}")
 

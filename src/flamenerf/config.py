@@ -238,6 +238,16 @@ class TrainConfig:
     uniform over the image)."""
     interlevel_weight: float = 1.0
     """Weight of the proposal sampler's interlevel loss."""
+    face_depth_weight: float = 0.0
+    """Weight of the face-depth prior (training/losses.py `face_depth_loss`): on rays
+    through the tracked face mesh, rendering weight further than `face_depth_margin` from
+    the mesh's surface is penalised (0: off, as in the paper)."""
+    face_depth_margin: float = 0.01
+    """Scene units (metres in a preprocessed or built-in dataset) around the mesh's surface
+    that the face-depth prior leaves free: a tracked mesh is not the exact surface."""
+    face_depth_start: float = 0.0
+    """Share of the training steps after which the face-depth prior acts (it pulls density
+    down along whole rays, which early in training thins the background too)."""
     checkpoint_every: int = 5000
     keep_checkpoints: int = 2
     log_every: int = 50

@@ -38,6 +38,9 @@ def test_eval_writes_the_documented_schema(evaluated):
               "fit_seconds"):
         assert isinstance(h[k], float), k
     assert isinstance(res["driven"]["psnr_scene"], float)
+    # the rendered face's depth against the quad's (0.5 .. 1.6 is the toy's depth range)
+    assert 0.0 <= res["driven"]["face_depth_error"] < 1.1
+    assert "face depth error (mm)" in (evaluated / "metrics.md").read_text()
     assert h["num_frames"] == len(h["frames"]) == 2
     assert h["psnr"] == pytest.approx(np.mean([f["psnr"] for f in h["frames"]]))
     assert {f["frame_index"] for f in h["frames"]} == {4, 5}

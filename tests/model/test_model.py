@@ -183,3 +183,17 @@ def test_nearest_vertex_matches_brute_force_within_the_bound():
     assert near.any() and (~near).any()
     assert torch.allclose(d[near], bd[near], atol=1e-5) and torch.equal(i[near], bi[near])
     assert torch.isinf(d[~near]).all() and (i[~near] == 0).all()
+
+
+
+@pytest.mark.parametrize("kind", ["mlp", "hash"])
+def test_training_forward_hands_out_the_weights_and_depths_it_rendered(kind):
+    m = tiny("fast", kind)
+    r = rays(m)
+    m.train()
+    out = m(r, jitter=True)
+    w, t = out["weights"], out["t"]
+    assert w.shape == t.shape and w.shape[0] == len(r)
+    assert torch.allclose((w * t).sum(-1) / w.sum(-1).clamp_min(1e-6), out["depth"], atol=1e-5)
+    m.eval()
+    assert "weights" not in m(r)

@@ -129,6 +129,24 @@ class FrameSet:
                         None if self.head is None else self.head[fi].to(device))
         return rays, self.images[fi, ys, xs].to(device)
 
+    def mesh_depths(self) -> torch.Tensor:
+        """The face mesh's z-depth through every pixel of every frame, inf off the mesh and
+        on its outline (one pixel eroded: a pixel there is partly background).
+        -> (N, H, W) float32, computed on first use."""
+        if getattr(self, "_mesh_depths", None) is None:
+            from scipy import ndimage
+
+            from flamenerf.data.mesh_depth import mesh_depth
+
+            dirs, faces, out = self.dirs_cam.numpy(), self.faces.numpy(), []
+            for i in range(self.n):
+                d = mesh_depth(self.face_vertices[i].numpy(), faces, self.intr,
+                               self.c2w[i].numpy().astype(np.float64), dirs)
+                d[~ndimage.binary_erosion(np.isfinite(d))] = np.inf
+                out.append(d)
+            self._mesh_depths = torch.from_numpy(np.stack(out))
+        return self._mesh_depths
+
     def face_points(self, fi: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
         """One uniformly random point on the face mesh of each frame in fi, in the canonical
         frame (where the deformation field sees it; the world without head poses).

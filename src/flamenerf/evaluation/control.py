@@ -68,17 +68,21 @@ def region_metrics(pred: np.ndarray, gt: np.ndarray, face: np.ndarray,
 
 
 DRIVEN_KEYS = ("psnr", "ssim", "psnr_face", "psnr_background", "psnr_scene",
-               "psnr_expressive")
+               "psnr_expressive", "face_depth_error")
 
 
 def driven(model: FlameNeRF, ds: Dataset, fs: FrameSet, omega0: torch.Tensor,
            phi0: torch.Tensor, chunk: int = 16384) -> tuple[dict[str, Any], list[np.ndarray]]:
     """Frames of `fs` rendered with their own camera, β and prior mask and frame 0's codes
-    (what a re-animation has), against their images. -> (summary with rows, renders)."""
+    (what a re-animation has), against their images; and the rendered face's depth
+    against the frame's face mesh (`face_depth_error`: median |depth − mesh depth| over the
+    pixels the mesh covers, scene units; a face rendered as a fog behind its surface looks
+    right from the captured views only). -> (summary with rows, renders)."""
     from flamenerf.evaluation.protocol import scene_masks, summarize
 
     regions = region_masks(ds, fs, expressive_faces(ds))
     scenes = scene_masks(fs)
+    mesh_depths = fs.mesh_depths().numpy()
     rows, preds = [], []
     for i in range(fs.n):
         out = render_image(model, fs.intr, fs.c2w[i], omega0, phi0, fs.expressions[i],
@@ -88,6 +92,10 @@ def driven(model: FlameNeRF, ds: Dataset, fs: FrameSet, omega0: torch.Tensor,
         row = {"position": fs.frames[i].position}
         row.update(region_metrics(pred, fs.images[i].numpy(), fs.masks[i].numpy(), regions[i],
                                   scenes[i]))
+        hit = np.isfinite(mesh_depths[i])
+        row["face_depth_error"] = (float(np.median(np.abs(out["depth"].numpy()[hit]
+                                                         - mesh_depths[i][hit])))
+                                   if hit.any() else float("nan"))
         rows.append(row)
     res = summarize(rows, DRIVEN_KEYS)
     res["frames"] = rows

@@ -22,6 +22,11 @@ def fmt_mse(x: float | None) -> str:
     return f"{m}e{int(e)}"
 
 
+def fmt_mm(x: float | None) -> str:
+    """A length in scene units (metres) as millimetres."""
+    return "–" if x is None or not math.isfinite(x) else f"{1000 * x:.1f}"
+
+
 def fmt(x: float | None, digits: int = 2) -> str:
     return "–" if x is None or not math.isfinite(x) else f"{x:.{digits}f}"
 
@@ -163,13 +168,15 @@ def eval_markdown(res: dict[str, Any]) -> str:
         L += ["", f"**Driven** ({dr['num_frames']} `{dr.get('split')}` frames, their own camera "
               "and β, frame 0's codes, nothing fitted: what a re-animation gets)", "",
               "| PSNR ↑ | SSIM ↑ | PSNR face ↑ | PSNR background ↑ | PSNR scene ↑ "
-              "| PSNR expressive region ↑ |",
-              "|--:|--:|--:|--:|--:|--:|",
+              "| PSNR expressive region ↑ | face depth error (mm) ↓ |",
+              "|--:|--:|--:|--:|--:|--:|--:|",
               f"| {fmt(dr.get('psnr'))} | {fmt(dr.get('ssim'), 3)} | {fmt(dr.get('psnr_face'))} "
               f"| {fmt(dr.get('psnr_background'))} | {fmt(dr.get('psnr_scene'))} "
-              f"| {fmt(dr.get('psnr_expressive'))} |",
+              f"| {fmt(dr.get('psnr_expressive'))} | {fmt_mm(dr.get('face_depth_error'))} |",
               "", "*Background*: outside the face mask (hair, neck and shoulders included); "
-              "*scene*: outside a generous region around the person, the static world."]
+              "*scene*: outside a generous region around the person, the static world; "
+              "*face depth error*: median distance along the ray between the rendered depth "
+              "and the frame's face mesh (scene units taken as metres)."]
     ct = res.get("control")
     if ct and ct.get("controls"):
         gt = any("gt_gain" in c for c in ct["controls"].values())

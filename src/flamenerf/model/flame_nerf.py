@@ -363,6 +363,8 @@ class FlameNeRF(nn.Module):
         w_f = render_weights(sig_f, self._deltas(t_f, rays.dirs, 1e10))
         out = composite(w_f, rgb_f, t_f)
         out["rgb_coarse"] = out_c["rgb"]
+        if self.training:
+            out["weights"], out["t"] = w_f, t_f  # for the face-depth prior
         out["num_samples"] = torch.tensor(t_c.numel() + t_f.numel())
         return out
 
@@ -383,5 +385,6 @@ class FlameNeRF(nn.Module):
         out = composite(w_m, rgb_m, t_m)
         if self.training:
             out["interlevel"] = interlevel_loss(edges_m, w_m, edges_p, w_p)
+            out["weights"], out["t"] = w_m, t_m  # for the face-depth prior
         out["num_samples"] = torch.tensor(R * s.num_main)
         return out

@@ -27,7 +27,7 @@ from flamenerf.training.checkpoint import (LEGACY_TEMP, latest_checkpoint, load_
 from flamenerf.training.distributed import (Ranks, launched_ranks, process_device,
                                             process_group, shard_seed, split)
 from flamenerf.training.interrupt import StopRequest
-from flamenerf.training.losses import face_region_loss, psnr_from_mse
+from flamenerf.training.losses import face_depth_loss, face_region_loss, psnr_from_mse
 
 
 def learning_rate(step: int, cfg) -> float:
@@ -186,6 +186,8 @@ class Trainer:
         torch.manual_seed(cfg.train.seed)
         self.model = build_for_dataset(cfg, self.ds).to(self.device)
         self.train_set = FrameSet(self.ds, self.ds.split("train"), self.intr)
+        if cfg.train.face_depth_weight > 0:  # before the progress bar starts
+            self.train_set.mesh_depths()
         fused = self.device.type in ("cpu", "cuda")
         eps = 1e-15 if cfg.model.field.kind == "hash" else 1e-8
         self.opt = torch.optim.Adam(param_groups(self.model, cfg.train), lr=cfg.train.lr,
@@ -353,6 +355,12 @@ class Trainer:
         losses = model.loss_dict(out, target, cfg.interlevel_weight)
         terms = [(losses["total"], share)]
         logs = {f"loss/{k}": v.item() * share for k, v in losses.items() if k != "total"}
+        if cfg.face_depth_weight > 0 and self.step >= cfg.face_depth_start * cfg.steps:
+            depth = ts.mesh_depths()[fi, ys, xs].to(self.device)
+            depth = torch.where(rays.face_ray, depth, torch.full_like(depth, float("inf")))
+            fd = face_depth_loss(out["weights"], out["t"], depth, cfg.face_depth_margin)
+            terms.append((cfg.face_depth_weight * fd, share))
+            logs["loss/face_depth"] = fd.item() * share
         if cfg.face_reg_weight > 0 and model.warp is not None:
             reg, p_share = torch.zeros((), device=self.device), 0.0
             if sh.points > 0:
