@@ -155,6 +155,26 @@ def test_cli_expression_mode_gives_the_ablation_of_any_preset(tiny_scene, tmp_pa
     assert run.model.field.expr_dim == 0  # the Nerfies variant has no β input at all
 
 
+def test_face_depth_prior_starts_at_its_share_of_the_run(tiny_scene, tmp_path):
+    cfg = small(preset("fast"), 4)
+    assert cfg.train.face_depth_weight > 0  # on in `fast`
+    cfg.train.face_depth_start, cfg.train.face_ray_fraction = 0.5, 0.5
+    t = Trainer(cfg, tiny_scene, tmp_path / "run", quiet=True)
+    seen = ["loss/face_depth" in t.train_step() for _ in range(4)]
+    assert seen == [False, False, True, True]
+
+
+def test_cli_face_depth_weight_reaches_the_run(tiny_scene, tmp_path):
+    from flamenerf.cli import main
+
+    out = tmp_path / "run"
+    assert main(["train", str(tiny_scene), "--out", str(out), "--steps", "1",
+                 "--batch-rays", "64", "--face-depth-weight", "0.5"]) == 0
+    assert load_run(out).config.train.face_depth_weight == 0.5
+    assert main(["train", str(tiny_scene), "--out", str(tmp_path / "bad"), "--steps", "1",
+                 "--face-depth-weight", "-1"]) == 2
+
+
 def test_mesh_guided_training_carries_the_expression_model(synth_scene, tmp_path):
     cfg = small(preset("fast"), 2)
     cfg.model.mesh_guide.enabled = True
@@ -202,6 +222,7 @@ def test_face_depth_prior_moves_the_face_onto_its_mesh(synth_scene, tmp_path):
     for w in (0.0, 1.0):
         cfg = small(preset("fast"), 60)
         cfg.train.face_depth_weight, cfg.train.face_ray_fraction = w, 0.5
+        cfg.train.face_depth_start = 0.0
         t = Trainer(cfg, synth_scene, tmp_path / f"w{w}", quiet=True)
         logs = t.train_step()
         assert ("loss/face_depth" in logs) == (w > 0)

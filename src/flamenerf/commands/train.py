@@ -23,6 +23,7 @@ def train(
     batch_rays: int | None = None,
     accumulate: int | None = None,
     face_reg_weight: float | None = None,
+    face_depth_weight: float | None = None,
     expression_mode: Literal["masked", "none", "everywhere"] | None = None,
     head_region_scale: float | None = None,
     head_band: float | None = None,
@@ -56,6 +57,9 @@ def train(
         accumulate: Compute each process's rays of a step in this many micro-batches
             (gradient accumulation: the same step in less memory).
         face_reg_weight: Weight of the face-region regularisation (paper: 0.1 to 10).
+        face_depth_weight: Weight of the face-depth prior: rendering weight on rays through
+            the tracked face mesh kept near its surface (0: off; docs/presets.md). Default:
+            the preset's.
         expression_mode: The ablations of any preset: `masked` (β through the spatial prior,
             FLAME-in-NeRF), `none` (no β: the Nerfies variant), `everywhere` (β at every
             point: no prior). Default: the preset's.
@@ -108,7 +112,10 @@ def train(
     for flag, v in (("--head-region-scale", head_region_scale), ("--head-band", head_band)):
         if v is not None and not v > 0:
             raise UserError(f"{flag} {v}: must be positive")
+    if face_depth_weight is not None and not face_depth_weight >= 0:
+        raise UserError(f"--face-depth-weight {face_depth_weight}: must be 0 or more")
     override(cfg, {"train.batch_rays": batch_rays, "train.face_reg_weight": face_reg_weight,
+                   "train.face_depth_weight": face_depth_weight,
                    "model.expression_mode": expression_mode, "train.num_threads": threads,
                    "train.accumulate": accumulate, "model.head.region_scale": head_region_scale,
                    "model.head.band": head_band})
