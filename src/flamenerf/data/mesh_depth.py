@@ -10,8 +10,9 @@ from flamenerf.geometry import Pinhole, project_points
 
 def triangle_ids(vertices: np.ndarray, faces: np.ndarray, intr: Pinhole, c2w: np.ndarray,
                  w: int, h: int) -> np.ndarray:
-    """Which triangle each pixel sees: triangles drawn far to near (the painter's
-    algorithm; exact for a face mesh, whose triangles do not interpenetrate).
+    """Which triangle each pixel sees: triangles drawn far to near by their mean depth (the
+    painter's algorithm: where a face mesh's small triangles overlap on screen, one lies
+    clearly behind the other, as the nose before the cheek).
 
     vertices (V, 3) world; faces (F, 3) int -> (h, w) int32, −1 where no triangle is.
     """
