@@ -1,5 +1,6 @@
-"""The face mesh's depth at every pixel: where the tracked face surface lies along each ray
-(the face-depth prior's target in training, `train.face_depth_weight`)."""
+"""The face mesh rasterised: which triangle each pixel sees (the spatial prior's silhouette,
+data/prior.py) and how deep it lies along the pixel's ray (the face-depth prior's target in
+training, `train.face_depth_weight`)."""
 
 from __future__ import annotations
 

@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 from flamenerf.data.dataset import Dataset, Intrinsics, reference_position
-from flamenerf.geometry import project_points
+from flamenerf.data.mesh_depth import triangle_ids
 from flamenerf.images import resize_image
 from flamenerf.meshes import expression_mesh
 
@@ -30,17 +30,9 @@ def rasterize_silhouette(vertices: np.ndarray, faces: np.ndarray, intr: Intrinsi
     vertices (V, 3) world; faces (F, 3) int; -> (H, W) bool, grown by `dilate_px` pixels so
     that the prior also covers the mesh's near surroundings.
     """
-    from PIL import Image, ImageDraw
     from scipy import ndimage
 
-    uv, z = project_points(np.asarray(vertices, np.float64), intr, c2w)
-    img = Image.new("L", (intr.w, intr.h), 0)
-    draw = ImageDraw.Draw(img)
-    faces = np.asarray(faces)
-    tri_ok = (z[faces] > 1e-6).all(axis=1)
-    for tri in faces[tri_ok]:
-        draw.polygon([tuple(p) for p in uv[tri]], fill=255)
-    mask = np.asarray(img) > 0
+    mask = triangle_ids(vertices, faces, intr, c2w, intr.w, intr.h) >= 0
     if dilate_px > 0:
         mask = ndimage.binary_dilation(mask, iterations=int(dilate_px))
     return mask
