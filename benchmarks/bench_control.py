@@ -77,8 +77,8 @@ def main() -> None:
 
     for name, overrides in parse_variants(a.variants):
         cfg = variant_config(name, overrides)
-        settle_dataset_defaults(cfg, ds)  # so that the line below names what trains
         cfg.train.downscale = ds.intrinsics.w / a.size
+        settle_dataset_defaults(cfg, ds)  # so that the line below names what trains
         cfg.train.num_threads = a.threads
         run = a.runs / name
         t0 = time.perf_counter()

@@ -236,3 +236,28 @@ def test_face_depth_prior_moves_the_face_onto_its_mesh(synth_scene, tmp_path):
             err.append((out["depth"][hit] - target[i][hit]).abs().median().item())
         errors[w] = float(np.mean(err))
     assert errors[1.0] < 0.7 * errors[0.0], errors
+
+
+def test_hash_grid_resolution_settles_to_one_training_pixel_at_the_face(tiny_scene, tmp_path):
+    from flamenerf.data.scene import face_pixel_resolution, scene_box
+
+    ds = load_dataset(tiny_scene)
+    res = face_pixel_resolution(ds, ds.intrinsics)
+    assert abs(res - 2 * face_pixel_resolution(ds, ds.intrinsics.scaled(0.5))) <= 2
+    # one cell of the grid, moved across frame 0's view at the face, moves one pixel
+    lo, hi = map(np.asarray, scene_box(ds))
+    cell = (hi - lo).max() / res
+    fr = ds.split("train")[0]
+    R, o = fr.c2w[:3, :3], fr.c2w[:3, 3]
+    cam = (ds.face_vertices[fr.position] - o) @ R
+    p = cam[np.argmin(np.abs(-cam[:, 2] - np.median(-cam[:, 2])))]
+    px = [ds.intrinsics.fx * q[0] / -q[2] for q in (p, p + np.array([cell, 0, 0]))]
+    assert 0.9 < px[1] - px[0] < 1.1
+    # `fast` settles it for the size it trains at, and the run keeps what it trained with
+    cfg = small(preset("fast"), 1)
+    cfg.model.field.hash_max_res, cfg.train.downscale = 0, 2.0
+    Trainer(cfg, tiny_scene, tmp_path / "run", quiet=True).fit()
+    run = load_run(tmp_path / "run")
+    expected = face_pixel_resolution(ds, ds.intrinsics.scaled(0.5))
+    assert run.config.model.field.hash_max_res == max(expected, 2 * cfg.model.field.hash_base_res)
+    assert preset("fast").model.field.hash_max_res == 0

@@ -33,6 +33,21 @@ def scene_box(ds: Dataset, margin: float = 0.05) -> tuple[list[float], list[floa
     return (lo - pad).tolist(), (hi + pad).tolist()
 
 
+def face_pixel_resolution(ds: Dataset, intr: Intrinsics) -> int:
+    """Cells per side of a grid over the model's normalised box (the longest side of
+    `scene_box(ds)`) that are one pixel of `intr` wide at the face: the side over a pixel's
+    footprint at the median depth of the training frames' face-mesh vertices."""
+    lo, hi = np.asarray(scene_box(ds)[0]), np.asarray(scene_box(ds)[1])
+    side = float((hi - lo).max())
+    depths = []
+    for fr in ds.split("train") or ds.frames:
+        R, o = fr.c2w[:3, :3], fr.c2w[:3, 3]
+        # OpenGL cameras look down -z: a point's depth is minus its camera z
+        depths.append(-((ds.face_vertices[fr.position] - o) @ R)[:, 2])
+    depth = float(np.median(np.concatenate(depths)))
+    return max(1, round(side * intr.fx / depth))
+
+
 def model_head_region(cfg, ds: Dataset) -> dict | None:
     """The head region a model built for `ds` with config `cfg` follows (its init argument
     `head_region`), or None: no head poses, or `model.head.follow` off."""

@@ -59,6 +59,10 @@ class HashField(nn.Module):
     def __init__(self, cfg: FieldConfig, expr_dim: int):
         super().__init__()
         self.cfg, self.expr_dim = cfg, expr_dim
+        if cfg.hash_max_res <= 0:
+            raise ValueError("field.hash_max_res 0 (one cell per pixel at the face) is settled "
+                             "for a dataset when a run is built (training.trainer."
+                             "settle_dataset_defaults); set it to build a model without one")
         self.grid = HashGrid(cfg.hash_levels, cfg.hash_features, cfg.hash_log2_size,
                              cfg.hash_base_res, cfg.hash_max_res)
         self.expr_grid = None

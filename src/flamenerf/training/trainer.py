@@ -15,8 +15,8 @@ import torch
 from flamenerf import __version__
 from flamenerf.config import Config, from_dict
 from flamenerf.data.dataset import Dataset, load_dataset
-from flamenerf.data.scene import (FrameSet, fit_dataset_expression_model, model_head_region,
-                                  scene_box)
+from flamenerf.data.scene import (FrameSet, face_pixel_resolution, fit_dataset_expression_model,
+                                  model_head_region, scene_box)
 from flamenerf.errors import Interrupted, UserError, warn
 from flamenerf.io import atomic_write_text, read_json
 from flamenerf.model.flame_nerf import FlameNeRF
@@ -71,7 +71,8 @@ def may_skip_parameters(model: FlameNeRF) -> bool:
 def settle_dataset_defaults(cfg: Config, ds: Dataset) -> Config:
     """Fill the config's dataset-dependent defaults in place (the per-control prior's radius,
     whether the deformation is mesh-guided, whether and how closely it stays in the head's
-    region), so that a run's config.json holds what it trained with. -> cfg."""
+    region, the hash grid's finest resolution), so that a run's config.json holds what it
+    trained with. -> cfg."""
     from flamenerf.data.face_parts import applies
 
     parts = cfg.model.mesh_guide.face_parts and applies(
@@ -80,6 +81,10 @@ def settle_dataset_defaults(cfg: Config, ds: Dataset) -> Config:
     regions.radius = regions.resolved_radius(parts)
     cfg.model.mesh_guide.enabled = cfg.model.mesh_guide.resolved_enabled(parts)
     cfg.model.warp.settle()
+    field = cfg.model.field
+    if field.kind == "hash" and field.hash_max_res == 0:
+        field.hash_max_res = min(max(face_pixel_resolution(ds, train_resolution(ds, cfg)),
+                                     2 * field.hash_base_res), 8192)
     return cfg
 
 
