@@ -81,10 +81,7 @@ def untrained(name: str, dev: torch.device, expr_dim: int = 8, n: int = 16) -> F
     torch.manual_seed(0)
     faces = [(i * n + j, i * n + j + 1, (i + 1) * n + j) for i in range(n - 1)
              for j in range(n - 1)]
-    cfg = preset(name).model
-    if cfg.field.kind == "hash" and cfg.field.hash_max_res == 0:
-        cfg.field.hash_max_res = 1024  # what `fast` settles to at 128 px (no dataset here)
-    m = FlameNeRF(cfg, num_codes=4, expr_dim=expr_dim, near=0.5, far=1.5,
+    m = FlameNeRF(preset(name).model, num_codes=4, expr_dim=expr_dim, near=0.5, far=1.5,
                   box_min=[-0.5] * 3, box_max=[0.5] * 3, mesh_vertices=n * n,
                   mesh_faces=len(faces))
     if m.uses_mesh_model:

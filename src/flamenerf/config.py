@@ -294,10 +294,10 @@ def _fast() -> Config:
     cfg = Config(preset="fast")
     cfg.model.warp = WarpConfig(code_dim=16, width=64, depth=4, skips=(), num_freqs=6,
                                 anneal_fraction=0.5)
-    # the finest hash level one training pixel wide at the face (hash_max_res 0: ~1000 at
-    # 128 px, ~2 px per cell at the 512 used before; docs/presets.md item 7)
+    # a finer grid (hash_max_res 0: one training pixel per cell at the face, ~1000 at 128 px)
+    # sharpened the face and lost background on the built-in scene (docs/presets.md)
     cfg.model.field = FieldConfig(kind="hash", appearance_dim=8, dir_freqs=4, hash_levels=12,
-                                  hash_log2_size=19, hash_max_res=0)
+                                  hash_log2_size=19, hash_max_res=512)
     # β acts through local feature fields only, each control near the part of the face mesh
     # it moves: through the density head's input β became a face-wide code of the few
     # frames that show a control (docs/bench/control_exploration.md)

@@ -20,7 +20,6 @@ def test_per_ray_conditioning_equals_concatenated_input():
 def test_fields_and_warp_accept_per_ray_conditioning():
     torch.manual_seed(0)
     cfg = preset("fast").model
-    cfg.field.hash_max_res = 512  # settled per dataset in a run; none here
     R, S, E = 5, 6, 3
     x = torch.rand(R, S, 3) * 2 - 1
     d = torch.nn.functional.normalize(torch.randn(R, 1, 3), dim=-1)
