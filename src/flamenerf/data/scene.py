@@ -37,8 +37,8 @@ def face_pixel_resolution(ds: Dataset, intr: Intrinsics) -> int:
     """Cells per side of a grid over the model's normalised box (the longest side of
     `scene_box(ds)`) that are one pixel of `intr` wide at the face: the side over a pixel's
     footprint at the median depth of the training frames' face-mesh vertices."""
-    lo, hi = np.asarray(scene_box(ds)[0]), np.asarray(scene_box(ds)[1])
-    side = float((hi - lo).max())
+    lo, hi = scene_box(ds)
+    side = float((np.asarray(hi) - np.asarray(lo)).max())
     depths = []
     for fr in ds.split("train") or ds.frames:
         R, o = fr.c2w[:3, :3], fr.c2w[:3, 3]
