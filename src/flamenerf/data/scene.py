@@ -12,6 +12,7 @@ from flamenerf.data.prior import training_mask
 from flamenerf.images import resize_image
 from flamenerf.data.face_parts import control_weights
 from flamenerf.meshes import fit_expression_model, surface_points
+from flamenerf.geometry import project_points
 
 
 def scene_box(ds: Dataset, margin: float = 0.05) -> tuple[list[float], list[float]]:
@@ -39,12 +40,9 @@ def face_pixel_resolution(ds: Dataset, intr: Intrinsics) -> int:
     footprint at the median depth of the training frames' face-mesh vertices."""
     lo, hi = scene_box(ds)
     side = float((np.asarray(hi) - np.asarray(lo)).max())
-    depths = []
-    for fr in ds.split("train") or ds.frames:
-        R, o = fr.c2w[:3, :3], fr.c2w[:3, 3]
-        # OpenGL cameras look down -z: a point's depth is minus its camera z
-        depths.append(-((ds.face_vertices[fr.position] - o) @ R)[:, 2])
-    depth = float(np.median(np.concatenate(depths)))
+    depth = float(np.median(np.concatenate([
+        project_points(ds.face_vertices[fr.position].astype(np.float64), intr, fr.c2w)[1]
+        for fr in ds.split("train") or ds.frames])))
     return max(1, round(side * intr.fx / depth))
 
 
