@@ -198,3 +198,16 @@ def project_points(points: np.ndarray, intr: Pinhole, c2w: np.ndarray
     w2c = np.linalg.inv(c2w)
     pc = points @ w2c[:3, :3].T + w2c[:3, 3]
     return project(pc, intr.fx, intr.fy, intr.cx, intr.cy), -pc[:, 2]
+
+
+# ----------------------------------------------------------------------------- regions
+
+
+def ellipsoid_weight(x: Tensor, centre: Tensor, axes: Tensor, radii: Tensor, band: float
+                     ) -> Tensor:
+    """A soft ellipsoidal region: 1 inside the ellipsoid (centre (3,), semi-axes `radii`
+    (3,) along the columns of `axes` (3, 3)), a smoothstep down to 0 at 1 + band times its
+    radius. x (*bs, 3) -> (*bs,)."""
+    q = ((x - centre) @ axes) / radii
+    s = ((1 + band - q.norm(dim=-1)) / band).clamp(0, 1)
+    return s * s * (3 - 2 * s)

@@ -197,3 +197,31 @@ def test_training_forward_hands_out_the_weights_and_depths_it_rendered(kind):
     assert torch.allclose((w * t).sum(-1) / w.sum(-1).clamp_min(1e-6), out["depth"], atol=1e-5)
     m.eval()
     assert "weights" not in m(r)
+
+
+def test_detail_levels_act_in_the_head_region_only():
+    """The finer levels reach only points in (or within the band of) the region, and only
+    those points train them; the main grid is as without them."""
+    region = {"centre": [0.2, 0.0, 0.0], "axes": torch.eye(3).tolist(),
+              "radii": [0.1, 0.15, 0.1]}
+    m = tiny("fast", "hash", **{"field.detail_levels": 2, "field.detail_max_res": 256})
+    cfg = m.cfg
+    assert m.field.detail is None, "a model built without a region has no detail levels"
+    torch.manual_seed(0)
+    m = FlameNeRF(cfg, num_codes=3, expr_dim=E, near=0.5, far=1.5, box_min=[-2, -2, -2],
+                  box_max=[2, 2, 2], detail_region=region)  # normalised: halved
+    assert m.field.detail.res.tolist() == [128, 256]
+    for t in m.field.detail.tables:
+        torch.nn.init.uniform_(t, -1, 1)
+    inside = torch.tensor([[0.1, 0.0, 0.0], [0.1, 0.07, 0.0]])  # normalised
+    outside = torch.tensor([[0.1, 0.0, 0.07], [-0.3, 0.0, 0.0]])  # beyond 1.2 radii
+    feats = m.field._detail_features(torch.cat([inside, outside]))
+    assert torch.all(feats[:2].abs().sum(-1) > 0) and torch.all(feats[2:] == 0)
+    m.field.density(outside, torch.zeros(2, E)).sum().backward()
+    assert all(t.grad is None or torch.all(t.grad == 0) for t in m.field.detail.tables)
+    m.field.density(inside, torch.zeros(2, E)).sum().backward()
+    assert any(torch.any(t.grad != 0) for t in m.field.detail.tables)
+    # a loaded run rebuilds the region from the model's init arguments
+    m2 = FlameNeRF(cfg, **m.init_args)
+    assert torch.equal(m2.field.detail_radii, m.field.detail_radii)
+    assert torch.allclose(m.field.detail_centre, torch.tensor([0.1, 0.0, 0.0]))

@@ -260,3 +260,35 @@ def test_hash_grid_resolution_settles_to_one_training_pixel_at_the_face(tiny_sce
     run = load_run(tmp_path / "run")
     expected = face_pixel_resolution(ds, ds.intrinsics.scaled(0.5))
     assert run.config.model.field.hash_max_res == max(expected, 2 * cfg.model.field.hash_base_res)
+
+
+def test_detail_levels_settle_to_two_cells_per_training_pixel_at_the_face(tiny_scene, tmp_path):
+    from flamenerf.data.head_pose import head_region
+    from flamenerf.data.scene import face_pixel_resolution
+
+    ds = load_dataset(tiny_scene)
+    cfg = small(preset("fast"), 1)
+    cfg.model.field.hash_max_res, cfg.model.field.detail_levels = 16, 2
+    Trainer(cfg, tiny_scene, tmp_path / "run", quiet=True).fit()
+    run = load_run(tmp_path / "run")
+    assert (run.config.model.field.detail_max_res
+            == max(2 * face_pixel_resolution(ds, ds.intrinsics), 16 + 2))
+    # the loaded model's detail levels act in the dataset's head region
+    got = run.model.init_args["detail_region"]
+    assert np.allclose(got["centre"], head_region(ds).centre)
+
+
+def test_random_background_shows_through_transparent_rays_only(tiny_scene, tmp_path):
+    from flamenerf.training.trainer import over_random_background
+
+    out = {"rgb": torch.tensor([[0.2, 0.3, 0.4], [0.0, 0.0, 0.0], [0.1, 0.1, 0.1]]),
+           "acc": torch.tensor([1.0, 0.0, 0.5])}
+    colour = torch.tensor([[0.9, 0.9, 0.9], [0.5, 0.6, 0.7], [0.2, 0.4, 0.6]])
+    got = over_random_background(out, colour)
+    assert torch.allclose(got["rgb"], torch.tensor([[0.2, 0.3, 0.4], [0.5, 0.6, 0.7],
+                                                    [0.2, 0.3, 0.4]]))
+    assert torch.equal(out["rgb"][1], torch.zeros(3)), "the forward's output is left as is"
+    cfg = small(preset("fast"), 2)
+    cfg.train.random_background = True
+    res = Trainer(cfg, tiny_scene, tmp_path / "run", quiet=True).fit()
+    assert res.step == 2 and np.isfinite(res.last_psnr)

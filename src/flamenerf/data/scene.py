@@ -54,6 +54,15 @@ def model_head_region(cfg, ds: Dataset) -> dict | None:
     return head_region(ds, cfg.model.head.region_scale).to_dict()
 
 
+def model_detail_region(cfg, ds: Dataset) -> dict | None:
+    """Where a model built for `ds` with `cfg` evaluates its hash field's detail levels (its
+    init argument `detail_region`): the head's region in the canonical frame, or None
+    without detail levels."""
+    if not (cfg.model.field.kind == "hash" and cfg.model.field.detail_levels > 0):
+        return None
+    return head_region(ds).to_dict()
+
+
 def fit_dataset_expression_model(ds: Dataset, ridge: float = 1e-3, face_parts: bool = True
                                  ) -> tuple[torch.Tensor, torch.Tensor]:
     """The subject's linear β -> mesh model fitted on the training frames' face meshes, in

@@ -7,6 +7,7 @@ import torch
 from torch import Tensor, nn
 
 from flamenerf.config import FieldConfig
+from flamenerf.geometry import ellipsoid_weight
 from flamenerf.model.encodings import HashGrid, pe_dim, positional_encoding
 from flamenerf.model.mlp import MLP
 
@@ -56,7 +57,12 @@ class HashField(nn.Module):
     """Hash-grid features of x', then a one-hidden-layer density head over (features, 𝕀β)
     and a two-layer colour head over (geometry features, γ(d), φ)."""
 
-    def __init__(self, cfg: FieldConfig, expr_dim: int):
+    def __init__(self, cfg: FieldConfig, expr_dim: int,
+                 detail_region: tuple[Tensor, Tensor, Tensor] | None = None):
+        """detail_region: where `cfg.detail_levels` act, an ellipsoid in the field's own
+        coordinates (the normalised canonical box): centre (3,), its axes as the columns of
+        (3, 3), semi-axes (3,). Without one (a model built without a dataset) the field has
+        no detail levels."""
         super().__init__()
         self.cfg, self.expr_dim = cfg, expr_dim
         if cfg.hash_max_res <= 0:
@@ -72,6 +78,24 @@ class HashField(nn.Module):
                                       cfg.expr_log2_size, cfg.expr_base_res, cfg.expr_max_res)
             self.expr_proj = nn.Linear(expr_dim, cfg.expr_rank, bias=False)
             extra = cfg.expr_levels * cfg.expr_features
+        self.detail = None
+        if cfg.detail_levels > 0 and detail_region is not None:
+            if cfg.detail_max_res <= cfg.hash_max_res:
+                raise ValueError(f"field.detail_max_res ({cfg.detail_max_res}) must exceed "
+                                 f"field.hash_max_res ({cfg.hash_max_res}); 0 is settled "
+                                 "for a dataset when a run is built")
+            # the levels go on where the main grid's stop, at its geometric growth's pace
+            g = (cfg.detail_max_res / cfg.hash_max_res) ** (1 / cfg.detail_levels)
+            # drawn aside from the global stream, so that the other parameters start as
+            # without the detail levels (but the density head's wider first layer)
+            with torch.random.fork_rng(devices=[]):
+                self.detail = HashGrid(cfg.detail_levels, cfg.hash_features,
+                                       cfg.detail_log2_size,
+                                       max(int(cfg.hash_max_res * g), cfg.hash_max_res + 1),
+                                       cfg.detail_max_res)
+            extra += self.detail.out_dim
+            for k, v in zip(("centre", "axes", "radii"), detail_region):
+                self.register_buffer(f"detail_{k}", v.float().clone(), persistent=False)
         self.direct = bool(expr_dim) and (cfg.expr_direct or self.expr_grid is None)
         self.density_head = MLP(self.grid.out_dim + extra + (expr_dim if self.direct else 0),
                                 cfg.head_width, 1, (),
@@ -81,9 +105,25 @@ class HashField(nn.Module):
 
     def _geo(self, x: Tensor, expr: Tensor | None) -> Tensor:
         h = self.grid((x.reshape(-1, 3) + 1) * 0.5).view(*x.shape[:-1], -1)
+        if self.detail is not None:
+            h = torch.cat([h, self._detail_features(x)], -1)
         if self.expr_grid is not None:
             h = torch.cat([h, self._expression_features(x, expr)], -1)
         return self.density_head(h, expr if self.direct else None)
+
+    def _detail_features(self, x: Tensor) -> Tensor:
+        """The detail levels times the head region's weight, evaluated only where it is
+        non-zero (the tables then hold the head alone, so its cells collide only with each
+        other). x (*bs, 3) -> (*bs, detail levels·features)."""
+        flat = x.reshape(-1, 3)
+        w = ellipsoid_weight(flat, self.detail_centre, self.detail_axes, self.detail_radii,
+                             self.cfg.detail_band)
+        out = flat.new_zeros(len(flat), self.detail.out_dim)
+        idx = (w > 0).nonzero()[:, 0]
+        if len(idx):
+            f = self.detail((flat[idx] + 1) * 0.5) * w[idx, None]
+            out = out.index_copy(0, idx, f)
+        return out.view(*x.shape[:-1], -1)
 
     def _expression_features(self, x: Tensor, expr: Tensor) -> Tensor:
         """Σ_r (Aβ)_r G_r(x), evaluated only where β ≠ 0 (elsewhere it is exactly 0).
@@ -134,5 +174,9 @@ class ProposalField(nn.Module):
         return self.head(h, expr if self.expr_dim else None)[..., 0]
 
 
-def make_field(cfg: FieldConfig, expr_dim: int) -> nn.Module:
-    return {"mlp": NeRFField, "hash": HashField}[cfg.kind](cfg, expr_dim)
+def make_field(cfg: FieldConfig, expr_dim: int,
+               detail_region: tuple[Tensor, Tensor, Tensor] | None = None) -> nn.Module:
+    """The canonical field of `cfg.kind`; detail_region: HashField's (the MLP has none)."""
+    if cfg.kind == "hash":
+        return HashField(cfg, expr_dim, detail_region)
+    return NeRFField(cfg, expr_dim)

@@ -15,6 +15,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from flamenerf.config import ModelConfig
+from flamenerf.geometry import ellipsoid_weight
 from flamenerf.data.rays import RayBatch  # noqa: F401 - the model's input, re-exported
 from flamenerf.meshes import (expression_mesh, mesh_displacement, nearest_vertex,
                                surface_points)
@@ -39,10 +40,18 @@ def distinct_rows(x: Tensor) -> tuple[Tensor, Tensor]:
     return torch.unique(x, dim=0, return_inverse=True)
 
 
+def _plain_region(region: dict) -> dict:
+    """An ellipsoid (data/head_pose.HeadRegion.to_dict) as plain floats and lists, for a
+    run's saved init arguments."""
+    return {k: [list(map(float, r)) if isinstance(r, list) else float(r) for r in v]
+            for k, v in region.items()}
+
+
 class FlameNeRF(nn.Module):
     def __init__(self, cfg: ModelConfig, num_codes: int, expr_dim: int, near: float,
                  far: float, box_min: list[float], box_max: list[float],
-                 mesh_vertices: int = 0, mesh_faces: int = 0, head_region: dict | None = None):
+                 mesh_vertices: int = 0, mesh_faces: int = 0, head_region: dict | None = None,
+                 detail_region: dict | None = None):
         super().__init__()
         self.cfg = cfg
         self.near, self.far = float(near), float(far)
@@ -68,9 +77,7 @@ class FlameNeRF(nn.Module):
         # init_args so that a loaded run rebuilds it; buffers for the device only
         self.follows_head = head_region is not None and cfg.head.follow
         if self.follows_head:
-            self.init_args["head_region"] = {k: [list(map(float, r)) if isinstance(r, list)
-                                                 else float(r) for r in v]
-                                             for k, v in head_region.items()}
+            self.init_args["head_region"] = _plain_region(head_region)
             for k in ("centre", "axes", "radii"):
                 self.register_buffer(f"head_{k}", torch.tensor(head_region[k]).float(),
                                      persistent=False)
@@ -87,10 +94,18 @@ class FlameNeRF(nn.Module):
         self.warp = (SE3Field(cfg.warp, field_expr if self.warp_expression else 0)
                      if cfg.warp.enabled else None)
         self.warp_in_head = self.follows_head and bool(cfg.warp.head_only)
-        self.field = make_field(cfg.field, field_expr)
+        # the hash field's detail levels act in the head's region (data/head_pose.head_region,
+        # world units; kept in init_args for a loaded run), normalised for the field
+        region = None
+        if detail_region is not None and cfg.field.kind == "hash" and cfg.field.detail_levels:
+            self.init_args["detail_region"] = _plain_region(detail_region)
+            c, a, r = (torch.tensor(detail_region[k]).float()
+                       for k in ("centre", "axes", "radii"))
+            region = (self.normalize(c), a, r / self.half_extent)
+        self.field = make_field(cfg.field, field_expr, region)
         s = cfg.sampler
         if s.kind == "hierarchical":
-            self.field_coarse = make_field(cfg.field, field_expr)
+            self.field_coarse = make_field(cfg.field, field_expr, region)
         elif s.kind == "proposal":
             self.proposal = ProposalField(s.proposal_levels, s.proposal_log2_size,
                                           s.proposal_max_res, s.proposal_width, field_expr)
@@ -220,10 +235,8 @@ class FlameNeRF(nn.Module):
         1 inside the head's ellipsoid, a smoothstep down to 0 at 1 + band times its radius
         (the neck and hair blend into the static world; band: `model.head.band` unless
         given). -> (*bs,)"""
-        q = ((x - self.head_centre) @ self.head_axes) / self.head_radii
-        band = self.cfg.head.band if band is None else band
-        s = ((1 + band - q.norm(dim=-1)) / band).clamp(0, 1)
-        return s * s * (3 - 2 * s)
+        return ellipsoid_weight(x, self.head_centre, self.head_axes, self.head_radii,
+                                self.cfg.head.band if band is None else band)
 
     def head_points(self, x: Tensor, dirs: Tensor, head: Tensor | None
                     ) -> tuple[Tensor, Tensor]:
@@ -362,7 +375,7 @@ class FlameNeRF(nn.Module):
         sig_f, rgb_f = self._query_rays(self.field, rays, t_f, expr)
         w_f = render_weights(sig_f, self._deltas(t_f, rays.dirs, 1e10))
         out = composite(w_f, rgb_f, t_f)
-        out["rgb_coarse"] = out_c["rgb"]
+        out["rgb_coarse"], out["acc_coarse"] = out_c["rgb"], out_c["acc"]
         if self.training:
             out["weights"], out["t"] = w_f, t_f  # for the face-depth prior
         out["num_samples"] = torch.tensor(t_c.numel() + t_f.numel())

@@ -16,7 +16,7 @@ from flamenerf import __version__
 from flamenerf.config import Config, from_dict
 from flamenerf.data.dataset import Dataset, load_dataset
 from flamenerf.data.scene import (FrameSet, face_pixel_resolution, fit_dataset_expression_model,
-                                  model_head_region, scene_box)
+                                  model_detail_region, model_head_region, scene_box)
 from flamenerf.errors import Interrupted, UserError, warn
 from flamenerf.io import atomic_write_text, read_json
 from flamenerf.model.flame_nerf import FlameNeRF
@@ -59,6 +59,16 @@ def train_resolution(ds: Dataset, cfg: Config):
     return ds.intrinsics.scaled(1.0 / cfg.train.downscale)
 
 
+def over_random_background(out: dict, colour: torch.Tensor) -> dict:
+    """A forward pass's colours (rendered over black) over per-ray colours (R, 3) instead:
+    rgb + colour·(1 - acc), and the coarse network's likewise. -> a new dict."""
+    out = dict(out)
+    for k, a in (("rgb", "acc"), ("rgb_coarse", "acc_coarse")):
+        if k in out:
+            out[k] = out[k] + colour * (1 - out[a])[:, None]
+    return out
+
+
 def may_skip_parameters(model: FlameNeRF) -> bool:
     """Whether a step's loss can leave parameters out (DDP must then search the graph):
     the deformation codes without a warp, or with a warp confined to the head's region (a
@@ -85,6 +95,9 @@ def settle_dataset_defaults(cfg: Config, ds: Dataset) -> Config:
     if field.kind == "hash" and field.hash_max_res == 0:
         field.hash_max_res = min(max(face_pixel_resolution(ds, train_resolution(ds, cfg)),
                                      2 * field.hash_base_res), 8192)
+    if field.kind == "hash" and field.detail_levels > 0 and field.detail_max_res == 0:
+        field.detail_max_res = min(max(2 * face_pixel_resolution(ds, train_resolution(ds, cfg)),
+                                       field.hash_max_res + field.detail_levels), 8192)
     return cfg
 
 
@@ -95,7 +108,8 @@ def build_for_dataset(cfg: Config, ds: Dataset) -> FlameNeRF:
     V, nf = ds.face_vertices.shape[1], len(ds.faces)
     model = FlameNeRF(cfg.model, num_codes=ds.num_codes, expr_dim=ds.expression_dim,
                       near=ds.near, far=ds.far, box_min=lo, box_max=hi,
-                      mesh_vertices=V, mesh_faces=nf, head_region=model_head_region(cfg, ds))
+                      mesh_vertices=V, mesh_faces=nf, head_region=model_head_region(cfg, ds),
+                      detail_region=model_detail_region(cfg, ds))
     if model.uses_mesh_model:
         neutral, basis = fit_dataset_expression_model(ds, cfg.model.mesh_guide.ridge,
                                                      cfg.model.mesh_guide.face_parts)
@@ -357,6 +371,9 @@ class Trainer:
         omega, phi = model.codes(ts.frame_index[fi].to(self.device))
         rays, target = ts.ray_batch(fi, ys, xs, omega, phi, self.device)
         out = model(rays, jitter=True, generator=gen if self.device.type == "cpu" else None)
+        if cfg.random_background:
+            out = over_random_background(out, torch.rand(len(target), 3, generator=gen)
+                                         .to(self.device))
         losses = model.loss_dict(out, target, cfg.interlevel_weight)
         terms = [(losses["total"], share)]
         logs = {f"loss/{k}": v.item() * share for k, v in losses.items() if k != "total"}
