@@ -309,10 +309,11 @@ def _fast() -> Config:
     cfg = Config(preset="fast")
     cfg.model.warp = WarpConfig(code_dim=16, width=64, depth=4, skips=(), num_freqs=6,
                                 anneal_fraction=0.5)
-    # a finer grid (hash_max_res 0: one training pixel per cell at the face, ~1000 at 128 px)
-    # sharpened the face and lost background on the built-in scene (docs/presets.md)
+    # finer cells at the head only: four levels above 512, to two cells per training pixel
+    # at the face (settled per dataset, ~1900 at 128 px), evaluated in the head's region
+    # (docs/presets.md item 7)
     cfg.model.field = FieldConfig(kind="hash", appearance_dim=8, dir_freqs=4, hash_levels=12,
-                                  hash_log2_size=19, hash_max_res=512)
+                                  hash_log2_size=19, hash_max_res=512, detail_levels=4)
     # β acts through local feature fields only, each control near the part of the face mesh
     # it moves: through the density head's input β became a face-wide code of the few
     # frames that show a control (docs/bench/control_exploration.md)
@@ -327,9 +328,12 @@ def _fast() -> Config:
     # learning rate has decayed when the time is up (docs/presets.md)
     # the face-depth prior from a fifth of the run on: without it the face trains as a fog
     # centred ~3 cm behind its surface, which new cameras see wrongly (docs/presets.md)
+    # rays over a random colour: over black, a half-transparent room with fog in front of it
+    # passed for the captured views in some trainings and not for new ones (item 7)
     cfg.train = TrainConfig(steps=680, batch_rays=4096, lr=1e-2, lr_final=1e-3,
                             lr_warmup=50, warp_lr_scale=0.1, appearance_lr_scale=0.01,
                             face_depth_weight=0.01, face_depth_start=0.2,
+                            random_background=True,
                             checkpoint_every=200,
                             image_every=200, log_every=20)
     return cfg

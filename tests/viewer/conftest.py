@@ -16,6 +16,7 @@ def tiny_run(tiny_scene, tmp_path_factory):
     cfg.train.steps, cfg.train.batch_rays, cfg.train.face_reg_points = 2, 256, 64
     cfg.train.checkpoint_every, cfg.train.image_every, cfg.train.log_every = 1000, 0, 1
     cfg.model.expression_scale = 50.0  # an untrained model barely reacts to β otherwise
+    cfg.train.random_background = False  # as tests/toy.py's: β's effect from the init
     f, w, s = cfg.model.field, cfg.model.warp, cfg.model.sampler
     w.code_dim, w.width, w.depth, w.skips = 8, 32, 3, (2,)
     f.hash_levels, f.hash_log2_size, f.hash_max_res = 8, 14, 128
