@@ -103,8 +103,8 @@ class FieldConfig:
     """hash only: > 0 adds that many finer levels above `hash_max_res`, up to
     `detail_max_res`, evaluated only in the head's region (data/head_pose.head_region, the
     canonical frame's ellipsoid around the reference face mesh, fading to 0 over
-    `detail_band`): the face gets finer cells, the background does not (where finer cells
-    everywhere overfit: docs/presets.md)."""
+    `detail_band`): the face gets finer cells, the room keeps the grid's (docs/presets.md
+    item 7)."""
     detail_max_res: int = 0
     """Finest resolution of the detail levels over the scene box (as `hash_max_res`); 0: two
     cells per training pixel at the face (settled per dataset and training size)."""
@@ -251,11 +251,11 @@ class TrainConfig:
     """Share of each batch's rays drawn from pixels inside the face silhouettes (0: all
     uniform over the image)."""
     interlevel_weight: float = 1.0
+    """Weight of the proposal sampler's interlevel loss."""
     random_background: bool = False
     """Composite each training ray over a random colour instead of black, so that a
     half-transparent room cannot pass for an opaque one in the captured views (it then
     renders as fog from new ones; instant-ngp trains its synthetic scenes so)."""
-    """Weight of the proposal sampler's interlevel loss."""
     face_depth_weight: float = 0.0
     """Weight of the face-depth prior (training/losses.py `face_depth_loss`): on rays
     through the tracked face mesh, rendering weight further than `face_depth_margin` from
