@@ -175,8 +175,10 @@ def test_train_nproc_passes_its_other_options_on():
     from flamenerf.commands.train import _flags, train
 
     values = {n: p.default for n, p in inspect.signature(train).parameters.items()}
-    values.update(dataset="scene", resume=True, batch_rays=512, nproc=4)
-    assert _flags(values, skip={"nproc"}) == ["scene", "--batch-rays", "512", "--resume"]
+    values.update(dataset="scene", resume=True, batch_rays=512, nproc=4,
+                  random_background=False)
+    assert _flags(values, skip={"nproc"}) == ["scene", "--batch-rays", "512",
+                                              "--random-background", "False", "--resume"]
 
 
 def test_torchrun_command_runs_the_package():

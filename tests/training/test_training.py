@@ -175,6 +175,20 @@ def test_cli_face_depth_weight_reaches_the_run(tiny_scene, tmp_path):
                  "--face-depth-weight", "-1"]) == 2
 
 
+def test_cli_detail_levels_and_random_background_reach_the_run(tiny_scene, tmp_path):
+    from flamenerf.cli import main
+
+    out = tmp_path / "run"
+    assert main(["train", str(tiny_scene), "--out", str(out), "--steps", "1",
+                 "--batch-rays", "64", "--detail-levels", "0", "--random-background",
+                 "False"]) == 0
+    cfg = load_run(out).config
+    assert cfg.model.field.detail_levels == 0 and not cfg.train.random_background
+    assert preset("fast").model.field.detail_levels > 0 and preset("fast").train.random_background
+    assert main(["train", str(tiny_scene), "--out", str(tmp_path / "bad"), "--steps", "1",
+                 "--detail-levels", "-1"]) == 2
+
+
 def test_mesh_guided_training_carries_the_expression_model(synth_scene, tmp_path):
     cfg = small(preset("fast"), 2)
     cfg.model.mesh_guide.enabled = True

@@ -27,6 +27,8 @@ def train(
     expression_mode: Literal["masked", "none", "everywhere"] | None = None,
     head_region_scale: float | None = None,
     head_band: float | None = None,
+    detail_levels: int | None = None,
+    random_background: bool | None = None,
     resume: bool = False,
     device: str = "auto",
     threads: int = 0,
@@ -68,6 +70,11 @@ def train(
             head may want 1.3 (docs/head_pose.md). Default: 1.0.
         head_band: Datasets with head poses: the width of the blend from the head's motion to
             the still world, a fraction of the region's radius. Default: 0.6.
+        detail_levels: Hash-grid presets: finer levels evaluated only in the head's region
+            (0: off; `fast` has 4; docs/presets.md item 7). Default: the preset's.
+        random_background: Composite each training ray over a random colour instead of
+            black, so that a half-transparent room cannot pass for an opaque one (`fast`:
+            on; docs/presets.md item 7). Default: the preset's.
         resume: Continue the run in OUT from its latest checkpoint.
         device: `auto` (CUDA when present), `cpu` or `cuda`.
         threads: CPU threads for torch (0 = default).
@@ -112,13 +119,16 @@ def train(
     for flag, v in (("--head-region-scale", head_region_scale), ("--head-band", head_band)):
         if v is not None and not v > 0:
             raise UserError(f"{flag} {v}: must be positive")
+    if detail_levels is not None and detail_levels < 0:
+        raise UserError(f"--detail-levels {detail_levels}: must be 0 or more")
     if face_depth_weight is not None and not face_depth_weight >= 0:
         raise UserError(f"--face-depth-weight {face_depth_weight}: must be 0 or more")
     override(cfg, {"train.batch_rays": batch_rays, "train.face_reg_weight": face_reg_weight,
                    "train.face_depth_weight": face_depth_weight,
                    "model.expression_mode": expression_mode, "train.num_threads": threads,
                    "train.accumulate": accumulate, "model.head.region_scale": head_region_scale,
-                   "model.head.band": head_band})
+                   "model.head.band": head_band, "model.field.detail_levels": detail_levels,
+                   "train.random_background": random_background})
     res = run_train(dataset, out, cfg, resume=resume, device=device, steps=steps)
     if not ranks.main:  # rank 0 speaks for the job
         if res.interrupted:
@@ -142,7 +152,7 @@ def _flags(values: dict[str, Any], skip: set[str]) -> list[str]:
         if name == "dataset" or name in skip or v == p.default:
             continue
         flag = "--" + name.replace("_", "-")
-        if isinstance(v, bool):
+        if isinstance(v, bool) and isinstance(p.default, bool):  # a plain switch
             out.append(flag if v else "--no-" + name.replace("_", "-"))
         else:
             out += [flag, str(v)]
