@@ -201,7 +201,7 @@ def test_training_forward_hands_out_the_weights_and_depths_it_rendered(kind):
 
 def test_detail_levels_act_in_the_head_region_only():
     """The finer levels reach only points in (or within the band of) the region, and only
-    those points train them; the main grid is as without them."""
+    those points train them."""
     region = {"centre": [0.2, 0.0, 0.0], "axes": torch.eye(3).tolist(),
               "radii": [0.1, 0.15, 0.1]}
     m = tiny("fast", "hash", **{"field.detail_levels": 2, "field.detail_max_res": 256})

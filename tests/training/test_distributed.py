@@ -156,17 +156,19 @@ def test_ddp_searches_for_unused_parameters_exactly_when_a_step_can_skip_some(
     def expression_field(name):
         return name.startswith(("field.expr_grid.", "field.expr_proj."))
 
-    for warp, rank in ((True, 0), (False, 0), (True, 8)):
+    for warp, rank, detail in ((True, 0, 0), (False, 0, 0), (True, 8, 0), (True, 0, 4)):
         c = cfg()
         c.model.warp.enabled = warp
-        c.model.field.expr_rank = rank
-        t = Trainer(c, toy_dataset, tmp_path / f"w{warp}{rank}", device="cpu", quiet=True)
+        c.model.field.expr_rank, c.model.field.detail_levels = rank, detail
+        t = Trainer(c, toy_dataset, tmp_path / f"w{warp}{rank}{detail}", device="cpu",
+                    quiet=True)
         t.opt.step = lambda: None  # keep the gradients to look at them
         t.train_step()
         unused = {n for n, p in t.model.named_parameters() if p.grad is None
-                  and not (rank and expression_field(n))}
+                  and not (rank and expression_field(n))
+                  and not (detail and n.startswith("field.detail."))}
         assert unused == (set() if warp else {"deform_codes.weight"}), unused
-        assert may_skip_parameters(t.model) == (not warp or rank > 0)
+        assert may_skip_parameters(t.model) == (not warp or rank > 0 or detail > 0)
 
 
 def test_train_nproc_passes_its_other_options_on():

@@ -73,9 +73,11 @@ def may_skip_parameters(model: FlameNeRF) -> bool:
     """Whether a step's loss can leave parameters out (DDP must then search the graph):
     the deformation codes without a warp, or with a warp confined to the head's region (a
     batch with no sample there); the expression feature fields in a batch where no sample
-    gets a non-zero β (no face ray, or none near a control's region)."""
+    gets a non-zero β (no face ray, or none near a control's region); the detail levels in
+    a batch with no sample in the head's region."""
     return (model.warp is None or model.warp_in_head
-            or getattr(model.field, "expr_grid", None) is not None)
+            or getattr(model.field, "expr_grid", None) is not None
+            or getattr(model.field, "detail", None) is not None)
 
 
 def settle_dataset_defaults(cfg: Config, ds: Dataset) -> Config:
@@ -92,12 +94,14 @@ def settle_dataset_defaults(cfg: Config, ds: Dataset) -> Config:
     cfg.model.mesh_guide.enabled = cfg.model.mesh_guide.resolved_enabled(parts)
     cfg.model.warp.settle()
     field = cfg.model.field
-    if field.kind == "hash" and field.hash_max_res == 0:
-        field.hash_max_res = min(max(face_pixel_resolution(ds, train_resolution(ds, cfg)),
-                                     2 * field.hash_base_res), 8192)
-    if field.kind == "hash" and field.detail_levels > 0 and field.detail_max_res == 0:
-        field.detail_max_res = min(max(2 * face_pixel_resolution(ds, train_resolution(ds, cfg)),
-                                       field.hash_max_res + field.detail_levels), 8192)
+    if field.kind == "hash" and (field.hash_max_res == 0 or
+                                 (field.detail_levels > 0 and field.detail_max_res == 0)):
+        px = face_pixel_resolution(ds, train_resolution(ds, cfg))
+        if field.hash_max_res == 0:
+            field.hash_max_res = min(max(px, 2 * field.hash_base_res), 8192)
+        if field.detail_levels > 0 and field.detail_max_res == 0:
+            field.detail_max_res = min(max(2 * px, field.hash_max_res + field.detail_levels),
+                                       8192)
     return cfg
 
 
