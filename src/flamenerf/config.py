@@ -70,6 +70,8 @@ class FieldConfig:
     skips: tuple[int, ...] = (4,)
     pos_freqs: int = 10
     dir_freqs: int = 4
+    view_dependent: bool = True
+    """Whether colour sees the viewing direction γ(d) (the paper: yes)."""
     appearance_dim: int = 8
     """Per-frame appearance code φ_i dimension (paper: 8)."""
     # hash grid only

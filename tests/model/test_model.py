@@ -75,6 +75,19 @@ def test_nerfies_ignores_expression(kind):
     assert m.field.expr_dim == 0
 
 
+@pytest.mark.parametrize("kind", ["mlp", "hash"])
+@pytest.mark.parametrize("view_dependent", [True, False])
+def test_colour_sees_the_viewing_direction_only_when_asked(kind, view_dependent):
+    m = tiny("fast", kind, **{"field.view_dependent": view_dependent})
+    x = torch.rand(6, 3) * 2 - 1
+    d = torch.nn.functional.normalize(torch.randn(6, 3), dim=-1)
+    app = torch.randn(6, m.cfg.field.appearance_dim)
+    with torch.no_grad():
+        _, c1 = m.field(x, d, app, torch.zeros(6, E))
+        _, c2 = m.field(x, -d, app, torch.zeros(6, E))
+    assert torch.equal(c1, c2) != view_dependent
+
+
 def test_expression_input_warp_holds_still_at_zero_expression():
     """The face-region regulariser sees the warp with β = 0: ω alone must not move the
     face, while β may."""

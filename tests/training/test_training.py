@@ -181,9 +181,10 @@ def test_cli_detail_levels_and_random_background_reach_the_run(tiny_scene, tmp_p
     out = tmp_path / "run"
     assert main(["train", str(tiny_scene), "--out", str(out), "--steps", "1",
                  "--batch-rays", "64", "--detail-levels", "0", "--random-background",
-                 "False"]) == 0
+                 "False", "--view-dependent", "False"]) == 0
     cfg = load_run(out).config
     assert cfg.model.field.detail_levels == 0 and not cfg.train.random_background
+    assert not cfg.model.field.view_dependent and preset("fast").model.field.view_dependent
     assert preset("fast").model.field.detail_levels > 0 and preset("fast").train.random_background
     assert main(["train", str(tiny_scene), "--out", str(tmp_path / "bad"), "--steps", "1",
                  "--detail-levels", "-1"]) == 2

@@ -29,6 +29,7 @@ def train(
     head_band: float | None = None,
     detail_levels: int | None = None,
     random_background: bool | None = None,
+    view_dependent: bool | None = None,
     resume: bool = False,
     device: str = "auto",
     threads: int = 0,
@@ -75,6 +76,9 @@ def train(
         random_background: Composite each training ray over a random colour instead of
             black, so that a half-transparent room cannot pass for an opaque one (`fast`:
             on; docs/presets.md item 7). Default: the preset's.
+        view_dependent: Whether colour sees the viewing direction. Off, cameras far off the
+            capture path see truer colours (built-in scene) while captured views of real
+            clips lose detail (docs/presets.md, "Less view dependence"). Default: on.
         resume: Continue the run in OUT from its latest checkpoint.
         device: `auto` (CUDA when present), `cpu` or `cuda`.
         threads: CPU threads for torch (0 = default).
@@ -128,7 +132,8 @@ def train(
                    "model.expression_mode": expression_mode, "train.num_threads": threads,
                    "train.accumulate": accumulate, "model.head.region_scale": head_region_scale,
                    "model.head.band": head_band, "model.field.detail_levels": detail_levels,
-                   "train.random_background": random_background})
+                   "train.random_background": random_background,
+                   "model.field.view_dependent": view_dependent})
     res = run_train(dataset, out, cfg, resume=resume, device=device, steps=steps)
     if not ranks.main:  # rank 0 speaks for the job
         if res.interrupted:

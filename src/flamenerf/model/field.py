@@ -28,7 +28,7 @@ class NeRFField(nn.Module):
         self.trunk = MLP(in_dim, cfg.width, cfg.depth, cfg.skips)
         self.sigma = nn.Linear(cfg.width, 1)
         self.feature = nn.Linear(cfg.width, cfg.width)
-        self.rgb = MLP(cfg.width + pe_dim(3, cfg.dir_freqs) + cfg.appearance_dim,
+        self.rgb = MLP(cfg.width + view_dim(cfg) + cfg.appearance_dim,
                        cfg.width // 2, 1, (), out_dim=3)
 
     def _trunk(self, x: Tensor, expr: Tensor | None) -> Tensor:
@@ -44,13 +44,22 @@ class NeRFField(nn.Module):
         σ (*bs), rgb (*bs, 3)."""
         h = self._trunk(x, expr)
         sigma = torch.relu(self.sigma(h))[..., 0]
-        c = self.rgb(self.feature(h), _view_conditioning(d, app, self.cfg.dir_freqs))
+        c = self.rgb(self.feature(h), _view_conditioning(d, app, self.cfg))
         return sigma, torch.sigmoid(c)
 
 
-def _view_conditioning(d: Tensor, app: Tensor, dir_freqs: int) -> Tensor:
-    """[γ(d), φ]: (*, 3), (*, A) -> (*, pe_dim(3, dir_freqs) + A)."""
-    return torch.cat([positional_encoding(d, dir_freqs), app.expand(*d.shape[:-1], -1)], -1)
+def view_dim(cfg: FieldConfig) -> int:
+    """Width of γ(d) in the colour head's input: 0 for a field without view dependence."""
+    return pe_dim(3, cfg.dir_freqs) if cfg.view_dependent else 0
+
+
+def _view_conditioning(d: Tensor, app: Tensor, cfg: FieldConfig) -> Tensor:
+    """[γ(d), φ] (or φ alone without view dependence): (*, 3), (*, A) ->
+    (*, view_dim(cfg) + A)."""
+    app = app.expand(*d.shape[:-1], -1)
+    if not cfg.view_dependent:
+        return app
+    return torch.cat([positional_encoding(d, cfg.dir_freqs), app], -1)
 
 
 class HashField(nn.Module):
@@ -100,7 +109,7 @@ class HashField(nn.Module):
         self.density_head = MLP(self.grid.out_dim + extra + (expr_dim if self.direct else 0),
                                 cfg.head_width, 1, (),
                                 out_dim=1 + cfg.geo_features)
-        self.rgb = MLP(cfg.geo_features + pe_dim(3, cfg.dir_freqs) + cfg.appearance_dim,
+        self.rgb = MLP(cfg.geo_features + view_dim(cfg) + cfg.appearance_dim,
                        cfg.head_width, 2, (), out_dim=3)
 
     def _geo(self, x: Tensor, expr: Tensor | None) -> Tensor:
@@ -148,7 +157,7 @@ class HashField(nn.Module):
         """As NeRFField.forward."""
         g = self._geo(x, expr)
         sigma = trunc_exp(g[..., 0])
-        c = self.rgb(g[..., 1:], _view_conditioning(d, app, self.cfg.dir_freqs))
+        c = self.rgb(g[..., 1:], _view_conditioning(d, app, self.cfg))
         return sigma, torch.sigmoid(c)
 
 
