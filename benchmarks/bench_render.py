@@ -36,10 +36,10 @@ from flamenerf.config import preset
 from flamenerf.data.dataset import Intrinsics
 from flamenerf.geometry import look_at
 from flamenerf.model.flame_nerf import FlameNeRF
-from flamenerf.model.inference import FAST, REFERENCE
+from flamenerf.model.inference import FAST, REFERENCE, VIEWER
 from flamenerf.model.render_image import render_image
 
-PATHS = {"reference": REFERENCE, "inference": FAST}
+PATHS = {"reference": REFERENCE, "inference": FAST, "viewer": VIEWER}
 
 
 def _sync(dev: torch.device) -> None:
@@ -147,9 +147,11 @@ def quality(run, ds, frames: int) -> dict:
         rows.append({"position": fr.position, "reference_psnr": psnr(out["reference"], gt),
                      "inference_psnr": psnr(out["inference"], gt),
                      "inference_vs_reference_psnr": psnr(out["inference"], out["reference"]),
-                     "max_abs_diff": float(np.abs(out["inference"] - out["reference"]).max())})
+                     "max_abs_diff": float(np.abs(out["inference"] - out["reference"]).max()),
+                     "viewer_psnr": psnr(out["viewer"], gt)})
     mean = {k: round(float(np.mean([r[k] for r in rows])), 3) for k in rows[0] if k != "position"}
     mean["psnr_difference_db"] = round(mean["inference_psnr"] - mean["reference_psnr"], 3)
+    mean["viewer_psnr_difference_db"] = round(mean["viewer_psnr"] - mean["reference_psnr"], 3)
     mean["frames"] = rows
     mean["resolution"] = [intr.w, intr.h]
     return mean
@@ -214,7 +216,8 @@ def markdown(res: dict) -> str:
                   f"{q['inference_psnr']:.3f} dB (inference), difference "
                   f"{q['psnr_difference_db']:+.3f} dB; inference against reference "
                   f"{q['inference_vs_reference_psnr']:.1f} dB PSNR, max |diff| "
-                  f"{q['max_abs_diff']:.3f}."]
+                  f"{q['max_abs_diff']:.3f}; the viewer's settings (fewer main samples) "
+                  f"{q['viewer_psnr']:.3f} dB, {q['viewer_psnr_difference_db']:+.3f} dB."]
     v = res.get("viewer")
     if v:
         lines += ["", f"Viewer while dragging (height {v['height']}, per update through "
@@ -295,7 +298,8 @@ def main() -> int:
         q = res["quality"]
         print(f"quality: reference {q['reference_psnr']:.3f} dB, inference "
               f"{q['inference_psnr']:.3f} dB ({q['psnr_difference_db']:+.3f}); inference vs "
-              f"reference {q['inference_vs_reference_psnr']:.1f} dB", flush=True)
+              f"reference {q['inference_vs_reference_psnr']:.1f} dB; the viewer's "
+              f"{q['viewer_psnr']:.3f} dB ({q['viewer_psnr_difference_db']:+.3f})", flush=True)
         res["viewer"] = viewer_latency(run, ds, args.viewer_height, steps=6)
     res.update(loadavg_before=[round(x, 2) for x in load_before],
                loadavg_after=[round(x, 2) for x in os.getloadavg()],

@@ -10,7 +10,7 @@ from flamenerf.data.dataset import Intrinsics
 from flamenerf.geometry import look_at
 from flamenerf.model.baked import baked_proposal_logits, baked_warp
 from flamenerf.model.flame_nerf import FlameNeRF
-from flamenerf.model.inference import FAST, REFERENCE, RenderSettings, march
+from flamenerf.model.inference import FAST, REFERENCE, VIEWER, RenderSettings, march
 from flamenerf.model.mlp import MLP, fused_cpu_inference
 from flamenerf.model.render import render_weights
 from flamenerf.model.render_image import render_image
@@ -125,6 +125,18 @@ def test_default_path_renders_the_same_scene():
     ref, fast = render(m, REFERENCE), render(m, FAST)
     assert float((fast["rgb"] - ref["rgb"]).abs().mean()) < 0.05
     assert float((fast["acc"] - ref["acc"]).abs().mean()) < 0.05
+
+
+def test_fewer_main_samples_render_the_same_scene():
+    """The viewer's setting: a fraction of the model's main samples, the scene the same
+    within a loose bound (this random model's fields vary fast)."""
+    m = toy_model()
+    n = m.cfg.sampler.num_main
+    default = render(m, EXACT)
+    few = render(m, dataclasses.replace(EXACT, main_fraction=(n - 2) / n))
+    assert not torch.equal(few["rgb"], default["rgb"])
+    assert float((few["rgb"] - default["rgb"]).abs().mean()) < 0.05
+    assert 0 < VIEWER.main_fraction < FAST.main_fraction == 1.0
 
 
 def test_inference_is_deterministic():

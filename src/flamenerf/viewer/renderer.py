@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from flamenerf.data.dataset import Intrinsics
-from flamenerf.model.inference import FAST, RenderSettings
+from flamenerf.model.inference import VIEWER, RenderSettings
 from flamenerf.model.render_image import render_image
 from flamenerf.viewer.camera import view_intrinsics
 
@@ -79,7 +79,7 @@ class RenderWorker:
                  masker, expression: np.ndarray, display: DisplayFn, height: int = 128,
                  settle_s: float = 0.25, band_rays: int = 16384,
                  on_error: Callable[[object, BaseException], None] | None = None,
-                 settings: RenderSettings = FAST):
+                 settings: RenderSettings = VIEWER):
         self.model = model
         self.settings = settings  # the inference path: ω is fixed, its warp bake is reused
         self.omega, self.phi = deform_code, appearance_code
