@@ -175,7 +175,7 @@ def test_cli_face_depth_weight_reaches_the_run(tiny_scene, tmp_path):
                  "--face-depth-weight", "-1"]) == 2
 
 
-def test_cli_detail_levels_and_random_background_reach_the_run(tiny_scene, tmp_path):
+def test_cli_detail_levels_background_and_view_dependence_reach_the_run(tiny_scene, tmp_path):
     from flamenerf.cli import main
 
     out = tmp_path / "run"

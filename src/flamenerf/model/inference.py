@@ -14,7 +14,9 @@ scene, 256 px, 2-core CPU; docs/bench/render.md):
   silhouette read the proposal's density from its bake (model/baked.py);
 - on a CPU, each MLP layer is one oneDNN matmul with bias and ReLU fused in (model/mlp.py);
 - on CUDA the fields run in half precision (autocast), on a CPU with native bfloat16 the
-  MLP layers run in bfloat16; compositing stays in float32.
+  MLP layers run in bfloat16; compositing stays in float32;
+- the viewer's settings (`VIEWER`) take fewer of the main field's samples than training
+  placed (`RenderSettings.main_fraction`); `FAST` takes them all.
 """
 
 from __future__ import annotations
@@ -76,7 +78,7 @@ class RenderSettings:
 
 
 FAST = RenderSettings()
-"""The inference path with its defaults (`flamenerf render`, the viewer)."""
+"""The inference path with its defaults (`flamenerf render`, eval's sweeps and drive)."""
 REFERENCE = RenderSettings(fast=False, chunk=8192)
 """The training forward in chunks of 8192 rays: what eval measures."""
 VIEWER = RenderSettings(main_fraction=0.75)
