@@ -21,6 +21,7 @@ def eval(  # noqa: A001 - the subcommand's name
     images: int = 3,
     drive: Path | None = None,
     drive_frames: int = 40,
+    captured_directions: bool = True,
     out: Path | None = None,
     device: str = "auto",
     threads: int = 0,
@@ -61,6 +62,9 @@ def eval(  # noqa: A001 - the subcommand's name
             the correlation over time of driving and re-tracked controls is reported
             (section `drive`, images/drive.png: driving over result).
         drive_frames: Frames of the driving video used, spread over the clip.
+        captured_directions: Colour at new cameras as the nearest captured view saw it
+            (within 2 degrees of one, as asked), as `render` and `view` show it; off: at
+            the direction asked, as training renders.
         out: Output directory (default: RUN/eval).
         device: `auto` (CUDA when present), `cpu` or `cuda`.
         threads: CPU threads for torch (0 = default).
@@ -98,7 +102,8 @@ def eval(  # noqa: A001 - the subcommand's name
     opts = EvalOptions(split=split, fit_steps=fit_steps, fit_batch_rays=fit_batch_rays,
                        fit_lr=fit_lr, seed=seed, leakage_dilate_px=leakage_dilate_px,
                        num_images=images, control=control, control_steps=control_steps,
-                       drive=None if drive is None else str(drive), drive_frames=drive_frames)
+                       drive=None if drive is None else str(drive), drive_frames=drive_frames,
+                       captured_directions=captured_directions)
     res = evaluate_run(r, ds, opts, out_dir)
     print()
     print(compare_markdown([res]), end="")

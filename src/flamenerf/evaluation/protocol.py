@@ -72,6 +72,9 @@ class EvalOptions:
     drive_frames: int = 40
     """Frames of the driving video used, spread over the clip."""
     chunk: int = 16384
+    captured_directions: bool = True
+    """Colour at new cameras as the nearest captured view saw it, as `render` and the
+    viewer show it (data/captured_views.py); False: at the direction asked."""
 
 
 # ------------------------------------------------------------------------- per image
@@ -248,6 +251,10 @@ def evaluate_run(run, ds: Dataset, opts: EvalOptions, out_dir: Path | None = Non
     from flamenerf.errors import UserError
 
     model = run.model
+    if model.captured is None and opts.captured_directions:
+        run.attach(ds)  # as `render` and the viewer show it (a dataset not loaded by the run)
+    elif not opts.captured_directions:
+        run.attach(ds, captured_directions=False)
     intr = run.train_intrinsics(ds)
     t_start = time.perf_counter()
     res: dict[str, Any] = {
@@ -259,6 +266,7 @@ def evaluate_run(run, ds: Dataset, opts: EvalOptions, out_dir: Path | None = Non
         "preset": run.config.preset,
         "expression_mode": run.config.model.expression_mode,
         "step": run.step,
+        "view_directions": "captured" if model.captured is not None else "as asked",
         "dataset": str(Path(ds.root).resolve()),
         "resolution": [intr.w, intr.h],
         "device": str(run.device),

@@ -54,6 +54,8 @@ class FlameNeRF(nn.Module):
                  detail_region: dict | None = None):
         super().__init__()
         self.cfg = cfg
+        self.captured: tuple[Tensor, Tensor | None, Tensor] | None = None
+        self.captured_max_angle = 0.0
         self.near, self.far = float(near), float(far)
         self.expr_dim = expr_dim
         self.init_args = dict(num_codes=num_codes, expr_dim=expr_dim, near=near, far=far,
@@ -247,8 +249,15 @@ class FlameNeRF(nn.Module):
         most head-bound of its samples (the view direction of what it sees when it meets
         the head; per ray, so that a still head leaves every tensor as without one).
         Without a head region or twists: x and dirs unchanged."""
+        xc, dc, _ = self._head_points(x, dirs, head)
+        return xc, dc
+
+    def _head_points(self, x: Tensor, dirs: Tensor, head: Tensor | None
+                     ) -> tuple[Tensor, Tensor, Tensor | None]:
+        """head_points, and the share of the head's motion each ray's direction took (R,)
+        (None where nothing moves)."""
         if not self.follows_head or head is None:
-            return x, dirs
+            return x, dirs, None
         rot, p = exp_se3(head[:, :3], head[:, 3:])  # the full motion, one matrix per ray
         full = torch.baddbmm(p[:, None], x, rot.transpose(1, 2))  # (R, S, 3)
         w = self.head_weight(full)  # (R, S)
@@ -261,8 +270,9 @@ class FlameNeRF(nn.Module):
         if bool(band.any()):
             rows, wb = band.nonzero()[:, 0], w[band][:, None]
             xc[band] = apply_se3(wb * head[rows, :3], wb * head[rows, 3:], x[band])
-        dc = apply_se3(w.amax(1, keepdim=True) * head[:, :3], torch.zeros_like(dirs), dirs)
-        return xc, dc
+        share = w.amax(1)
+        dc = apply_se3(share[:, None] * head[:, :3], torch.zeros_like(dirs), dirs)
+        return xc, dc, share
 
     def normalize(self, x: Tensor) -> Tensor:
         return (x - self.center) / self.half_extent
@@ -307,10 +317,14 @@ class FlameNeRF(nn.Module):
         view directions (R, 3), and the expression each point gets (R, S, E), or (R, 1, E)
         per ray without the per-control prior. The one place both renderers (training and
         model/inference.py) prepare samples."""
-        x, d = self.head_points(origins[:, None] + t[..., None] * dirs[:, None], dirs, head)
+        x, d, share = self._head_points(origins[:, None] + t[..., None] * dirs[:, None], dirs,
+                                        head)
         xn = self.normalize(x)
         expr_pts = self.region_expression(xn, expr)
-        return self.guide_points(xn, expr), F.normalize(d, dim=-1), expr_pts
+        d = F.normalize(d, dim=-1)
+        if self.captured is not None and not self.training:
+            d = self.captured_direction(origins, d, head, share)
+        return self.guide_points(xn, expr), d, expr_pts
 
     def proposal_points(self, origins: Tensor, dirs: Tensor, t: Tensor,
                         head: Tensor | None) -> Tensor:
@@ -329,6 +343,66 @@ class FlameNeRF(nn.Module):
         """Distances between samples in normalised units. t (R, S) -> (R, S)."""
         dt = torch.cat([t[:, 1:] - t[:, :-1], torch.full_like(t[:, :1], last)], -1)
         return dt * (dirs.norm(dim=-1, keepdim=True) / self.half_extent)
+
+    # ---------------------------------------------------------------- captured views
+    def set_captured_views(self, views, max_angle: float = 0.0) -> None:
+        """Render colour as the capture saw it (data/captured_views.py; None: as asked).
+        Not part of the checkpoint: a run's loader sets it from its dataset
+        (training/run.Run.attach); training never uses it."""
+        self.captured_max_angle = float(max_angle)
+        if views is None:
+            self.captured = None
+            return
+        dev = self.center.device
+
+        def t(a):
+            return None if a is None else torch.as_tensor(a, dtype=torch.float32, device=dev)
+
+        self.captured = (t(views.world), t(views.twists), t(views.focus))
+
+    def captured_direction(self, origins: Tensor, dirs: Tensor, head: Tensor | None,
+                           share: Tensor | None) -> Tensor:
+        """The view direction a ray's colour is taken at, kept within `captured_max_angle`
+        of the capture: of the training frames' camera centres, the one that sees the ray's
+        point nearest the face (its `focus`) from the direction closest to the ray's; a
+        ray further than the angle from it turns towards it until the angle is left. Rays
+        from training cameras keep their direction. Everything happens in the frame the
+        ray's direction is in: moved by `share` of its head twist (`_head_points`), where
+        frame f's centre is at exp(share ξ_f) c_f.
+        Origins (R, 3), unit directions (R, 3) in that frame, twists (R, 6) and shares (R,)
+        (None without head motion) -> unit directions (R, 3)."""
+        world, twists, focus = self.captured
+        moved = share is not None and twists is not None
+        if moved:
+            rot, p = exp_se3(head[:, :3], head[:, 3:])
+            f = torch.einsum("rji,rj->ri", rot, focus - p)  # the focus where the ray sees it
+            # the ray's own direction in the world: undo its share of the head's turn
+            dw = apply_se3(-share[:, None] * head[:, :3], torch.zeros_like(dirs), dirs)
+        else:
+            f, dw = focus.expand_as(origins), dirs
+        xw = origins + ((f - origins) * dw).sum(-1, keepdim=True) * dw  # (R, 3)
+        # the still world's rays (all of them without head motion) as (R, N) products
+        # rather than (R, N, 3) vectors: a 256 px frame's overhead is then a few ms
+        cos = ((xw * dirs).sum(-1, keepdim=True) - dirs @ world.T) / torch.sqrt(
+            ((xw * xw).sum(-1, keepdim=True) - 2 * xw @ world.T + (world * world).sum(-1)
+             ).clamp_min(1e-12))
+        cos, k = cos.max(1)
+        uk = F.normalize(xw - world[k], dim=-1)
+        if moved and bool((share > 0).any()):
+            r = (share > 0).nonzero()[:, 0]
+            s = share[r, None]
+            xs = apply_se3(s * head[r, :3], s * head[r, 3:], xw[r])
+            centres = apply_se3(s[:, None] * twists[None, :, :3], s[:, None] * twists[None, :, 3:],
+                                world[None].expand(len(r), -1, -1))  # (r, N, 3)
+            u = F.normalize(xs[:, None] - centres, dim=-1)
+            cos_r, k_r = (u * dirs[r, None]).sum(-1).max(1)
+            cos, uk = cos.index_put((r,), cos_r), uk.index_put((r,), u[torch.arange(len(r)), k_r])
+        # within `captured_max_angle` of a captured view the direction stays as asked;
+        # beyond, it turns from that view towards the one asked by that angle only (slerp)
+        a = torch.acos(cos.clamp(-1.0, 1.0))[:, None]
+        th = torch.full_like(a, self.captured_max_angle)
+        turned = (torch.sin(a - th) * uk + torch.sin(th) * dirs) / torch.sin(a).clamp_min(1e-9)
+        return torch.where(a > th, F.normalize(turned, dim=-1), dirs)
 
     # ---------------------------------------------------------------- loss
     def loss_dict(self, out: dict[str, Tensor], target: Tensor, interlevel_weight: float = 1.0

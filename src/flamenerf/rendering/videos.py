@@ -70,6 +70,11 @@ class RenderOptions:
         landmarker: face_landmarker.task for --drive (default: as for preprocess).
         chunk: Rays per forward pass (0: the renderer's choice, 2048 on a CPU and 65536
             on a GPU; lower it if memory runs out).
+        captured_directions: Colour at cameras beyond the capture as the nearest captured
+            view saw it (a ray more than 2 degrees from every captured view is turned back
+            to 2 degrees; data/captured_views.py): outside the captured range the view
+            direction's encoding extrapolates (pale faces, lips without their red). Off:
+            at the direction asked.
         exact: Render with the training forward pass (what `flamenerf eval`'s PSNR uses)
             instead of the inference path, which is several times faster on a CPU and
             within 0.05 dB of it on the built-in scene (docs/bench/render.md).
@@ -100,6 +105,7 @@ class RenderOptions:
     extrapolate: bool = False
     landmarker: Path | None = None
     chunk: int = 0
+    captured_directions: bool = True
     exact: bool = False
     device: str = "auto"
     threads: int = 0
@@ -336,6 +342,7 @@ def render_videos(opts: RenderOptions, log=print) -> RenderSummary:
         writable_dir(opts.out.parent, "video")
     run = load_run(opts.run, opts.device)
     ds = run.dataset(opts.dataset)
+    run.attach(ds, opts.captured_directions)
     names = run.expression_names
     intr = render_intrinsics(run, ds, opts.size)
     ref = reference_position(ds)

@@ -37,7 +37,19 @@ class Run:
         if ds.expression_names != self.expression_names:
             raise UserError(f"{p}: its expression model ({ds.expression_dim} controls) is not "
                             f"the one this run was trained with ({len(self.expression_names)})")
+        self.attach(ds)
         return ds
+
+    def attach(self, ds: Dataset, captured_directions: bool = True) -> None:
+        """Render with `ds`'s capture: colour at a new camera as the nearest captured view
+        saw it (data/captured_views.py); `captured_directions` False: at the direction
+        asked, as the training forward does."""
+        import math
+
+        from flamenerf.data.captured_views import MAX_ANGLE_DEG, captured_views
+
+        self.model.set_captured_views(captured_views(ds) if captured_directions else None,
+                                      math.radians(MAX_ANGLE_DEG))
 
     def train_intrinsics(self, ds: Dataset) -> Intrinsics:
         return ds.intrinsics.scaled(1.0 / self.config.train.downscale)
