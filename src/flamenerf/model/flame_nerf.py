@@ -316,7 +316,8 @@ class FlameNeRF(nn.Module):
         (R, S, 3) (in the head's frame, carried to the neutral mesh when mesh-guided), unit
         view directions (R, 3), and the expression each point gets (R, S, E), or (R, 1, E)
         per ray without the per-control prior. The one place both renderers (training and
-        model/inference.py) prepare samples."""
+        model/inference.py) prepare samples. Outside training, with captured views set,
+        the directions are kept near the capture (`captured_direction`)."""
         x, d, share = self._head_points(origins[:, None] + t[..., None] * dirs[:, None], dirs,
                                         head)
         xn = self.normalize(x)
@@ -396,7 +397,7 @@ class FlameNeRF(nn.Module):
                                 world[None].expand(len(r), -1, -1))  # (r, N, 3)
             u = F.normalize(xs[:, None] - centres, dim=-1)
             cos_r, k_r = (u * dirs[r, None]).sum(-1).max(1)
-            cos, uk = cos.index_put((r,), cos_r), uk.index_put((r,), u[torch.arange(len(r)), k_r])
+            cos, uk = cos.index_put((r,), cos_r), uk.index_put((r,), u[torch.arange(len(r), device=r.device), k_r])
         # within `captured_max_angle` of a captured view the direction stays as asked;
         # beyond, it turns from that view towards the one asked by that angle only (slerp)
         a = torch.acos(cos.clamp(-1.0, 1.0))[:, None]
