@@ -31,6 +31,7 @@ def test_eval_writes_the_documented_schema(evaluated):
     res = _strict(evaluated / "metrics.json")
     assert res["format"] == "flamenerf-eval" and res["version"] == 1
     assert res["method"] == "FLAME-in-NeRF" and res["expression_mode"] == "masked"
+    assert res["view_directions"] == "captured"  # as `render` and the viewer show it
     assert res["resolution"] == [16, 16]
     assert res["protocol"]["fit_steps"] == 3 and res["protocol"]["split"] == "val"
     h = res["heldout"]
@@ -62,6 +63,12 @@ def test_eval_writes_the_documented_schema(evaluated):
     assert ct["source"].startswith("the dataset's leakage sweep")
     assert ct["controls"]["jawOpen"]["detected"] == 0 and ct["mean_gain"] is None
     assert "**Control response**" in (evaluated / "metrics.md").read_text()
+
+
+def test_eval_can_render_at_the_directions_asked(toy_run, tmp_path):
+    eval_cmd(toy_run, fit_steps=1, fit_batch_rays=32, out=tmp_path / "eval", device="cpu",
+             images=0, control=False, captured_directions=False)
+    assert _strict(tmp_path / "eval" / "metrics.json")["view_directions"] == "as asked"
 
 
 def test_eval_drive_reports_the_driving_correlation(toy_run, astronaut_video, tmp_path):
