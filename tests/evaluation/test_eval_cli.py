@@ -32,6 +32,7 @@ def test_eval_writes_the_documented_schema(evaluated):
     assert res["format"] == "flamenerf-eval" and res["version"] == 1
     assert res["method"] == "FLAME-in-NeRF" and res["expression_mode"] == "masked"
     assert res["view_directions"] == "captured"  # as `render` and the viewer show it
+    assert "- view directions: captured" in (evaluated / "metrics.md").read_text()
     assert res["resolution"] == [16, 16]
     assert res["protocol"]["fit_steps"] == 3 and res["protocol"]["split"] == "val"
     h = res["heldout"]

@@ -149,6 +149,8 @@ def eval_markdown(res: dict[str, Any]) -> str:
          f"{res['resolution'][1]} (the training resolution), device {res.get('device')}",
          f"- held-out protocol: only ω fitted per `{p.get('split')}` frame, from ω_0 with φ_0, "
          f"{p.get('fit_steps')} steps x {p.get('fit_batch_rays')} rays, lr {p.get('fit_lr')}",
+         f"- view directions: {res.get('view_directions', 'as asked')} (captured: a ray more "
+         "than 2° from every captured view takes its colour 2° from the nearest)",
          "",
          "| split | frames | MSE ↓ | PSNR ↑ | SSIM ↑ | PSNR face ↑ | PSNR background ↑ "
          "| PSNR scene ↑ |",
