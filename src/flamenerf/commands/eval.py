@@ -96,7 +96,7 @@ def eval(  # noqa: A001 - the subcommand's name
 
         writable_dir(out_dir, "evaluation")  # before minutes of fitting, not after
     r = load_run(run, device)
-    ds = r.dataset(dataset)
+    ds = r.dataset(dataset, captured_directions)
     if fit_steps is None:
         fit_steps = 2000 if r.device.type == "cuda" else 300
     opts = EvalOptions(split=split, fit_steps=fit_steps, fit_batch_rays=fit_batch_rays,

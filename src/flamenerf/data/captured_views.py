@@ -1,5 +1,6 @@
-"""Where the capture looked from: the training frames' camera centres, in the world and in
-the head's canonical frame, for rendering colour at new cameras as the capture saw it.
+"""Where the capture looked from: the training frames' camera centres (and head twists,
+which place them relative to the head), for rendering colour at new cameras as the capture
+saw it.
 
 A radiance field's colour depends on the view direction, but the training frames constrain
 it only for the directions they were filmed from; for a camera outside that range the

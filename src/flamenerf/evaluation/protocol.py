@@ -251,10 +251,7 @@ def evaluate_run(run, ds: Dataset, opts: EvalOptions, out_dir: Path | None = Non
     from flamenerf.errors import UserError
 
     model = run.model
-    if model.captured is None and opts.captured_directions:
-        run.attach(ds)  # as `render` and the viewer show it (a dataset not loaded by the run)
-    elif not opts.captured_directions:
-        run.attach(ds, captured_directions=False)
+    run.attach(ds, opts.captured_directions)  # `ds` need not come from run.dataset
     intr = run.train_intrinsics(ds)
     t_start = time.perf_counter()
     res: dict[str, Any] = {

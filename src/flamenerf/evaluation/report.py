@@ -9,6 +9,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
+from flamenerf.data.captured_views import MAX_ANGLE_DEG
 from flamenerf.errors import UserError
 
 
@@ -150,7 +151,8 @@ def eval_markdown(res: dict[str, Any]) -> str:
          f"- held-out protocol: only ω fitted per `{p.get('split')}` frame, from ω_0 with φ_0, "
          f"{p.get('fit_steps')} steps x {p.get('fit_batch_rays')} rays, lr {p.get('fit_lr')}",
          f"- view directions: {res.get('view_directions', 'as asked')} (captured: a ray more "
-         "than 2° from every captured view takes its colour 2° from the nearest)",
+         f"than {MAX_ANGLE_DEG:g}° from every captured view takes its colour "
+         f"{MAX_ANGLE_DEG:g}° from the nearest)",
          "",
          "| split | frames | MSE ↓ | PSNR ↑ | SSIM ↑ | PSNR face ↑ | PSNR background ↑ "
          "| PSNR scene ↑ |",

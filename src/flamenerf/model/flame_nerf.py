@@ -10,6 +10,8 @@ without one, or for rays without a head transform, points are exactly as before.
 
 from __future__ import annotations
 
+import math
+
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
@@ -346,11 +348,15 @@ class FlameNeRF(nn.Module):
         return dt * (dirs.norm(dim=-1, keepdim=True) / self.half_extent)
 
     # ---------------------------------------------------------------- captured views
-    def set_captured_views(self, views, max_angle: float = 0.0) -> None:
-        """Render colour as the capture saw it (data/captured_views.py; None: as asked).
+    def set_captured_views(self, views, max_angle: float | None = None) -> None:
+        """Render colour as the capture saw it (data/captured_views.py; None: as asked),
+        within `max_angle` radians of a captured view (default: captured_views.MAX_ANGLE_DEG).
         Not part of the checkpoint: a run's loader sets it from its dataset
         (training/run.Run.attach); training never uses it."""
-        self.captured_max_angle = float(max_angle)
+        from flamenerf.data.captured_views import MAX_ANGLE_DEG
+
+        self.captured_max_angle = (math.radians(MAX_ANGLE_DEG) if max_angle is None
+                                   else float(max_angle))
         if views is None:
             self.captured = None
             return
@@ -393,11 +399,13 @@ class FlameNeRF(nn.Module):
             r = (share > 0).nonzero()[:, 0]
             s = share[r, None]
             xs = apply_se3(s * head[r, :3], s * head[r, 3:], xw[r])
-            centres = apply_se3(s[:, None] * twists[None, :, :3], s[:, None] * twists[None, :, 3:],
+            centres = apply_se3(s[:, None] * twists[None, :, :3],
+                                s[:, None] * twists[None, :, 3:],
                                 world[None].expand(len(r), -1, -1))  # (r, N, 3)
             u = F.normalize(xs[:, None] - centres, dim=-1)
             cos_r, k_r = (u * dirs[r, None]).sum(-1).max(1)
-            cos, uk = cos.index_put((r,), cos_r), uk.index_put((r,), u[torch.arange(len(r), device=r.device), k_r])
+            cos = cos.index_put((r,), cos_r)
+            uk = uk.index_put((r,), u[torch.arange(len(r), device=r.device), k_r])
         # within `captured_max_angle` of a captured view the direction stays as asked;
         # beyond, it turns from that view towards the one asked by that angle only (slerp)
         a = torch.acos(cos.clamp(-1.0, 1.0))[:, None]

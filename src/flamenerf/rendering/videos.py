@@ -341,8 +341,7 @@ def render_videos(opts: RenderOptions, log=print) -> RenderSummary:
     if opts.out is not None:  # fail before loading and tracking, not after rendering
         writable_dir(opts.out.parent, "video")
     run = load_run(opts.run, opts.device)
-    ds = run.dataset(opts.dataset)
-    run.attach(ds, opts.captured_directions)
+    ds = run.dataset(opts.dataset, opts.captured_directions)
     names = run.expression_names
     intr = render_intrinsics(run, ds, opts.size)
     ref = reference_position(ds)

@@ -30,26 +30,25 @@ class Run:
     def expression_names(self) -> list[str]:
         return list(self.meta["expression_names"])
 
-    def dataset(self, path: str | Path | None = None) -> Dataset:
-        """The run's training dataset (or another one with the same expression model)."""
+    def dataset(self, path: str | Path | None = None, captured_directions: bool = True
+                ) -> Dataset:
+        """The run's training dataset (or another one with the same expression model),
+        attached to the model (`attach`)."""
         p = Path(path) if path is not None else Path(self.meta["dataset"])
         ds = load_dataset(p)
         if ds.expression_names != self.expression_names:
             raise UserError(f"{p}: its expression model ({ds.expression_dim} controls) is not "
                             f"the one this run was trained with ({len(self.expression_names)})")
-        self.attach(ds)
+        self.attach(ds, captured_directions)
         return ds
 
     def attach(self, ds: Dataset, captured_directions: bool = True) -> None:
         """Render with `ds`'s capture: colour at a new camera as the nearest captured view
         saw it (data/captured_views.py); `captured_directions` False: at the direction
         asked, as the training forward does."""
-        import math
+        from flamenerf.data.captured_views import captured_views
 
-        from flamenerf.data.captured_views import MAX_ANGLE_DEG, captured_views
-
-        self.model.set_captured_views(captured_views(ds) if captured_directions else None,
-                                      math.radians(MAX_ANGLE_DEG))
+        self.model.set_captured_views(captured_views(ds) if captured_directions else None)
 
     def train_intrinsics(self, ds: Dataset) -> Intrinsics:
         return ds.intrinsics.scaled(1.0 / self.config.train.downscale)
