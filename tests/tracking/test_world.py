@@ -32,7 +32,8 @@ def _solve(room, mesh):
     sol = _face_solve(room, mesh)
     frames = ((k, f, person_mask(lm[:, :2], *SIZE))
               for k, (f, lm) in enumerate(zip(room.frames, room.landmarks)))
-    reg = register_background(frames, BackgroundOptions(), focal=sol.focal)
+    reg = register_background(frames, BackgroundOptions(), focal=sol.focal,
+                              still_head_c2w=sol.c2w)
     if reg.status == "registered":
         sol = _face_solve(room, mesh, _fov(reg.focal))
     return sol, reg, compose_world(sol.w2c, reg, mesh.vertices.mean(0))
@@ -71,6 +72,7 @@ def test_cameras_and_head_poses_of_a_moving_head(canonical_mesh):
     assert np.linalg.norm(heads - room.head_pose[:, :3, 3], axis=1).max() < 0.025
     assert _rot_deg(R @ world.head_pose[:, :3, :3], room.head_pose[:, :3, :3]).max() < 1.0
     assert world.head_motion["rotation_max_deg"] > 15  # the head turned ±20 deg
+    assert reg.details["still_head_hypothesis"]["chosen"] == "sfm"
     assert world.warnings == []
 
 
@@ -80,6 +82,7 @@ def test_still_head_gets_one_pose_and_metric_cameras(canonical_mesh):
     _, reg, world = _solve(room, canonical_mesh)
     assert reg.status == "registered", reg.reason
     assert world.case == "moving camera, still head"
+    assert reg.details["still_head_hypothesis"]["chosen"] == "still head"
     np.testing.assert_allclose(world.head_pose, np.tile(np.eye(4), (N, 1, 1)), atol=1e-9)
     # the world is the head's frame, in metres: the cameras are the true ones seen from it
     gt = np.linalg.inv(room.head_pose) @ room.c2w

@@ -25,6 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
+from flamenerf.tracking.still_head import still_head_hypothesis
+
 # COLMAP / OpenCV camera axes (x right, y down, z forward) -> OpenGL (x right, y up, -z fwd)
 CV_TO_GL = np.diag([1.0, -1.0, -1.0, 1.0])
 
@@ -134,7 +136,7 @@ def register_background(frames: Iterable[tuple[int, np.ndarray, np.ndarray]],
     """frames: (id, (H, W, 3) uint8 RGB, (H, W) bool person mask) in time order; focal:
     the face solve's focal length (source px; None: COLMAP estimates it); still_head_c2w
     (N, 4, 4): the face solve's cameras (head as world), the still-head hypothesis that
-    is tried against COLMAP's own solution (see `_still_head_hypothesis`).
+    is tried against COLMAP's own solution (see `flamenerf.tracking.still_head`).
     Everything COLMAP writes lives in a temporary folder, removed afterwards."""
     opts = opts or BackgroundOptions()
     t0 = time.perf_counter()
@@ -301,8 +303,8 @@ def _register(frames, opts: BackgroundOptions, tmp: Path, focal: float | None,
     if focal is not None and opts.refine_focal:
         rec = _refine_focal(rec, focal * scale, opts)
     if still_head_c2w is not None:
-        rec, kw["details"]["still_head_hypothesis"] = _still_head_hypothesis(
-            rec, still_head_c2w, names, db_path, img_dir, tmp, mapping, opts)
+        rec, kw["details"]["still_head_hypothesis"] = still_head_hypothesis(
+            rec, np.linalg.inv(still_head_c2w @ CV_TO_GL)[:, :3], names)
     for im in rec.images.values():
         if im.has_pose:
             w2c = np.eye(4)
@@ -356,34 +358,6 @@ def _refine_focal(rec, focal0: float, opts: BackgroundOptions):
     ok = (abs(np.log(f / focal0)) <= np.log(1 + opts.max_focal_change) and np.isfinite(e1)
           and e1 <= e0)  # a diverged adjustment (seen once on a tiny clip) is dropped
     return out if ok else rec
-
-
-def _still_head_hypothesis(rec, c2w_gl: np.ndarray, names: list[str], db_path: Path,
-                           img_dir: Path, tmp: Path, mapping, opts: BackgroundOptions):
-    """A second solution started from the face's cameras (right if the head is still):
-    poses set to them, background points triangulated, everything bundle-adjusted. Over a
-    short baseline with a distant, defocused background, incremental SfM can settle in the
-    mirror-image basin (the camera's sideways motion reversed, its turn explaining the
-    rest); the start decides the basin, the reprojection error which is right. -> (the
-    better reconstruction, what was compared)"""
-    import pycolmap
-
-    alt = pycolmap.Reconstruction(rec)
-    pos = {n: k for k, n in enumerate(names)}
-    for im in alt.images.values():
-        if im.has_pose:
-            w2c = np.linalg.inv(c2w_gl[pos[im.name]] @ CV_TO_GL)
-            alt.frame(im.frame_id).rig_from_world = pycolmap.Rigid3d(w2c[:3])
-    alt = pycolmap.triangulate_points(alt, db_path, img_dir, tmp / "hypothesis",
-                                      clear_points=True, options=mapping)
-    _bundle_adjust(alt, refine_focal=False, opts=opts)
-    e0, e1 = rec.compute_mean_reprojection_error(), alt.compute_mean_reprojection_error()
-    n0, n1 = rec.num_points3D(), alt.num_points3D()
-    # the face's start wins when it explains the background as well with as many points
-    take = alt.num_reg_images() >= rec.num_reg_images() and n1 >= 0.9 * n0 and e1 <= 1.05 * e0
-    return (alt if take else rec), {"sfm_error_px": e0, "sfm_points": n0,
-                                    "still_head_error_px": e1, "still_head_points": n1,
-                                    "chosen": "still head" if take else "sfm"}
 
 
 def _near_depth(rec) -> float | None:

@@ -1,0 +1,107 @@
+"""The still-head hypothesis's joint adjustment on synthetic cameras and points whose answer
+is known: it pulls the face's (slightly wrong) cameras onto the background, reports how far
+they had to turn, and does not accept points behind the cameras."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from flamenerf.tracking.still_head import (StillHeadOptions, _cayley_grad, _in_front, adjust,
+                                           cayley)
+
+K = np.array([[300.0, 0, 160], [0, 300.0, 120], [0, 0, 1]])
+
+
+def _scene(n_cams=12, n_pts=150, seed=0):
+    """Cameras on a 30° arc 0.6 m around a head at the origin, looking at it; background
+    points 1.5-3 m behind the head; every point seen by every camera (OpenCV w2c)."""
+    rng = np.random.default_rng(seed)
+    w2c = []
+    for a in np.radians(np.linspace(-15, 15, n_cams)):
+        C = np.array([0.6 * np.sin(a), 0.0, -0.6 * np.cos(a)])
+        z = -C / np.linalg.norm(C)
+        x = np.cross([0.0, 1.0, 0.0], z)
+        x /= np.linalg.norm(x)
+        R = np.stack([x, np.cross(z, x), z])
+        w2c.append(np.concatenate([R, (-R @ C)[:, None]], 1))
+    w2c = np.array(w2c)
+    X = np.stack([rng.uniform(-1.2, 1.2, n_pts), rng.uniform(-0.9, 0.9, n_pts),
+                  rng.uniform(1.5, 3.0, n_pts)], 1)
+    fi, pj = np.meshgrid(np.arange(n_cams), np.arange(n_pts), indexing="ij")
+    fi, pj = fi.ravel(), pj.ravel()
+    p = np.einsum("kab,kb->ka", w2c[fi, :, :3], X[pj]) + w2c[fi, :, 3]
+    uv = p[:, :2] / p[:, 2:] * K[0, 0] + K[:2, 2]
+    return w2c, X, fi, pj, uv
+
+
+def _perturb(w2c, deg, metres, seed=1):
+    rng = np.random.default_rng(seed)
+    out = w2c.copy()
+    for k in range(len(w2c)):
+        dR = Rotation.from_rotvec(rng.normal(size=3) * np.radians(deg) / np.sqrt(3)).as_matrix()
+        R = dR @ w2c[k, :, :3]
+        C = -w2c[k, :, :3].T @ w2c[k, :, 3] + rng.normal(size=3) * metres / np.sqrt(3)
+        out[k] = np.concatenate([R, (-R @ C)[:, None]], 1)
+    return out
+
+
+def _turn(A, B):
+    return np.degrees(Rotation.from_matrix(np.einsum("nab,ncb->nac", A[:, :, :3],
+                                                     B[:, :, :3])).magnitude())
+
+
+def test_cayley_is_a_rotation_with_the_right_gradient():
+    r = np.random.default_rng(0).normal(size=(5, 3)) * 0.4
+    R = cayley(r)
+    np.testing.assert_allclose(R @ R.transpose(0, 2, 1), np.tile(np.eye(3), (5, 1, 1)),
+                               atol=1e-12)
+    np.testing.assert_allclose(Rotation.from_matrix(R).magnitude(),
+                               2 * np.arctan(np.linalg.norm(r, axis=1)), atol=1e-12)
+    g, eps = _cayley_grad(r), 1e-6
+    for a in range(3):
+        d = np.zeros(3)
+        d[a] = eps
+        np.testing.assert_allclose((cayley(r + d) - cayley(r - d)) / (2 * eps), g[..., a],
+                                   atol=1e-8)
+
+
+def test_face_cameras_a_degree_off_are_pulled_onto_the_background():
+    w2c, X, fi, pj, uv = _scene()
+    prior = _perturb(w2c, 1.0, 0.005)
+    assert _turn(prior, w2c).mean() > 0.5
+    out = adjust(K, prior, fi, pj, uv, StillHeadOptions())
+    assert np.median(out.errors) < 0.05
+    # the gauge (a similarity) is left to the priors: compare relative poses
+    rel = np.einsum("nab,bc->nac", out.w2c[:, :, :3], out.w2c[0, :, :3].T)
+    rel_gt = np.einsum("nab,bc->nac", w2c[:, :, :3], w2c[0, :, :3].T)
+    assert _turn(rel, rel_gt).max() < 0.1
+    assert np.median(out.turn_deg) < 1.5  # the cameras stayed with the face's
+
+
+def test_a_turned_head_shows_as_a_large_turn_from_the_face():
+    """The face's cameras when the head turned 10° during the clip: the background's
+    cameras are far from them, and the adjustment says so."""
+    w2c, X, fi, pj, uv = _scene()
+    prior = w2c.copy()
+    for k, yaw in enumerate(np.linspace(0, 10, len(w2c))):
+        prior[k, :, :3] = w2c[k, :, :3] @ Rotation.from_euler("y", yaw, degrees=True
+                                                              ).as_matrix()
+    out = adjust(K, prior, fi, pj, uv, StillHeadOptions())
+    assert np.median(out.turn_deg) > StillHeadOptions().max_turn_deg
+
+
+def test_points_triangulated_behind_the_cameras_start_in_front_of_them():
+    """A distant point seen with little parallax can triangulate "beyond infinity", behind
+    the cameras, where it still projects to its pixels up to sign: it starts the
+    adjustment far along its first ray instead, in front of every camera."""
+    w2c, X, fi, pj, uv = _scene(n_cams=4, n_pts=10)
+    C0 = -w2c[0, :, :3].T @ w2c[0, :, 3]
+    bad = X.copy()
+    bad[:3] = 2 * C0 - X[:3]  # behind camera 0, on its rays
+    out = _in_front(bad, K, w2c, fi, pj, uv)
+    np.testing.assert_array_equal(out[3:], X[3:])
+    depth = np.einsum("kb,kb->k", w2c[fi, 2, :3], out[pj]) + w2c[fi, 2, 3]
+    assert (depth > 0).all()
+    p = out[:3] @ w2c[0, :, :3].T + w2c[0, :, 3]
+    np.testing.assert_allclose(p[:, :2] / p[:, 2:] * K[0, 0] + K[:2, 2], uv[:3], atol=1e-6)
