@@ -163,3 +163,23 @@ def test_case_detection_from_motion():
         assert w.case == case, (cam_deg, head_deg)
         assert w.scale == pytest.approx(1.0, rel=1e-6) or cam_deg < 1
         assert any("novel views will extrapolate" in m for m in w.warnings) == (cam_deg < 5)
+
+
+def test_preprocess_tells_the_case_the_still_head_check_and_every_warning():
+    from flamenerf.tracking.report import scene_lines
+
+    hyp = {"sfm_error_px": 0.7, "sfm_points": 400, "chosen": "sfm", "still_head_error_px": 1.05,
+           "still_head_inliers": 0.94, "still_head_turn_deg": 2.3, "still_head_shift_m": 0.01}
+    scene = {"case": CASES[2], "cameras_from": "the static background",
+             "warnings": ["scale floor used", "the camera barely moves"],
+             "background": {"reason": "94 of 94 frames registered", "still_head_hypothesis": hyp}}
+    lines = scene_lines(scene)
+    assert lines[0].startswith(f"scene: {CASES[2]}; cameras from the static background")
+    assert "not kept" in lines[1] and "1.05 px" in lines[1] and "0.70 px" in lines[1]
+    assert lines[2:] == ["  warning: scale floor used", "  warning: the camera barely moves"]
+    lines = scene_lines({**scene, "background": {"still_head_hypothesis":
+                                                 {**hyp, "chosen": "still head"}}})
+    assert "still-head check: kept" in lines[1]
+    assert scene_lines({"case": CASES[4], "cameras_from": "the face (head as world)",
+                        "warnings": [], "background": None}) == [
+        f"scene: {CASES[4]}; cameras from the face (head as world)"]

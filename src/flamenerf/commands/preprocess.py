@@ -35,6 +35,7 @@ def preprocess(
         out: Output dataset directory (written atomically).
     """
     from flamenerf.tracking.pipeline import preprocess_video
+    from flamenerf.tracking.report import scene_lines
 
     rep = preprocess_video(video, out, opts)
     err = rep["reprojection_error_px"]
@@ -45,6 +46,8 @@ def preprocess(
           f"({err['rigid_median_source']:.2f} px in the source); "
           f"fov {rep['camera']['fov_x_deg']:.1f} deg; "
           f"{rep['frames_per_second']:.1f} frames/s")
+    for line in scene_lines(rep["scene"]):
+        print(line)
     cov = rep.get("expressions")
     if cov:
         top = sorted(cov["varying"], key=lambda n: -(cov["controls"][n]["p95"]

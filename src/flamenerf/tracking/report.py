@@ -33,6 +33,24 @@ def scene_report(scene) -> dict:
     }
 
 
+def scene_lines(scene: dict) -> list[str]:
+    """What preprocess tells the user about the scene (a `scene_report`): the case, where
+    the cameras came from, the still-head check, and every warning."""
+    bg = scene.get("background") or {}
+    lines = [f"scene: {scene['case']}; cameras from {scene['cameras_from']}"
+             + (f" ({bg['reason']})" if bg.get("reason") else "")]
+    hyp = bg.get("still_head_hypothesis")
+    if hyp and "still_head_error_px" in hyp:
+        verdict = "kept" if hyp["chosen"] == "still head" else "not kept"
+        lines.append(
+            f"  still-head check: {verdict} (a still head explains the background at "
+            f"{hyp['still_head_error_px']:.2f} px over {100 * hyp['still_head_inliers']:.0f}% "
+            f"of its observations with the cameras {hyp['still_head_turn_deg']:.1f} deg from "
+            f"the face's; structure from motion: {hyp['sfm_error_px']:.2f} px)")
+    lines += [f"  warning: {w}" for w in scene.get("warnings", [])]
+    return lines
+
+
 def tracking_report(video: Path, clip, sol, scene, intr, crop, crop_facts, n_tracked: int,
                     cam_dist: np.ndarray, near: float, far: float, kind: str,
                     names: list[str], splits: list[str], per_frame: list[dict],
