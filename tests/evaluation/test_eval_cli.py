@@ -83,7 +83,11 @@ def test_eval_drive_reports_the_driving_correlation(toy_run, astronaut_video, tm
     assert dv["controls"] == {} and dv["skipped"]
     assert dv["geometry"]["measures"] == {} and "mouth_open" in dv["geometry"]["skipped"]
     assert "images/drive.png" in res["images"]
-    assert iio.imread(out / "images" / "drive.png").shape[0] > 16  # driving over render
+    img = iio.imread(out / "images" / "drive.png")
+    h = (img.shape[0] - 2) // 2  # driving over render, 2 px apart
+    assert h > 8
+    # the driving frames are cut to a square around the face, each as wide as its render
+    assert img.shape[1] == 4 * h + 3 * 4
     assert "**Drive**" in (out / "metrics.md").read_text()
     with pytest.raises(UserError, match="--drive"):
         eval_cmd(toy_run, out=tmp_path / "e2", drive=tmp_path / "missing.mp4")

@@ -181,8 +181,9 @@ def test_cli_detail_levels_background_and_view_dependence_reach_the_run(tiny_sce
     out = tmp_path / "run"
     assert main(["train", str(tiny_scene), "--out", str(out), "--steps", "1",
                  "--batch-rays", "64", "--detail-levels", "0", "--random-background",
-                 "False", "--view-dependent", "False"]) == 0
+                 "False", "--view-dependent", "False", "--seed", "3"]) == 0
     cfg = load_run(out).config
+    assert cfg.train.seed == 3 and preset("fast").train.seed == 0
     assert cfg.model.field.detail_levels == 0 and not cfg.train.random_background
     assert not cfg.model.field.view_dependent and preset("fast").model.field.view_dependent
     assert preset("fast").model.field.detail_levels > 0 and preset("fast").train.random_background

@@ -30,6 +30,7 @@ def train(
     detail_levels: int | None = None,
     random_background: bool | None = None,
     view_dependent: bool | None = None,
+    seed: int | None = None,
     resume: bool = False,
     device: str = "auto",
     threads: int = 0,
@@ -79,6 +80,8 @@ def train(
         view_dependent: Whether colour sees the viewing direction. Off, cameras far off the
             capture path see truer colours (built-in scene) while captured views of real
             clips lose detail (docs/presets.md, "Less view dependence"). Default: on.
+        seed: Seed of the initial weights and the ray sampling (repeat a training over
+            seeds to see how much of a difference is noise). Default: the preset's (0).
         resume: Continue the run in OUT from its latest checkpoint.
         device: `auto` (CUDA when present), `cpu` or `cuda`.
         threads: CPU threads for torch (0 = default).
@@ -133,7 +136,7 @@ def train(
                    "train.accumulate": accumulate, "model.head.region_scale": head_region_scale,
                    "model.head.band": head_band, "model.field.detail_levels": detail_levels,
                    "train.random_background": random_background,
-                   "model.field.view_dependent": view_dependent})
+                   "model.field.view_dependent": view_dependent, "train.seed": seed})
     res = run_train(dataset, out, cfg, resume=resume, device=device, steps=steps)
     if not ranks.main:  # rank 0 speaks for the job
         if res.interrupted:

@@ -279,8 +279,18 @@ def from_video(video: Path, ds, names: list[str], relative: bool = True,
     info = probe_video(video)
     images: dict[int, np.ndarray] = {}
     want = list(tr.source_frames or range(len(values)))
+    crop = None
+    if tr.face_box is not None and len(tr.face_box) == len(want):
+        from flamenerf.tracking.crop import stable_square_crop
+
+        # the driving face, framed as preprocessing frames a subject: one square window for
+        # the clip, so that driving and result panels show faces of like size side by side
+        crop = stable_square_crop(np.asarray(tr.face_box), info.width, info.height,
+                                  panel_height or 512)[0]
     for idx, img in iter_frames(info, np.asarray(want)):
-        if panel_height is not None:
+        if crop is not None:
+            img = crop.apply(img)
+        elif panel_height is not None:
             w = max(1, round(img.shape[1] * panel_height / img.shape[0]))
             img = resize_image(img.astype(np.float32) / 255, w, panel_height)
             img = (np.clip(img, 0, 1) * 255 + 0.5).astype(np.uint8)

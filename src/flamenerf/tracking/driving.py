@@ -19,6 +19,7 @@ def track_expressions(video: str | os.PathLike, fps: float | None = None,
                       min_tracked: float = 0.5, progress: bool = True):
     """Per-frame expression vectors of a (driving) video -> ExpressionTrack."""
     import flamenerf
+    from flamenerf.tracking.crop import face_boxes
     from flamenerf.tracking.expressions import ExpressionTrack
 
     flame = None
@@ -46,7 +47,7 @@ def track_expressions(video: str | os.PathLike, fps: float | None = None,
         rate = clip.info.fps / float(np.median(np.diff(clip.selected)))
     return ExpressionTrack(
         names=list(names), frames=np.asarray(frames, np.float32), fps=float(rate), kind=kind,
-        head_pose=head,
+        head_pose=head, face_box=face_boxes(clip.landmarks),
         source_frames=[int(i) for i in clip.frames],
         times=[round(float(t), 6) for t in clip.times], dropped=clip.dropped,
         source={"video": str(video), "tool": "flamenerf track",

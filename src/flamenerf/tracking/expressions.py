@@ -50,6 +50,7 @@ class ExpressionTrack:
     source: dict[str, Any] = field(default_factory=dict)
     transfer: dict[str, Any] | None = None
     head_pose: np.ndarray | None = None  # (T, 6) yaw, pitch, roll, x, y, z vs the first frame
+    face_box: np.ndarray | None = None  # (T, 4) x0, y0, x1, y1 source px (pictures; not saved)
 
     def to_json(self) -> dict:
         return {
