@@ -2,17 +2,21 @@
 background's feature tracks and the cameras, started from (and softly held to) the cameras
 the face gives when the head is the world.
 
-Why: over a short baseline with a distant, defocused background, incremental SfM can settle
-in the mirror-image basin (the camera's sideways motion reversed, its turn explaining the
-rest); the composed world then has a still head moving centimetres. COLMAP's own tools do
-not leave that basin from the face's start: strict triangulation from the face's cameras
-(1–2° off the background's) keeps a handful of points, and a free bundle adjustment of a
-loose triangulation drifts into a turned world. Holding every camera to the face's pose
-with a prior (σ 1°, 1 cm) while the tracks pull it onto the background does.
+Why: over a short baseline with a distant, defocused background, incremental SfM could
+settle in the mirror-image basin (the camera's sideways motion reversed, its turn explaining
+the rest), and the composed world would then have a still head moving centimetres. The
+question is whether a world with a still head explains the background about as well.
+COLMAP's own tools do not answer it from the face's start: strict triangulation from the
+face's cameras (1–2° off the background's) keeps a handful of points, and a free bundle
+adjustment of a loose one drifts away from the face's cameras. Holding every camera to the
+face's pose with a prior (σ 1°, 1 cm) while the tracks pull it onto the background, with the
+points kept in front of the cameras (a point behind them projects to the same pixels up to
+sign, and a first version "fitted" the orbit clip that way), does.
 
-    SfM tracks -> points triangulated from the face's cameras (DLT) -> robust joint
-    adjustment (scipy least_squares, analytic sparse Jacobian) -> accepted when it explains
-    the background about as well as SfM and the cameras stayed with the face's
+    SfM tracks -> points triangulated from the face's cameras (DLT; behind them: far along
+    their ray) -> robust joint adjustment (soft-L1 reweighted Levenberg-Marquardt, analytic
+    sparse Jacobian) -> accepted when it explains the background about as well as SfM with
+    the cameras still near the face's
 """
 
 from __future__ import annotations
