@@ -105,3 +105,61 @@ def test_points_triangulated_behind_the_cameras_start_in_front_of_them():
     assert (depth > 0).all()
     p = out[:3] @ w2c[0, :, :3].T + w2c[0, :, 3]
     np.testing.assert_allclose(p[:, :2] / p[:, 2:] * K[0, 0] + K[:2, 2], uv[:3], atol=1e-6)
+
+
+def _reconstruction(w2c_sfm, X_sfm, fi, pj, uv, extra_image: bool):
+    """A pycolmap reconstruction as COLMAP's mapper leaves it: cameras and points in its
+    own world, tracks of the observations; optionally one more registered image that
+    sees no point."""
+    import pycolmap
+
+    rec = pycolmap.Reconstruction()
+    rec.add_camera_with_trivial_rig(pycolmap.Camera(
+        model="SIMPLE_PINHOLE", width=320, height=240, params=[K[0, 0], K[0, 2], K[1, 2]],
+        camera_id=1))
+    n = len(w2c_sfm)
+    names = [f"{k:06d}.jpg" for k in range(n + extra_image)]
+    rows = [np.flatnonzero(fi == k) for k in range(n)]
+    for k in range(n + extra_image):
+        im = pycolmap.Image(name=names[k], camera_id=1, image_id=k + 1,
+                            keypoints=uv[rows[k]] if k < n else np.zeros((0, 2)))
+        rec.add_image_with_trivial_frame(im, pycolmap.Rigid3d(w2c_sfm[min(k, n - 1)]))
+    for j in range(len(X_sfm)):
+        track = pycolmap.Track()
+        for k in range(n):
+            for i in np.flatnonzero(pj[rows[k]] == j):
+                track.add_element(k + 1, int(i))
+        rec.add_point3D(X_sfm[j], track)
+    rec.update_point_3d_errors()
+    return rec, names
+
+
+def test_an_accepted_still_head_replaces_the_cameras_points_and_outliers():
+    """SfM's world is the true one turned 30° and scaled x2; the face's cameras are the
+    true ones a degree off. Accepted, the reconstruction is the face's world: its cameras
+    match the truth, the gross outlier is no longer part of its track, and a registered
+    frame that saw no point is unregistered (its pose was in SfM's world)."""
+    from flamenerf.tracking.still_head import still_head_hypothesis
+
+    w2c, X, fi, pj, uv = _scene()
+    uv = uv + np.random.default_rng(5).normal(size=uv.shape) * 0.3
+    uv[7] += 30.0  # frame 0's view of point 7
+    G = np.eye(4)
+    G[:3, :3] = 2.0 * Rotation.from_euler("y", 30, degrees=True).as_matrix()  # true -> SfM
+    X_sfm = X @ G[:3, :3].T
+    w2c_sfm = np.concatenate([w2c[:, :, :3] @ G[:3, :3].T / 2.0, w2c[:, :, 3:] * 2.0], 2)
+    rec, names = _reconstruction(w2c_sfm, X_sfm, fi, pj, uv, extra_image=True)
+    prior = np.concatenate([_perturb(w2c, 1.0, 0.005), w2c[-1:]])  # one per name
+    alt, info = still_head_hypothesis(rec, prior, names)
+    assert info["chosen"] == "still head", info
+    assert alt is not rec and not alt.images[len(names)].has_pose
+    got = np.stack([alt.images[k + 1].cam_from_world().matrix() for k in range(len(w2c))])
+    assert _turn(got, w2c).max() < 1.0  # the face's world (its gauge), not SfM's (30° away)
+    centres = -np.einsum("nba,nb->na", got[:, :, :3], got[:, :, 3])
+    true_centres = -np.einsum("nba,nb->na", w2c[:, :, :3], w2c[:, :, 3])
+    assert np.abs(centres - true_centres).max() < 0.01  # metres, not SfM's units
+    # frame 0's keypoint 7 is the outlier: no longer an observation of its point
+    assert rec.images[1].points2D[7].has_point3D()
+    assert not alt.images[1].points2D[7].has_point3D()
+    assert alt.images[1].points2D[6].has_point3D()
+    assert alt.compute_mean_reprojection_error() < 0.6

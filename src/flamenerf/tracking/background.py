@@ -303,8 +303,11 @@ def _register(frames, opts: BackgroundOptions, tmp: Path, focal: float | None,
     if focal is not None and opts.refine_focal:
         rec = _refine_focal(rec, focal * scale, opts)
     if still_head_c2w is not None:
-        rec, kw["details"]["still_head_hypothesis"] = still_head_hypothesis(
-            rec, np.linalg.inv(still_head_c2w @ CV_TO_GL)[:, :3], names)
+        rec, hyp = still_head_hypothesis(rec, np.linalg.inv(still_head_c2w @ CV_TO_GL)[:, :3],
+                                         names)
+        # the report's errors are in source pixels, COLMAP's in its downscaled frames'
+        kw["details"]["still_head_hypothesis"] = {
+            k: v / scale if k.endswith("_px") else v for k, v in hyp.items()}
     for im in rec.images.values():
         if im.has_pose:
             w2c = np.eye(4)

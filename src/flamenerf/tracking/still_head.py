@@ -9,9 +9,10 @@ question is whether a world with a still head explains the background about as w
 COLMAP's own tools do not answer it from the face's start: strict triangulation from the
 face's cameras (1–2° off the background's) keeps a handful of points, and a free bundle
 adjustment of a loose one drifts away from the face's cameras. Holding every camera to the
-face's pose with a prior (σ 1°, 1 cm) while the tracks pull it onto the background, with the
-points kept in front of the cameras (a point behind them projects to the same pixels up to
-sign, and a first version "fitted" the orbit clip that way), does.
+face's pose with a prior (σ 1°, 1 cm) while the tracks pull it onto the background does,
+with the points started in front of the cameras and those that end behind them counted as
+not fitting (a point behind them projects to the same pixels up to sign, and a first
+version "fitted" the orbit clip that way).
 
     SfM tracks -> points triangulated from the face's cameras (DLT; behind them: far along
     their ray) -> robust joint adjustment (soft-L1 reweighted Levenberg-Marquardt, analytic
@@ -33,7 +34,8 @@ class StillHeadOptions:
     pos_sigma_m: float = 0.01
     """Prior: how far (1σ) a camera centre may move from the face's (metres)."""
     robust_px: float = 2.0
-    """Soft-L1 scale of the reprojection residuals (COLMAP's pixels)."""
+    """Soft-L1 scale of the reprojection residuals (COLMAP's pixels: the frames as given to
+    it, downscaled from the source's; so are the other pixel figures here)."""
     inlier_px: float = 4.0
     """Observations within this many pixels count as inliers (COLMAP's own filter)."""
     min_inliers: float = 0.95
@@ -192,7 +194,7 @@ def adjust(K: np.ndarray, w2c0: np.ndarray, fi: np.ndarray, pj: np.ndarray, uv: 
                           shape=(2 * n_obs + 6 * N, 6 * N + 3 * M))
 
     x = np.concatenate([np.zeros(3 * N), C0.ravel(), X0.ravel()])
-    x = _levenberg_marquardt(residuals, jacobian, x, n_obs, opts)
+    x = _levenberg_marquardt(residuals, jacobian, x, n_obs, 6 * N, opts)
     r, c, X = unpack(x)
     R = cayley(r) @ R0
     w2c = np.concatenate([R, -np.einsum("nab,nb->na", R, c)[..., None]], 2)
@@ -215,23 +217,51 @@ def _robust_cost(e: np.ndarray, n_obs: int, scale: float) -> float:
     return float(2 * scale ** 2 * (np.sqrt(1 + err2) - 1).sum() + (e[2 * n_obs:] ** 2).sum())
 
 
-def _levenberg_marquardt(residuals, jacobian, x: np.ndarray, n_obs: int,
+def _schur_solve(A, g: np.ndarray, n_cam: int) -> np.ndarray:
+    """Solve A x = g for normal equations A (sparse, symmetric) whose unknowns are n_cam
+    camera parameters followed by 3-D points that no observation couples to each other
+    (A's point block is block-diagonal, 3x3): eliminate the points (Schur complement), solve
+    the small dense camera system, back-substitute. A direct sparse solve of the whole
+    system took seconds per step from a few thousand points on (its fill-in grows with the
+    points each frame sees); this stays at the camera system's size."""
+    from scipy.sparse import bsr_matrix
+
+    A = A.tocsr()
+    m = (A.shape[0] - n_cam) // 3
+    Acc, Acp = A[:n_cam, :n_cam].toarray(), A[:n_cam, n_cam:]
+    r = n_cam + 3 * np.arange(m)[:, None, None] + np.arange(3)[None, :, None]
+    c = n_cam + 3 * np.arange(m)[:, None, None] + np.arange(3)[None, None, :]
+    r, c = np.broadcast_arrays(r, c)
+    blocks = np.asarray(A[r.ravel(), c.ravel()]).reshape(m, 3, 3)
+    inv = bsr_matrix((np.linalg.inv(blocks), np.arange(m), np.arange(m + 1)),
+                     shape=(3 * m, 3 * m))
+    gc, gp = g[:n_cam], g[n_cam:]
+    AcpI = (Acp @ inv).tocsr()
+    S = Acc - (AcpI @ Acp.T).toarray()
+    xc = np.linalg.solve(S, gc - AcpI @ gp)
+    xp = inv @ (gp - Acp.T @ xc)
+    return np.concatenate([xc, xp])
+
+
+def _levenberg_marquardt(residuals, jacobian, x: np.ndarray, n_obs: int, n_cam: int,
                          opts: StillHeadOptions) -> np.ndarray:
-    """Iteratively reweighted Levenberg-Marquardt on sparse normal equations (a few
-    thousand unknowns: a direct sparse solve per step is quick, where scipy's trust-region
-    solver with an iterative inner solve needed hundreds of steps)."""
+    """Iteratively reweighted Levenberg-Marquardt on the normal equations, points
+    eliminated per step (`_schur_solve`; scipy's trust-region solver with an iterative
+    inner solve needed hundreds of steps)."""
     from scipy.sparse import diags
-    from scipy.sparse.linalg import spsolve
 
     lam, e = 1e-3, residuals(x)
     cost = _robust_cost(e, n_obs, opts.robust_px)
     for _ in range(opts.max_iterations):
         w = _robust_weights(e, n_obs, opts.robust_px)
         J = diags(w) @ jacobian(x)
-        A, g = (J.T @ J).tocsc(), J.T @ (w * e)
+        A, g = (J.T @ J).tocsr(), J.T @ (w * e)
         d = A.diagonal() + 1e-9
         while True:
-            step = spsolve(A + diags(lam * d), -g)
+            try:
+                step = _schur_solve(A + diags(lam * d), -g, n_cam)
+            except np.linalg.LinAlgError:
+                step = np.full_like(x, np.nan)
             x_new = x + step
             e_new = residuals(x_new)
             cost_new = _robust_cost(e_new, n_obs, opts.robust_px)
@@ -266,7 +296,7 @@ def still_head_hypothesis(rec, w2c_face: np.ndarray, names: list[str],
     f, cx, cy = (float(v) for v in cam.params[:3])
     K = np.array([[f, 0, cx], [0, f, cy], [0, 0, 1]])
     w2c0 = w2c_face
-    seen = np.unique(fi)  # frames SfM registered; the rest keep no pose
+    seen = np.unique(fi)  # frames that see a background point; the rest get no pose
     remap = np.full(len(names), -1)
     remap[seen] = np.arange(len(seen))
     adj = adjust(K, w2c0[seen], remap[fi], pj, uv, opts)
@@ -281,9 +311,13 @@ def still_head_hypothesis(rec, w2c_face: np.ndarray, names: list[str],
     alt = pycolmap.Reconstruction(rec)
     pos = {n: k for k, n in enumerate(names)}
     for im in alt.images.values():
-        k = remap[pos[im.name]] if im.has_pose else -1
+        if not im.has_pose:
+            continue
+        k = remap[pos[im.name]]
         if k >= 0:
             alt.frame(im.frame_id).rig_from_world = pycolmap.Rigid3d(adj.w2c[k])
+        else:  # a pose in SfM's world and scale would not fit this one: unregistered
+            alt.deregister_frame(im.frame_id)
     for j, pid in enumerate(point_ids):
         alt.point3D(pid).xyz = adj.points[j]
     # COLMAP's own filter: observations that do not fit are not part of the track
