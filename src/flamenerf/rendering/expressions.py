@@ -285,8 +285,12 @@ def from_video(video: Path, ds, names: list[str], relative: bool = True,
 
         # the driving face, framed as preprocessing frames a subject: one square window for
         # the clip, so that driving and result panels show faces of like size side by side
+        opts = ((getattr(ds, "meta", None) or {}).get("source") or {}).get("options") or {}
+        scale = opts.get("crop_scale")  # the subject's own framing, when it has one
+        if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not scale > 0:
+            scale = 2.0
         crop = stable_square_crop(np.asarray(tr.face_box), info.width, info.height,
-                                  panel_height or 512)[0]
+                                  panel_height or 512, scale=float(scale))[0]
     for idx, img in iter_frames(info, np.asarray(want)):
         if crop is not None:
             img = crop.apply(img)
