@@ -189,6 +189,9 @@ def test_cli_detail_levels_background_and_view_dependence_reach_the_run(tiny_sce
     assert preset("fast").model.field.detail_levels > 0 and preset("fast").train.random_background
     assert main(["train", str(tiny_scene), "--out", str(tmp_path / "bad"), "--steps", "1",
                  "--detail-levels", "-1"]) == 2
+    assert main(["train", str(tiny_scene), "--out", str(tmp_path / "bad"), "--steps", "1",
+                 "--seed", str(2 ** 64)]) == 2
+    assert not (tmp_path / "bad").exists()
 
 
 def test_mesh_guided_training_carries_the_expression_model(synth_scene, tmp_path):

@@ -126,6 +126,8 @@ def train(
     for flag, v in (("--head-region-scale", head_region_scale), ("--head-band", head_band)):
         if v is not None and not v > 0:
             raise UserError(f"{flag} {v}: must be positive")
+    if seed is not None and not 0 <= seed < 2 ** 63:
+        raise UserError(f"--seed {seed}: must be in 0..2^63-1")
     if detail_levels is not None and detail_levels < 0:
         raise UserError(f"--detail-levels {detail_levels}: must be 0 or more")
     if face_depth_weight is not None and not face_depth_weight >= 0:
