@@ -46,7 +46,7 @@ def scene_lines(scene: dict) -> list[str]:
             f"  still-head check: {verdict} (a still head explains the background at "
             f"{hyp['still_head_error_px']:.2f} px over {100 * hyp['still_head_inliers']:.0f}% "
             f"of its observations with the cameras {hyp['still_head_turn_deg']:.1f} deg from "
-            f"the face's; structure from motion: {hyp['sfm_error_px']:.2f} px)")
+            f"the face's; structure from motion: {hyp['sfm_error_px']:.2f} px; source pixels)")
     lines += [f"  warning: {w}" for w in scene.get("warnings", [])]
     return lines
 
