@@ -32,7 +32,8 @@ import numpy as np, torch
 torch.set_num_threads(int(sys.argv[3]))
 from flamenerf.training.run import load_run
 from flamenerf.model.render_image import render_image
-from flamenerf.model.inference import FAST
+from flamenerf.model import inference
+SETTINGS = getattr(inference, sys.argv[6])
 from flamenerf.data.prior import dataset_dilation, mesh_function, prior_mask
 run = load_run(sys.argv[1], "cpu")
 ds = run.dataset(sys.argv[2] or None)
@@ -44,11 +45,11 @@ for size in json.loads(sys.argv[4]):
     intr = ds.intrinsics.scaled(size / ds.intrinsics.w)
     mask = prior_mask(ds, mesh_function(run.model, ds)(beta), fr.c2w, intr, dataset_dilation(ds))
     args = (run.model, intr, fr.c2w, omega, phi, torch.as_tensor(beta), mask)
-    render_image(*args, settings=FAST)
+    render_image(*args, settings=SETTINGS)
     ts = []
     for _ in range(int(sys.argv[5])):
         t = time.perf_counter()
-        render_image(*args, settings=FAST)
+        render_image(*args, settings=SETTINGS)
         ts.append(time.perf_counter() - t)
     out[str(size)] = ts
 print(json.dumps(out))
@@ -65,6 +66,8 @@ def main() -> int:
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--repeats", type=int, default=4)
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--settings", choices=["FAST", "VIEWER"], default="FAST",
+                    help="render's settings, or the viewer's (model/inference.py)")
     ap.add_argument("--json", type=Path, default=None)
     a = ap.parse_args()
     times: dict[str, dict[str, list[float]]] = {s: {} for s in a.src}
@@ -74,14 +77,14 @@ def main() -> int:
             env = dict(os.environ, **TUNED_ALLOCATOR, PYTHONPATH=str(Path(src).resolve()))
             proc = subprocess.run(
                 [sys.executable, "-c", _CHILD, str(a.run), str(a.dataset or ""),
-                 str(a.threads), json.dumps(a.sizes), str(a.repeats)],
+                 str(a.threads), json.dumps(a.sizes), str(a.repeats), a.settings],
                 env=env, capture_output=True, text=True, check=True)
             got = json.loads(proc.stdout.strip().splitlines()[-1])
             for size, ts in got.items():
                 times[src].setdefault(size, []).extend(ts)
             print(f"round {r + 1} {src}: " + ", ".join(
                 f"{s} px {min(ts):.3f} s" for s, ts in got.items()), flush=True)
-    res = {"benchmark": "render_ab", "command": "python benchmarks/bench_render_ab.py "
+    res = {"benchmark": "render_ab", "settings": a.settings, "command": "python benchmarks/bench_render_ab.py "
            + " ".join(sys.argv[1:]), "machine": f"{platform.processor() or platform.machine()}, "
            f"{os.cpu_count()} cores, {a.threads} threads", "results": {}}
     for src, per in times.items():

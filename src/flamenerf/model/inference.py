@@ -43,9 +43,8 @@ class RenderSettings:
     fast: bool = True
     """The inference path (this module); False: the training forward, exactly."""
     chunk: int = 0
-    """Rays per batch; 0: 4096 on a CPU (fits the cache; against 2048, interleaved on the
-    2-core CPU, 2026-11-24: a 256 px frame 1.260 -> 1.242 s, 128 px 0.323 -> 0.317 s, a
-    128 px viewer update 288 -> 269 ms), 65536 on a GPU (fills it)."""
+    """Rays per batch; 0: 4096 on a CPU (fits the cache; a few percent faster than 2048 on
+    the 2-core CPU: docs/bench/render_ab_chunk4096*.json), 65536 on a GPU (fills it)."""
     min_transmittance: float = 1e-4
     """ε: a ray stops once less than this much light can still reach its samples."""
     group: int = 16
