@@ -183,3 +183,21 @@ def test_preprocess_tells_the_case_the_still_head_check_and_every_warning():
     assert scene_lines({"case": CASES[4], "cameras_from": "the face (head as world)",
                         "warnings": [], "background": None}) == [
         f"scene: {CASES[4]}; cameras from the face (head as world)"]
+
+
+def test_controls_that_follow_the_view_are_named():
+    """In an orbit the eyes follow the camera: a control that tracks the view's azimuth is
+    flagged, one that does not is not, and an elevation that does not vary is not judged."""
+    from flamenerf.tracking.report import view_confounds
+
+    az = np.radians(np.linspace(-15, 15, 40))
+    c2w = np.tile(np.eye(4), (40, 1, 1))
+    c2w[:, :3, 3] = np.stack([0.6 * np.sin(az), np.zeros(40), 0.6 * np.cos(az)], 1)
+    rng = np.random.default_rng(0)
+    names = ["eyeLookOutRight", "jawOpen", "eyeBlinkLeft"]
+    expr = np.stack([0.3 + 0.01 * np.degrees(az) + 0.01 * rng.normal(size=40),
+                     rng.uniform(0, 0.5, 40), np.zeros(40)], 1)
+    got = view_confounds(expr, names, c2w, names)
+    assert list(got) == ["eyeLookOutRight"]
+    assert got["eyeLookOutRight"]["azimuth_r"] > 0.9
+    assert got["eyeLookOutRight"]["elevation_r"] is None  # the camera stays level

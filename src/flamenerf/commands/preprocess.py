@@ -56,6 +56,12 @@ def preprocess(
               f"the training frames ({', '.join(top[:6])}{', ...' if len(top) > 6 else ''}); "
               f"renders and the viewer keep each within its range "
               f"(qa/tracking_report.json: expressions)")
+    if cov and cov.get("follow_the_view"):
+        confounds = ", ".join(
+            f"{n} ({' '.join(f'{k[:-2]} r {r:+.2f}' for k, r in rs.items() if r is not None)})"
+            for n, rs in cov["follow_the_view"].items())
+        print(f"  these move with the view in the training frames, so a model cannot tell them "
+              f"from it (moved alone, they may change the shading nearby): {confounds}")
     for d in rep["dropped"][:10]:
         print(f"  dropped frame {d['source_frame']} ({d['time']:.2f}s): {d['reason']}")
     if len(rep["dropped"]) > 10:

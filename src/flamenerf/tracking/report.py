@@ -90,19 +90,21 @@ def tracking_report(video: Path, clip, sol, scene, intr, crop, crop_facts, n_tra
         "near": near, "far": far,
         "expression_model": {"kind": kind, "dim": len(names)},
         "expressions": (None if expressions is None
-                        else expression_coverage(expressions, names, splits)),
+                        else expression_coverage(expressions, names, splits, sol.c2w)),
         "splits": {s: splits.count(s) for s in sorted(set(splits))},
         "timings_s": timings,
         "frames": per_frame,
     }
 
 
-def expression_coverage(expressions: np.ndarray, names: list[str], splits: list[str]
-                        ) -> dict:
+def expression_coverage(expressions: np.ndarray, names: list[str], splits: list[str],
+                        c2w: np.ndarray | None = None) -> dict:
     """What a model of this clip can learn about each control: over the training frames,
     its range (what `render` and the viewer clamp to, data/expression_range.py) and the
     span of most frames (5th-95th percentile; `eval` sweeps the controls whose span is at
-    least 0.1). -> {"varying": [...], "barely_moving": [...], "controls": {name: {...}}}"""
+    least 0.1); with the cameras in the head's frame (c2w (N, 4, 4)), the controls that
+    move with the view (`view_confounds`). -> {"varying": [...], "barely_moving": [...],
+    "controls": {name: {...}}, "follow_the_view": {name: {...}}}"""
     from flamenerf.data.expression_range import ExpressionRange, span, varies
 
     x = np.asarray(expressions, np.float64)
@@ -114,7 +116,37 @@ def expression_coverage(expressions: np.ndarray, names: list[str], splits: list[
         lo, hi = span(x[train, k])
         controls[n] = {"min": float(rng.lo[k]), "max": float(rng.hi[k]), "p5": lo, "p95": hi}
         (moving if varies(x[train, k]) else still).append(n)
-    return {"varying": moving, "barely_moving": still, "controls": controls}
+    out = {"varying": moving, "barely_moving": still, "controls": controls}
+    if c2w is not None:
+        out["follow_the_view"] = view_confounds(x[train], names, np.asarray(c2w)[train],
+                                                moving)
+    return out
+
+
+def view_confounds(expressions: np.ndarray, names: list[str], c2w: np.ndarray,
+                   controls: list[str], min_r: float = 0.7, min_span_deg: float = 2.0
+                   ) -> dict[str, dict[str, float]]:
+    """Controls whose value follows where the camera sees the head from: expressions (N, E),
+    c2w (N, 4, 4) cameras in the head's frame; of `controls`, those whose correlation with
+    the view's azimuth or elevation (each only if it spans min_span_deg) reaches min_r. A
+    model cannot tell such a control from the view (in an orbit the eyes follow the camera):
+    it may learn the view's shading as the control's, and moving the control alone then
+    changes the shading around it. -> {name: {"azimuth_r", "elevation_r"}} (None: the view
+    does not span enough that way)"""
+    C = np.asarray(c2w, np.float64)[:, :3, 3]
+    d = C / np.linalg.norm(C, axis=1, keepdims=True).clip(1e-12)
+    angles = {"azimuth_r": np.degrees(np.arctan2(d[:, 0], d[:, 2])),
+              "elevation_r": np.degrees(np.arcsin(d[:, 1].clip(-1, 1)))}
+    out = {}
+    for n in controls:
+        v = np.asarray(expressions, np.float64)[:, names.index(n)]
+        if np.ptp(v) == 0:
+            continue
+        rs = {k: (float(np.corrcoef(v, a)[0, 1]) if np.ptp(a) >= min_span_deg else None)
+              for k, a in angles.items()}
+        if any(r is not None and abs(r) >= min_r for r in rs.values()):
+            out[n] = {k: (None if r is None else round(r, 3)) for k, r in rs.items()}
+    return out
 
 
 def frame_entry(k: int, source_frame: int, clip, sol, crop, split: str, mask: np.ndarray,
