@@ -33,12 +33,14 @@ class Pinhole(Protocol):
 # ----------------------------------------------------------------------------- SO(3), torch
 
 
-def skew(w: Tensor) -> Tensor:
-    """(*bs, 3) -> (*bs, 3, 3) with skew(w) @ v = w × v."""
-    import torch
-
-    z = torch.zeros_like(w[..., 0])
-    return torch.stack(
+def skew(w: Array) -> Array:
+    """(*bs, 3) -> (*bs, 3, 3) with skew(w) @ v = w × v (NumPy or torch)."""
+    if isinstance(w, np.ndarray):
+        xp = np
+    else:
+        import torch as xp
+    z = xp.zeros_like(w[..., 0])
+    return xp.stack(
         [z, -w[..., 2], w[..., 1], w[..., 2], z, -w[..., 0], -w[..., 1], w[..., 0], z], -1
     ).reshape(*w.shape[:-1], 3, 3)
 
@@ -69,6 +71,26 @@ def so3_exp(w: Tensor) -> Tensor:
 
 
 # ----------------------------------------------------------------------------- SO(3), NumPy
+
+
+def cayley(r: np.ndarray) -> np.ndarray:
+    """Rotation of Cayley parameters r (..., 3): exact, smooth at 0 (an optimiser's
+    parametrisation near a prior rotation), angle 2·atan|r|. -> (..., 3, 3)"""
+    S = skew(r)
+    k = 2.0 / (1.0 + (r * r).sum(-1))[..., None, None]
+    return np.eye(3) + k * (S + S @ S)
+
+
+def cayley_grad(r: np.ndarray) -> np.ndarray:
+    """dR/dr of `cayley`: (..., 3) -> (..., 3, 3, 3), last axis the parameter."""
+    S = skew(r)
+    SS = S @ S
+    k = 2.0 / (1.0 + (r * r).sum(-1))[..., None, None]
+    out = np.zeros(r.shape[:-1] + (3, 3, 3))
+    for a, E in enumerate(skew(np.eye(3))):  # E = dS/dr_a
+        dk = -k * k * r[..., a][..., None, None]  # d(2/(1+|r|²))/dr_a
+        out[..., a] = dk * (S + SS) + k * (E + E @ S + S @ E)
+    return out
 
 
 def matrix_to_rotvec(R: np.ndarray) -> np.ndarray:

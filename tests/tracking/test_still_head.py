@@ -7,8 +7,9 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from flamenerf.tracking.still_head import (StillHeadOptions, _cayley_grad, _in_front, adjust,
-                                           cayley)
+from flamenerf.geometry import cayley
+from flamenerf.geometry import cayley_grad as _cayley_grad
+from flamenerf.tracking.still_head import StillHeadOptions, _in_front, adjust
 
 K = np.array([[300.0, 0, 160], [0, 300.0, 120], [0, 0, 1]])
 

@@ -133,10 +133,7 @@ def view_confounds(expressions: np.ndarray, names: list[str], c2w: np.ndarray,
     it may learn the view's shading as the control's, and moving the control alone then
     changes the shading around it. -> {name: {"azimuth_r", "elevation_r"}} (None: the view
     does not span enough that way)"""
-    C = np.asarray(c2w, np.float64)[:, :3, 3]
-    d = C / np.linalg.norm(C, axis=1, keepdims=True).clip(1e-12)
-    angles = {"azimuth_r": np.degrees(np.arctan2(d[:, 0], d[:, 2])),
-              "elevation_r": np.degrees(np.arcsin(d[:, 1].clip(-1, 1)))}
+    angles = dict(zip(("azimuth_r", "elevation_r"), view_angles(c2w)))
     out = {}
     for n in controls:
         v = np.asarray(expressions, np.float64)[:, names.index(n)]
@@ -190,9 +187,16 @@ def _fov(f: float, extent: float) -> float:
     return float(np.degrees(2 * np.arctan(0.5 * extent / f)))
 
 
+def view_angles(c2w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Where each camera (N, 4, 4) in the head's frame sees the head from: azimuth and
+    elevation of its centre, degrees. -> (N,), (N,)"""
+    C = np.asarray(c2w, np.float64)[:, :3, 3]
+    el = np.arcsin((C[:, 1] / np.linalg.norm(C, axis=1).clip(1e-12)).clip(-1, 1))
+    return np.degrees(np.arctan2(C[:, 0], C[:, 2])), np.degrees(el)
+
+
 def _azimuth_range(c2w: np.ndarray) -> list[float]:
-    C = c2w[:, :3, 3]
-    az = np.degrees(np.arctan2(C[:, 0], C[:, 2]))
+    az = view_angles(c2w)[0]
     return [float(az.min()), float(az.max())]
 
 

@@ -26,6 +26,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from flamenerf.geometry import cayley, cayley_grad
+
 
 @dataclass
 class StillHeadOptions:
@@ -77,36 +79,6 @@ def triangulate(K: np.ndarray, w2c: np.ndarray, fi: np.ndarray, pj: np.ndarray,
         V = np.linalg.svd(A)[2][-1]
         X[j] = V[:3] / V[3] if abs(V[3]) > 1e-12 else np.nan
     return X
-
-
-def cayley(r: np.ndarray) -> np.ndarray:
-    """Rotation of Cayley parameters r (..., 3): exact, smooth at 0, angle 2·atan|r|.
-    -> (..., 3, 3)"""
-    x, y, z = r[..., 0], r[..., 1], r[..., 2]
-    S = np.zeros(r.shape[:-1] + (3, 3))
-    S[..., 0, 1], S[..., 0, 2], S[..., 1, 2] = -z, y, -x
-    S[..., 1, 0], S[..., 2, 0], S[..., 2, 1] = z, -y, x
-    k = 2.0 / (1.0 + (r * r).sum(-1))[..., None, None]
-    return np.eye(3) + k * (S + S @ S)
-
-
-def _cayley_grad(r: np.ndarray) -> np.ndarray:
-    """dR/dr of `cayley`: (..., 3) -> (..., 3, 3, 3), last axis the parameter."""
-    n2 = (r * r).sum(-1)[..., None, None]
-    x, y, z = r[..., 0], r[..., 1], r[..., 2]
-    S = np.zeros(r.shape[:-1] + (3, 3))
-    S[..., 0, 1], S[..., 0, 2], S[..., 1, 2] = -z, y, -x
-    S[..., 1, 0], S[..., 2, 0], S[..., 2, 1] = z, -y, x
-    SS = S @ S
-    k = 2.0 / (1.0 + n2)
-    out = np.zeros(r.shape[:-1] + (3, 3, 3))
-    for a in range(3):
-        E = np.zeros((3, 3))  # dS/dr_a
-        i, j = [(2, 1), (0, 2), (1, 0)][a]
-        E[i, j], E[j, i] = 1.0, -1.0
-        dk = -k * k * r[..., a][..., None, None]  # d(2/(1+|r|²))/dr_a
-        out[..., a] = dk * (S + SS) + k * (E + E @ S + S @ E)
-    return out
 
 
 def _in_front(X: np.ndarray, K: np.ndarray, w2c: np.ndarray, fi: np.ndarray, pj: np.ndarray,
@@ -179,7 +151,7 @@ def adjust(K: np.ndarray, w2c0: np.ndarray, fi: np.ndarray, pj: np.ndarray, uv: 
         J = np.zeros((n_obs, 2, 3))
         J[:, 0, 0] = J[:, 1, 1] = f / z
         J[:, 0, 2], J[:, 1, 2] = -f * p[:, 0] / z ** 2, -f * p[:, 1] / z ** 2
-        dR = np.einsum("nabk,nbc->nack", _cayley_grad(r), R0)  # (N, 3, 3, 3)
+        dR = np.einsum("nabk,nbc->nack", cayley_grad(r), R0)  # (N, 3, 3, 3)
         Jr = np.einsum("kij,kjlm,kl->kim", J, dR[fi], d)  # (K, 2, 3)
         JX = np.einsum("kij,kjl->kil", J, R[fi])
         rows = np.repeat(np.arange(2 * n_obs).reshape(n_obs, 2, 1), 9, axis=2)
