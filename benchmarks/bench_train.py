@@ -59,6 +59,9 @@ def quality_run(args, scene: Path, log) -> dict:
     cfg = preset(args.quality_preset)
     if args.steps:
         cfg.train.steps = args.steps
+    if args.batch_rays:
+        cfg.train.batch_rays = args.batch_rays
+    cfg.train.seed = args.seed
     run_dir = Path(tempfile.mkdtemp(prefix="bench_fast_"))
     ds_w = __import__("flamenerf.data.dataset", fromlist=["x"]).load_dataset(scene).intrinsics.w
     cfg.train.downscale = ds_w / args.size
@@ -67,7 +70,8 @@ def quality_run(args, scene: Path, log) -> dict:
     val = t.ds.split("val")
     sub = val[:: max(1, len(val) // args.eval_frames)][: args.eval_frames]
     curve, train_s, next_eval = [], 0.0, args.eval_every
-    log(f"{args.quality_preset} @ {args.size}px: budget {args.budget:.0f} s, preset steps {cfg.train.steps}")
+    log(f"{args.quality_preset} @ {args.size}px: budget {args.budget:.0f} s, {cfg.train.steps} "
+        f"steps of {cfg.train.batch_rays} rays")
     while train_s < args.budget and t.step < cfg.train.steps:
         t0 = time.perf_counter()
         t.train_step()
@@ -85,8 +89,12 @@ def quality_run(args, scene: Path, log) -> dict:
     def first(th):
         return next((c["train_seconds"] for c in curve if c["psnr"] >= th), None)
 
+    if args.keep_run is not None:  # for bench_render.py --run
+        t.save()
+        shutil.rmtree(args.keep_run, ignore_errors=True)
+        shutil.move(str(run_dir / "run"), args.keep_run)
     shutil.rmtree(run_dir, ignore_errors=True)
-    return {"preset": args.quality_preset, "size": args.size, "budget_seconds": args.budget, "steps": t.step,
+    return {"preset": args.quality_preset, "seed": args.seed, "batch_rays": cfg.train.batch_rays, "size": args.size, "budget_seconds": args.budget, "steps": t.step,
             "train_seconds": round(train_s, 1), "final_heldout_psnr": p, "final_heldout_mse": m,
             "val_frames": len(val), "final_fit_steps": args.final_fit_steps,
             "curve": curve, "curve_val_frames": len(sub), "curve_fit_steps": args.eval_fit_steps,
@@ -158,6 +166,11 @@ def main() -> int:
                     help="override the quality run's schedule length (0: the preset's)")
     ap.add_argument("--targets", type=lambda s: [float(v) for v in s.split(",")],
                     default=[25.0, 28.0, 30.0], help="PSNRs whose time-to is reported")
+    ap.add_argument("--seed", type=int, default=0, help="the quality run's training seed")
+    ap.add_argument("--batch-rays", type=int, default=0,
+                    help="override the quality run's rays per step (0: the preset's)")
+    ap.add_argument("--keep-run", type=Path, default=None,
+                    help="keep the quality run (checkpoint at its last step) in this folder")
     ap.add_argument("--skip-quality", action="store_true")
     ap.add_argument("--skip-throughput", action="store_true")
     ap.add_argument("--json", type=Path, default=Path("docs/bench/train.json"))

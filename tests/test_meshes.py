@@ -5,7 +5,8 @@ import torch
 
 from flamenerf.data.dataset import load_dataset
 from flamenerf.meshes import (expression_mesh, fit_expression_model, mesh_displacement,
-                              nearest_vertices, surface_points)
+                              nearest_vertices, nearest_vertices_brute,
+                              surface_points)
 
 
 def test_expression_model_reproduces_the_training_meshes(synth_scene):
@@ -60,6 +61,12 @@ def test_displacement_by_k_d_tree_matches_every_vertex_blended():
     assert torch.allclose(kd2, d2, atol=1e-6) and bool((kidx == idx).all())
     far2, _ = nearest_vertices(x, mesh, 4, bound=0.01)
     assert bool(torch.isinf(far2).any()) and bool(torch.isfinite(far2).any())
+    for k in (1, 4):  # the brute-force path (off the CPU) gives the tree's answer
+        bd2, bidx = nearest_vertices_brute(x, mesh, k, bound=0.05)
+        td2, tidx = nearest_vertices(x, mesh, k, bound=0.05)
+        fin = torch.isfinite(td2)
+        assert bool(fin.any()) and bool((~fin).any()) and torch.equal(fin, torch.isfinite(bd2))
+        assert torch.allclose(bd2[fin], td2[fin], atol=1e-6) and torch.equal(bidx, tidx)
 
 
 def test_surface_points_lie_in_their_triangles():

@@ -118,7 +118,17 @@ def nearest_vertices(pts: Tensor, verts: Tensor, k: int, bound: float
         far = ~np.isfinite(d)
         i[far] = 0
         return torch.from_numpy(np.square(d)).to(pts.dtype), torch.from_numpy(i).long()
-    d2, i = torch.topk(torch.cdist(pts, verts).square(), k, dim=-1, largest=False)
+    return nearest_vertices_brute(pts, verts, k, bound)
+
+
+def nearest_vertices_brute(pts: Tensor, verts: Tensor, k: int, bound: float
+                           ) -> tuple[Tensor, Tensor]:
+    """`nearest_vertices` by distances to every vertex (the path off the CPU)."""
+    d2 = torch.cdist(pts, verts).square()
+    if k == 1:  # a reduction: topk's radix select was 15 % of an H100's 256 px frame
+        d2, i = d2.min(-1, keepdim=True)
+    else:
+        d2, i = torch.topk(d2, k, dim=-1, largest=False)
     far = d2 > bound * bound
     return d2.masked_fill(far, float("inf")), i.masked_fill(far, 0)
 

@@ -144,3 +144,24 @@ def test_hash_grid_without_the_kernel_uses_pytorch(monkeypatch):
     monkeypatch.setattr(cpu_kernels, "_tried", True)
     monkeypatch.setattr(cpu_kernels, "_lib", None)
     assert torch.allclose(g(x), with_kernel, atol=1e-6)
+
+
+def test_grouped_levels_match_level_by_level():
+    """The GPU's encoding (every dense level in one set of ops, every hashed one in
+    another) is the level-by-level reference's, values and gradients (positions and
+    every table), for grids with only dense, only hashed, and both kinds of levels."""
+    torch.manual_seed(0)
+    for levels, log2, base, top, kinds in ((5, 10, 4, 64, [True, False]),
+                                           (3, 20, 4, 16, [True]), (4, 6, 8, 64, [False]),
+                                           (2, 19, 1024, 2048, [False])):
+        g = _grid_with_features(levels, 2, log2, base, top)
+        assert [k for *_, k in g.level_groups()] == kinds
+        x = torch.rand(2000, 3) * 1.2 - 0.1
+        x1, x2 = x.clone().requires_grad_(True), x.clone().requires_grad_(True)
+        a, b = g.forward_grouped(x1), g.forward_torch(x2)
+        assert a.shape == b.shape and torch.allclose(a, b, atol=1e-6)
+        gout = torch.randn_like(a)
+        ga = torch.autograd.grad(a, [x1, *g.tables], gout)
+        gb = torch.autograd.grad(b, [x2, *g.tables], gout)
+        for u, v in zip(ga, gb):
+            assert torch.allclose(u, v, rtol=1e-4, atol=1e-5)

@@ -293,3 +293,37 @@ def test_distinct_rows_matches_unique():
     assert torch.equal(u[inv], mixed) and len(u) == 3
     u, inv = distinct_rows(mixed[:0])
     assert len(u) == 0 and len(inv) == 0
+
+
+
+def test_half_precision_features_render_the_same_scene(monkeypatch):
+    """On CUDA the inference path runs the fields under float16 autocast, where the
+    expression features' einsum and the detail levels come back in half precision and
+    index_copy does not promote them (CPU autocast does, so it cannot stand in): those
+    features are made half here by hand. A model with expression fields and detail levels
+    renders, and its image stays close to float32's."""
+    from flamenerf.model.encodings import HashGrid
+    from toy import toy_config
+
+    cfg = toy_config().model
+    cfg.field.detail_levels, cfg.field.detail_max_res, cfg.field.detail_log2_size = 2, 128, 10
+    region = {"centre": [0.0, 0.0, 0.1], "axes": np.eye(3).tolist(), "radii": [0.3] * 3}
+    torch.manual_seed(0)
+    m = FlameNeRF(cfg, num_codes=2, expr_dim=E, near=0.5, far=1.6, box_min=[-0.5] * 3,
+                  box_max=[0.5] * 3, mesh_vertices=6, mesh_faces=2, detail_region=region).eval()
+    same = {k: v for k, v in toy_model().state_dict().items()
+            if k in m.state_dict() and v.shape == m.state_dict()[k].shape}
+    m.load_state_dict(same, strict=False)  # the toy's mesh model and opaque weights
+    with torch.no_grad():
+        for t in m.field.detail.tables:
+            t.uniform_(-1, 1)
+    full = render(m, EXACT)
+    einsum, grid = torch.einsum, HashGrid.forward
+    monkeypatch.setattr(torch, "einsum", lambda *a: einsum(*a).to(torch.bfloat16))
+    monkeypatch.setattr(HashGrid, "forward", lambda self, x: (
+        grid(self, x).to(torch.bfloat16) if self is m.field.detail else grid(self, x)))
+    half = render(m, EXACT)
+    monkeypatch.undo()
+    for k in ("rgb", "acc"):
+        assert half[k].dtype == torch.float32
+        assert 0 < float((half[k] - full[k]).abs().max()) < 0.03, k  # half, and close

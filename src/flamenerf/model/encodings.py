@@ -40,6 +40,7 @@ def pe_dim(d: int, num_freqs: int) -> int:
 
 
 _PRIMES = (1, 2654435761, 805459861)
+_PRIMES32 = tuple(p - (1 << 32) if p >= 1 << 31 else p for p in _PRIMES)
 
 
 class HashGrid(nn.Module):
@@ -47,7 +48,8 @@ class HashGrid(nn.Module):
 
     Tables are (T_l, F), one per level. On a CPU a compiled kernel encodes (cache misses
     on the tables bound the cost there, and an entry's features side by side halve them);
-    `forward_torch` is the same encoding in PyTorch ops, for GPUs and as the reference.
+    on a GPU `forward_grouped` (every level of a kind in one set of PyTorch ops: kernel
+    launches bound the cost there); `forward_torch`, level by level, is the reference.
     """
 
     def __init__(self, levels: int = 16, features: int = 2, log2_size: int = 17,
@@ -73,7 +75,7 @@ class HashGrid(nn.Module):
 
     def forward(self, x: Tensor) -> Tensor:
         """x (N, 3) in [0, 1]^3 -> (N, L·F). On a CPU, the compiled kernel when it builds
-        (model/cpu_kernels.py); elsewhere, and as its reference, `forward_torch`."""
+        (model/cpu_kernels.py), else `forward_torch`; elsewhere `forward_grouped`."""
         if (x.device.type == "cpu" and x.dtype == torch.float32
                 and self.tables[0].dtype == torch.float32):  # the kernel is float32 only
             from flamenerf.model.cpu_kernels import hashgrid_library
@@ -81,7 +83,8 @@ class HashGrid(nn.Module):
             lib = hashgrid_library()
             if lib is not None:
                 return _HashGridCPU.apply(x.contiguous(), self, lib, *self.tables)
-        return self.forward_torch(x)
+            return self.forward_torch(x)
+        return self.forward_grouped(x)
 
     def kernel_layout(self) -> tuple:
         """ctypes arrays of the per-level resolutions and dense flags."""
@@ -91,8 +94,64 @@ class HashGrid(nn.Module):
                             (ctypes.c_uint8 * L)(*[int(d) for d in self.dense.tolist()]))
         return self._layout
 
+    def level_groups(self) -> list[tuple[int, int, bool]]:
+        """Runs of consecutive levels of one kind: (first, end, dense)."""
+        dense = self.dense.tolist()
+        groups, lo = [], 0
+        for lv in range(1, self.levels + 1):
+            if lv == self.levels or dense[lv] != dense[lo]:
+                groups.append((lo, lv, bool(dense[lo])))
+                lo = lv
+        return groups
+
+    def forward_grouped(self, x: Tensor) -> Tensor:
+        """The same encoding with every level of a kind (dense, hashed) in one set of ops:
+        the GPU path. Level by level, a training step of `fast` launched ~3,700 kernels
+        and left an H100 idle ~90 % of the step (docs/bench/gpu_profile.json); here
+        the launches do not grow with the levels (1,500 per step). x (N, 3) -> (N, L·F)."""
+        n, dev = x.shape[0], x.device
+        xs = x.clamp(0, 1)
+        outs = []
+        for lo, hi, dense in self.level_groups():
+            r = self.res[lo:hi].to(dev)  # (G,)
+            rf = r.to(xs.dtype)[:, None, None]
+            pos = xs[None] * rf  # (G, N, 3): the same float32 products as level by level
+            base = torch.minimum(torch.floor(pos.detach()), rf - 1)
+            frac = pos - base
+            # int32 indices: half the index arithmetic's memory traffic. A hashed index keeps
+            # the low log2_size bits of its products, which wrap-around int32 arithmetic
+            # gives exactly (the primes as their int32 bit patterns); dense indices and the
+            # tables' offsets stay below 2^31
+            b = base.to(torch.int32)
+            if dense:
+                r32 = r.to(torch.int32)
+                stride = torch.stack([torch.ones_like(r32), r32 + 1, (r32 + 1) ** 2], -1)
+                combine = torch.add
+            else:
+                stride = torch.tensor(_PRIMES32, dtype=torch.int32, device=dev).expand(hi - lo, 3)
+                combine = torch.bitwise_xor
+            t0 = b * stride[:, None]  # (G, N, 3)
+            t1 = t0 + stride[:, None]
+            terms = [(t0[..., i], t1[..., i]) for i in range(3)]
+            xy = [combine(tx, ty) for tx in terms[0] for ty in terms[1]]
+            idx = torch.stack([combine(v, tz) for v in xy for tz in terms[2]])  # (8, G, N)
+            if not dense:
+                idx = idx & (self.size - 1)
+            sizes = [len(t) for t in self.tables[lo:hi]]
+            offsets = torch.tensor([0, *sizes[:-1]], dtype=torch.int32, device=dev).cumsum(
+                0, dtype=torch.int32)
+            idx = idx + offsets[None, :, None]
+            fx, fy, fz = frac.unbind(-1)
+            wxy = [wx * wy for wx in (1 - fx, fx) for wy in (1 - fy, fy)]
+            w = torch.stack([v * wz for v in wxy for wz in (1 - fz, fz)])  # (8, G, N)
+            table = torch.cat(list(self.tables[lo:hi])) if hi - lo > 1 else self.tables[lo]
+            f = table.index_select(0, idx.reshape(-1)).view(8, hi - lo, n, self.features)
+            outs.append((f * w[..., None]).sum(0).permute(1, 0, 2).reshape(n, -1))
+        return torch.cat(outs, -1)
+
     def forward_torch(self, x: Tensor) -> Tensor:
-        """The same encoding as PyTorch ops (the GPU path and the kernel's reference)."""
+        """The same encoding as PyTorch ops, level by level (the CPU's fallback and the
+        kernel's reference)."""
         n = x.shape[0]
         xs = x.clamp(0, 1)
         mask = self.size - 1  # the table size is a power of two: `& mask` is `% size`

@@ -127,11 +127,13 @@ class HashField(nn.Module):
         flat = x.reshape(-1, 3)
         w = ellipsoid_weight(flat, self.detail_centre, self.detail_axes, self.detail_radii,
                              self.cfg.detail_band)
-        out = flat.new_zeros(len(flat), self.detail.out_dim)
         idx = (w > 0).nonzero()[:, 0]
-        if len(idx):
-            f = self.detail((flat[idx] + 1) * 0.5) * w[idx, None]
-            out = out.index_copy(0, idx, f)
+        if len(idx) == 0:
+            return flat.new_zeros(*x.shape[:-1], self.detail.out_dim)
+        f = self.detail((flat[idx] + 1) * 0.5) * w[idx, None]
+        # zeros in f's dtype: under CUDA's autocast f may be half, and index_copy does not
+        # promote there (CPU autocast does, so only a GPU run showed it)
+        out = f.new_zeros(len(flat), self.detail.out_dim).index_copy(0, idx, f)
         return out.view(*x.shape[:-1], -1)
 
     def _expression_features(self, x: Tensor, expr: Tensor) -> Tensor:
@@ -142,12 +144,12 @@ class HashField(nn.Module):
         bs = x.shape[:-1]
         z = self.expr_proj(expr).expand(*bs, R).reshape(-1, R)
         active = (expr.abs().amax(-1, keepdim=True) > 0).expand(*bs, 1).reshape(-1)
-        out = x.new_zeros(z.shape[0], L * Fe)
         idx = active.nonzero()[:, 0]
-        if len(idx):
-            g = self.expr_grid((x.reshape(-1, 3)[idx] + 1) * 0.5).view(-1, L, R, Fe)
-            out = out.index_copy(0, idx, torch.einsum("nlrf,nr->nlf", g, z[idx])
-                                 .reshape(-1, L * Fe))
+        if len(idx) == 0:
+            return x.new_zeros(*bs, L * Fe)
+        g = self.expr_grid((x.reshape(-1, 3)[idx] + 1) * 0.5).view(-1, L, R, Fe)
+        f = torch.einsum("nlrf,nr->nlf", g, z[idx]).reshape(-1, L * Fe)
+        out = f.new_zeros(z.shape[0], L * Fe).index_copy(0, idx, f)  # f's dtype: see above
         return out.view(*bs, L * Fe)
 
     def density(self, x: Tensor, expr: Tensor | None) -> Tensor:

@@ -13,8 +13,8 @@ scene, 256 px, 2-core CPU; docs/bench/render.md):
   trilinear lookup of its bake instead of the MLP per sample, and rays outside the face
   silhouette read the proposal's density from its bake (model/baked.py);
 - on a CPU, each MLP layer is one oneDNN matmul with bias and ReLU fused in (model/mlp.py);
-- on CUDA the fields run in half precision (autocast), on a CPU with native bfloat16 the
-  MLP layers run in bfloat16; compositing stays in float32;
+- on CUDA the fields run in half precision (autocast; the warp and compositing stay in
+  float32), on a CPU with native bfloat16 the MLP layers run in bfloat16;
 - the viewer's settings (`VIEWER`) take fewer of the main field's samples than training
   placed (`RenderSettings.main_fraction`); `FAST` takes them all.
 """
@@ -203,9 +203,9 @@ def _render_rays(model, rays: RayBatch, settings: RenderSettings) -> dict[str, T
                                            t[rows, lo:hi], sub_ray(expr, rows),
                                            sub_ray(rays.head, rows))
             counted.append(xn.shape[0] * xn.shape[1])
+            xc = warp(xn, rows, e)  # in float32: a half-precision warp would move points
             with _autocast(dev, settings):
-                return field(warp(xn, rows, e), d[:, None], rays.appearance_code[rows, None],
-                             e)
+                return field(xc, d[:, None], rays.appearance_code[rows, None], e)
         return evaluate
 
     eps, group = settings.min_transmittance, settings.group
