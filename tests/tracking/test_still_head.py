@@ -164,3 +164,38 @@ def test_an_accepted_still_head_replaces_the_cameras_points_and_outliers():
     assert not alt.images[1].points2D[7].has_point3D()
     assert alt.images[1].points2D[6].has_point3D()
     assert alt.compute_mean_reprojection_error() < 0.6
+
+
+def test_sfm_metric_scale_says_when_the_camera_travels_against_the_face():
+    """The face sees a camera sliding sideways past the head; SfM's world (2 units per
+    metre) has it slide the same way (scale 0.5 m per unit) or the other way (-0.5)."""
+    from flamenerf.tracking.still_head import sfm_metric_scale
+
+    xs = np.linspace(-0.1, 0.1, 6)
+    face = np.array([np.concatenate([np.eye(3), -np.array([[x], [0.0], [-0.6]])], 1)
+                     for x in xs])
+    empty = np.zeros(0, int)
+    for sign in (1.0, -1.0):
+        sfm = np.array([np.concatenate([np.eye(3), -2.0 * np.array([[sign * x], [0.0],
+                                                                      [-0.6]])], 1)
+                        for x in xs])
+        rec, names = _reconstruction(sfm, np.zeros((0, 3)), empty, empty, np.zeros((0, 2)),
+                                     extra_image=False)
+        assert np.isclose(sfm_metric_scale(rec, face, names), 0.5 * sign)
+
+
+def test_a_world_that_contradicts_the_face_is_replaced_by_an_acceptable_fit(monkeypatch):
+    """Where SfM's world composes with the face only at a scale <= 0, the adjusted world is
+    kept on the looser rule (here the only one it passes); where it composes, not."""
+    from flamenerf.tracking import still_head as S
+
+    w2c, X, fi, pj, uv = _scene()
+    uv = uv + np.random.default_rng(5).normal(size=uv.shape) * 0.3
+    rec, names = _reconstruction(w2c, X, fi, pj, uv, extra_image=False)
+    prior = _perturb(w2c, 1.0, 0.005)
+    strict = StillHeadOptions(max_error_ratio=0.5)  # the plain rule cannot pass
+    for scale, kept in ((0.8, False), (-0.006, True)):
+        monkeypatch.setattr(S, "sfm_metric_scale", lambda *a, s=scale: s)
+        _, info = S.still_head_hypothesis(rec, prior, names, strict)
+        assert (info["chosen"] == "still head") == kept, info
+        assert info.get("rule") == ("SfM contradicts the face" if kept else None)

@@ -139,6 +139,10 @@ def train(
                    "model.head.band": head_band, "model.field.detail_levels": detail_levels,
                    "train.random_background": random_background,
                    "model.field.view_dependent": view_dependent, "train.seed": seed})
+    if (preset == "fast" and batch_rays is None and not resume and ranks.main
+            and device != "cpu" and _has_cuda()):
+        print("note: on a GPU, --preset fast-gpu trains `fast` with four times the rays per "
+              "step for ~10 % more time per step (docs/presets.md)")
     res = run_train(dataset, out, cfg, resume=resume, device=device, steps=steps)
     if not ranks.main:  # rank 0 speaks for the job
         if res.interrupted:
@@ -150,6 +154,12 @@ def train(
         raise Interrupted(f"run saved at step {res.step} in {res.run_dir}; continue it with "
                           f"{again}")
     print(f"finished at step {res.step} in {res.seconds:.0f} s; run saved in {res.run_dir}")
+
+
+def _has_cuda() -> bool:
+    import torch
+
+    return torch.cuda.is_available()
 
 
 def _flags(values: dict[str, Any], skip: set[str]) -> list[str]:

@@ -42,6 +42,9 @@ def scene_lines(scene: dict) -> list[str]:
     hyp = bg.get("still_head_hypothesis")
     if hyp and "still_head_error_px" in hyp:
         verdict = "kept" if hyp["chosen"] == "still head" else "not kept"
+        if hyp.get("rule") == "SfM contradicts the face":
+            verdict += (", as structure from motion's world has the camera travel against "
+                        "the face's account")
         lines.append(
             f"  still-head check: {verdict} (a still head explains the background at "
             f"{hyp['still_head_error_px']:.2f} px over {100 * hyp['still_head_inliers']:.0f}% "
