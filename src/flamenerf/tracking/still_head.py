@@ -26,7 +26,8 @@ background better (0.94 against 1.40 source px) but composes into a head that sl
 more than the camera travels; trained on the adjusted world instead, `fast` scored 30.7 dB
 driven against 27.3 (face 35.7 against 31.9, background 30.0 against 26.7; docs/head_pose.md).
 The adjusted world is not a still head imposed: the head's own motion is composed from it
-as from SfM's (a head that turned 10° over a synthetic clip still composes as turning).
+as from SfM's (for a synthetic head that turned 10°, the adjusted cameras turn away from the
+face's: tests/tracking/test_still_head.py).
 """
 
 from __future__ import annotations
