@@ -37,3 +37,21 @@ def test_bad_preset_name_is_refused_with_the_choices(tmp_path):
 def test_malformed_arguments_exit_non_zero_without_a_traceback(args):
     r = _run(*args)
     assert r.returncode != 0 and "Traceback" not in r.stderr
+
+
+def test_fast_on_a_gpu_suggests_fast_gpu(tmp_path, capsys, monkeypatch, toy_dataset):
+    """`fast` on a machine with CUDA points to `fast-gpu` (once, before training); with
+    --device cpu, another preset or its own batch size, it does not."""
+    from types import SimpleNamespace
+
+    from flamenerf.commands import train as train_cmd
+    from flamenerf.training import trainer
+
+    monkeypatch.setattr(train_cmd, "_has_cuda", lambda: True)
+    monkeypatch.setattr(trainer, "train", lambda *a, **k: SimpleNamespace(
+        interrupted=False, step=0, seconds=0.0, run_dir=tmp_path / "run"))
+    cases = [([], True), (["--device", "cpu"], False), (["--preset", "demo"], False),
+             (["--batch-rays", "8192"], False)]
+    for extra, noted in cases:
+        assert main(["train", str(toy_dataset), "--out", str(tmp_path / "run"), *extra]) == 0
+        assert ("--preset fast-gpu" in capsys.readouterr().out) == noted, extra
