@@ -180,6 +180,12 @@ def test_preprocess_tells_the_case_the_still_head_check_and_every_warning():
     lines = scene_lines({**scene, "background": {"still_head_hypothesis":
                                                  {**hyp, "chosen": "still head"}}})
     assert "still-head check: kept" in lines[1]
+    assert not any("--fov" in line for line in lines)
+    lines = scene_lines({**scene, "background": {"still_head_hypothesis": {
+        **hyp, "chosen": "still head", "rule": "SfM contradicts the face",
+        "still_head_turn_max_deg": 10.6}}})
+    assert "against the face's account" in lines[1]
+    assert "turn up to 11 deg" in lines[2] and "--fov" in lines[2]
     assert scene_lines({"case": CASES[4], "cameras_from": "the face (head as world)",
                         "warnings": [], "background": None}) == [
         f"scene: {CASES[4]}; cameras from the face (head as world)"]

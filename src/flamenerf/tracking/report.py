@@ -33,6 +33,11 @@ def scene_report(scene) -> dict:
     }
 
 
+DISAGREE_DEG = 3.0
+"""The cameras' largest turn from the face's (in the still-head check's adjusted world) above
+which `preprocess` points to the field of view."""
+
+
 def scene_lines(scene: dict) -> list[str]:
     """What preprocess tells the user about the scene (a `scene_report`): the case, where
     the cameras came from, the still-head check, and every warning."""
@@ -50,6 +55,13 @@ def scene_lines(scene: dict) -> list[str]:
             f"{hyp['still_head_error_px']:.2f} px over {100 * hyp['still_head_inliers']:.0f}% "
             f"of its observations with the cameras {hyp['still_head_turn_deg']:.1f} deg from "
             f"the face's; structure from motion: {hyp['sfm_error_px']:.2f} px; source pixels)")
+        top = hyp.get("still_head_turn_max_deg", 0.0)
+        if hyp.get("rule") == "SfM contradicts the face" and top > DISAGREE_DEG:
+            lines.append(
+                f"  note: the adjusted cameras turn up to {top:.0f} deg from the face's, so the "
+                "head turns in this world; if it was in fact still, a wrong field of view is "
+                "one cause (the shared orbit clip agreed best at 60 deg, not the 71 "
+                "estimated: docs/head_pose.md): try `--fov`")
     lines += [f"  warning: {w}" for w in scene.get("warnings", [])]
     return lines
 

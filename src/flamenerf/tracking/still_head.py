@@ -313,7 +313,8 @@ def still_head_hypothesis(rec, w2c_face: np.ndarray, names: list[str],
     turn = float(np.median(adj.turn_deg))
     scale = sfm_metric_scale(rec, w2c_face, names)
     info.update(still_head_error_px=e_alt, still_head_inliers=float(inl.mean()),
-                still_head_turn_deg=turn, still_head_shift_m=float(np.median(adj.shift_m)),
+                still_head_turn_deg=turn, still_head_turn_max_deg=float(adj.turn_deg.max()),
+                still_head_shift_m=float(np.median(adj.shift_m)),
                 sfm_metric_scale=scale)
     plain = (inl.mean() >= opts.min_inliers and e_alt <= opts.max_error_ratio * e_sfm
              and turn <= opts.max_turn_deg)
