@@ -298,8 +298,6 @@ def _register(frames, opts: BackgroundOptions, tmp: Path, focal: float | None,
         return _empty(ids, "failed", "COLMAP found no initial pair to start the "
                       "reconstruction from (too little parallax or too few matches)", **kw)
     rec = max(recs.values(), key=lambda r: r.num_reg_images())
-    pos = {n: k for k, n in enumerate(names)}
-    c2w = np.full((len(ids), 4, 4), np.nan)
     if focal is not None and opts.refine_focal:
         rec = _refine_focal(rec, focal * scale, opts)
     if still_head_c2w is not None:
@@ -308,11 +306,7 @@ def _register(frames, opts: BackgroundOptions, tmp: Path, focal: float | None,
         # the report's errors are in source pixels, COLMAP's in its downscaled frames'
         kw["details"]["still_head_hypothesis"] = {
             k: v / scale if k.endswith("_px") else v for k, v in hyp.items()}
-    for im in rec.images.values():
-        if im.has_pose:
-            w2c = np.eye(4)
-            w2c[:3] = im.cam_from_world().matrix()
-            c2w[pos[im.name]] = np.linalg.inv(w2c) @ CV_TO_GL
+    c2w = reconstruction_c2w(rec, names) @ CV_TO_GL
     registered = np.isfinite(c2w[:, 0, 0])
     cam = next(iter(rec.cameras.values()))
     focal = float(cam.params[0]) / scale
@@ -330,6 +324,19 @@ def _register(frames, opts: BackgroundOptions, tmp: Path, focal: float | None,
         out.reason = (f"background reprojection error {err:.2f} px > "
                       f"{opts.max_reprojection_px} px")
     return out
+
+
+def reconstruction_c2w(rec, names: list[str]) -> np.ndarray:
+    """The camera-to-world of each named image in a pycolmap reconstruction (OpenCV axes,
+    its units), NaN where it has no pose. -> (len(names), 4, 4)"""
+    pos = {n: k for k, n in enumerate(names)}
+    c2w = np.full((len(names), 4, 4), np.nan)
+    for im in rec.images.values():
+        if im.has_pose and im.name in pos:
+            w2c = np.eye(4)
+            w2c[:3] = im.cam_from_world().matrix()
+            c2w[pos[im.name]] = np.linalg.inv(w2c)
+    return c2w
 
 
 def _bundle_adjust(rec, refine_focal: bool, opts: BackgroundOptions) -> None:

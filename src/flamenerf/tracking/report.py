@@ -60,8 +60,7 @@ def scene_lines(scene: dict) -> list[str]:
             lines.append(
                 f"  note: the adjusted cameras turn up to {top:.0f} deg from the face's, so the "
                 "head turns in this world; if it was in fact still, a wrong field of view is "
-                "one cause (the shared orbit clip agreed best at 60 deg, not the 71 "
-                "estimated: docs/head_pose.md): try `--fov`")
+                "one cause (docs/head_pose.md): try `--fov`")
     lines += [f"  warning: {w}" for w in scene.get("warnings", [])]
     return lines
 

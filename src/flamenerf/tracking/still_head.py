@@ -268,22 +268,16 @@ def sfm_metric_scale(rec, w2c_face: np.ndarray, names: list[str]) -> float:
     """The least-squares metric scale (`world.metric_scale`) that composes SfM's cameras
     with the face's: not positive when the face says the camera travels against SfM's
     path; NaN when too few frames are registered."""
+    from flamenerf.tracking.background import reconstruction_c2w
     from flamenerf.tracking.world import metric_scale
 
-    pos = {n: k for k, n in enumerate(names)}
-    c2w, cam_from_head = [], []
-    for im in rec.images.values():
-        if not im.has_pose or im.name not in pos:
-            continue
-        w2c = np.eye(4)
-        w2c[:3] = im.cam_from_world().matrix()
-        c2w.append(np.linalg.inv(w2c))
-        f = np.eye(4)
-        f[:3] = w2c_face[pos[im.name]]
-        cam_from_head.append(f)
-    if len(c2w) < 2:
+    c2w = reconstruction_c2w(rec, names)
+    ok = np.isfinite(c2w[:, 0, 0])
+    if ok.sum() < 2:
         return float("nan")
-    return metric_scale(np.stack(c2w), np.stack(cam_from_head))
+    cam_from_head = np.tile(np.eye(4), (int(ok.sum()), 1, 1))
+    cam_from_head[:, :3] = w2c_face[ok]
+    return metric_scale(c2w[ok], cam_from_head)
 
 
 def still_head_hypothesis(rec, w2c_face: np.ndarray, names: list[str],
