@@ -108,11 +108,12 @@ def test_cpu_kernel_builds_without_native_flags(monkeypatch, tmp_path):
 def test_cpu_kernel_matches_the_pytorch_reference():
     torch.manual_seed(0)
     # dense coarse levels and hashed fine ones (2^10 entries < (r+1)^3 from r = 10 on)
-    for features in (2, 4):
+    for features in (1, 2, 3, 4, 16):  # the vectorised path's specialised counts and others
         g = _grid_with_features(5, features, 10, 4, 64)
         assert any(g.dense.tolist()) and not all(g.dense.tolist())
-        # points outside the unit cube are clamped: their position gradient is zero
-        x = torch.rand(3000, 3) * 1.2 - 0.1
+        # points outside the unit cube are clamped: their position gradient is zero;
+        # 3001 points: the vectorised path's last block of 16 is partial
+        x = torch.rand(3001, 3) * 1.2 - 0.1
         x1, x2 = x.clone().requires_grad_(True), x.clone().requires_grad_(True)
         a, b = g(x1), g.forward_torch(x2)
         assert torch.allclose(a, b, atol=1e-6)
@@ -123,6 +124,44 @@ def test_cpu_kernel_matches_the_pytorch_reference():
             assert torch.allclose(u, v, rtol=1e-4, atol=1e-4)
         outside = ((x < 0) | (x > 1))
         assert torch.all(ga[0][outside] == 0) and torch.any(ga[0][~outside] != 0)
+
+
+def test_portable_and_native_kernels_agree(monkeypatch, tmp_path):
+    """The native build (on an AVX-512 CPU: 16 points at a time with gathers) and the
+    portable one (the generic loop) give the same encoding."""
+    from flamenerf.model import cpu_kernels
+
+    torch.manual_seed(0)
+    x = torch.rand(1001, 3) * 1.2 - 0.1
+    grids = [_grid_with_features(5, f, 10, 4, 64) for f in (1, 2, 3, 16)]
+    with torch.no_grad():
+        native = [g(x) for g in grids]
+        monkeypatch.setenv("FLAMENERF_CACHE", str(tmp_path))
+        monkeypatch.setattr(cpu_kernels, "_tried", False)
+        monkeypatch.setattr(cpu_kernels, "_lib", None)
+        monkeypatch.setattr(cpu_kernels, "_NATIVE", ["-mno-such-flag-here"])
+        assert cpu_kernels.hashgrid_library() is not None
+        portable = [g(x) for g in grids]
+    for a, b in zip(native, portable):
+        assert torch.allclose(a, b, atol=1e-6)
+
+
+def test_encode_into_writes_the_encoding_beside_other_columns(monkeypatch):
+    """`encode_into` fills a column block of a wider buffer with the encoding and leaves
+    the other columns alone; without the kernel it does the same by a copy."""
+    from flamenerf.model import cpu_kernels
+
+    g = _grid_with_features(4, 2, 10, 4, 64)
+    x = torch.rand(1001, 3)
+    ref = g(x).detach()
+    for kernel in (True, False):
+        if not kernel:
+            monkeypatch.setattr(cpu_kernels, "_tried", True)
+            monkeypatch.setattr(cpu_kernels, "_lib", None)
+        buf = torch.full((1001, 3 + g.out_dim + 5), 7.0)
+        g.encode_into(x, buf[:, 3:3 + g.out_dim])
+        assert torch.allclose(buf[:, 3:3 + g.out_dim], ref, atol=1e-6)
+        assert torch.all(buf[:, :3] == 7) and torch.all(buf[:, 3 + g.out_dim:] == 7)
 
 
 def test_cpu_kernel_table_gradient_without_position_gradient_is_deterministic():

@@ -188,7 +188,7 @@ def test_bf16_mlp_stays_close_to_float32(monkeypatch):
     runs on any CPU (oneDNN emulates bfloat16 where the CPU lacks it)."""
     import flamenerf.model.mlp as mlp
 
-    monkeypatch.setattr(mlp, "native_bf16", lambda: True)
+    monkeypatch.setattr(mlp, "bf16_pays", lambda: True)
     torch.manual_seed(0)
     m = MLP(10 + 4, 32, 3, (1,), out_dim=5)
     x, cond = torch.randn(6, 7, 10), torch.randn(6, 1, 4)
@@ -204,11 +204,31 @@ def test_bf16_mlp_stays_close_to_float32(monkeypatch):
     assert torch.allclose(full, plain, atol=1e-5)
 
 
+def test_bf16_only_where_measured_faster(monkeypatch):
+    """bfloat16 layers need native support and a measured gain over float32: the CPU's
+    flags alone do not tell (an Intel Xeon with AVX-512 BF16 ran them 2x slower)."""
+    import flamenerf.model.mlp as mlp
+
+    cases = [(False, 3.0, False), (True, 0.5, False), (True, mlp.BF16_MIN_GAIN - 0.01, False),
+             (True, 2.0, True)]
+    for native, gain, expected in cases:
+        monkeypatch.setattr(mlp, "_bf16_verdict", None)
+        monkeypatch.setattr(mlp, "native_bf16", lambda n=native: n)
+        monkeypatch.setattr(mlp, "_measured_gain", lambda g=gain: g)
+        assert mlp.bf16_pays() is expected, (native, gain)
+        monkeypatch.setattr(mlp, "_measured_gain", lambda: 1 / 0)  # decided once per process
+        assert mlp.bf16_pays() is expected
+        with fused_cpu_inference(bf16=True):
+            assert mlp._fusing.bf16 is (expected and mlp._fusing.on)
+    monkeypatch.undo()
+    assert mlp._measured_gain() > 0  # the real measurement runs and gives a ratio
+
+
 def test_bf16_weights_follow_training(monkeypatch):
     """The cached bfloat16 copy of a layer is renewed when an optimiser changes it."""
     import flamenerf.model.mlp as mlp
 
-    monkeypatch.setattr(mlp, "native_bf16", lambda: True)
+    monkeypatch.setattr(mlp, "bf16_pays", lambda: True)
     torch.manual_seed(0)
     m = MLP(3, 16, 1, (), out_dim=2)
     x = torch.randn(50, 3)

@@ -238,3 +238,34 @@ def test_detail_levels_act_in_the_head_region_only():
     m2 = FlameNeRF(cfg, **m.init_args)
     assert torch.equal(m2.field.detail_radii, m.field.detail_radii)
     assert torch.allclose(m.field.detail_centre, torch.tensor([0.1, 0.0, 0.0]))
+
+
+def test_inference_features_in_one_buffer_match_the_concatenation():
+    """Without autograd on a CPU the field writes its grid, detail and expression features
+    side by side into one buffer; the values are those of the training path's `cat`, for
+    points inside and outside the detail region and with and without β."""
+    region = {"centre": [0.2, 0.0, 0.0], "axes": torch.eye(3).tolist(),
+              "radii": [0.3, 0.3, 0.3]}
+    cfg = tiny("fast", "hash", **{"field.detail_levels": 2, "field.detail_max_res": 256,
+                                  "field.expr_rank": 2}).cfg
+    torch.manual_seed(0)
+    m = FlameNeRF(cfg, num_codes=3, expr_dim=E, near=0.5, far=1.5, box_min=[-2, -2, -2],
+                  box_max=[2, 2, 2], detail_region=region)
+    for grid in (m.field.grid, m.field.detail, m.field.expr_grid):
+        for t in grid.tables:
+            torch.nn.init.uniform_(t, -1, 1)
+    x = torch.rand(37, 5, 3) - 0.5
+    expr = torch.randn(37, 1, E)
+    expr[:10] = 0  # rays without β: no expression features there
+    for e in (expr, torch.zeros(37, 1, E)):
+        with torch.no_grad():
+            fast = m.field._geo(x, e)
+        with torch.enable_grad():
+            ref = m.field._geo(x, e).detach()
+        assert torch.allclose(fast, ref, atol=1e-5), (fast - ref).abs().max()
+    with torch.no_grad():
+        h = m.field._features_in_place(x, expr)
+    w = m.field.grid.out_dim
+    assert torch.all(h[:, :, w:w + m.field.detail.out_dim].abs().sum(-1)[x.norm(dim=-1) > 0.9] == 0)
+    assert torch.all(h[:10, :, -m.field.expr_grid_width:] == 0)
+    assert torch.any(h[10:, :, -m.field.expr_grid_width:] != 0)

@@ -61,7 +61,7 @@ class DenseGrid:
                                     (ctypes.c_void_p * 1)(self.table.data_ptr()))
                 res, dense, tables = self._layout
                 lib.hashgrid_forward(u.data_ptr(), x.shape[0], 1, C, tables, res, dense, 0,
-                                     out.data_ptr(), torch.get_num_threads())
+                                     out.data_ptr(), C, torch.get_num_threads())
                 return out
         n = self.n
         vol = self.table.to(x.dtype).view(n, n, n, C).permute(3, 0, 1, 2)[None]  # (1,C,z,y,x)

@@ -92,7 +92,7 @@ def hashgrid_library() -> ctypes.CDLL | None:
                       "using the slower PyTorch hash grid", stacklevel=2)
         return None
     p, i64, i32 = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int32
-    lib.hashgrid_forward.argtypes = [p, i64, i32, i32, p, p, p, i64, p, i32]
+    lib.hashgrid_forward.argtypes = [p, i64, i32, i32, p, p, p, i64, p, i64, i32]
     lib.hashgrid_backward.argtypes = [p, i64, i32, i32, p, p, p, i64, p, p, p, p, i32]
     lib.hashgrid_forward.restype = lib.hashgrid_backward.restype = None
     _lib = lib

@@ -113,44 +113,69 @@ class HashField(nn.Module):
                        cfg.head_width, 2, (), out_dim=3)
 
     def _geo(self, x: Tensor, expr: Tensor | None) -> Tensor:
-        h = self.grid((x.reshape(-1, 3) + 1) * 0.5).view(*x.shape[:-1], -1)
-        if self.detail is not None:
-            h = torch.cat([h, self._detail_features(x)], -1)
-        if self.expr_grid is not None:
-            h = torch.cat([h, self._expression_features(x, expr)], -1)
+        if x.device.type == "cpu" and x.dtype == torch.float32 and not torch.is_grad_enabled():
+            h = self._features_in_place(x, expr)
+        else:
+            h = self.grid((x.reshape(-1, 3) + 1) * 0.5).view(*x.shape[:-1], -1)
+            if self.detail is not None:
+                h = torch.cat([h, self._detail_features(x)], -1)
+            if self.expr_grid is not None:
+                h = torch.cat([h, self._expression_features(x, expr)], -1)
         return self.density_head(h, expr if self.direct else None)
 
-    def _detail_features(self, x: Tensor) -> Tensor:
+    @torch.no_grad()
+    def _features_in_place(self, x: Tensor, expr: Tensor | None) -> Tensor:
+        """`_geo`'s concatenated features without the `cat`: every part written into its
+        columns of one buffer (the CPU inference path). x (*bs, 3) -> (*bs, width)."""
+        flat = x.reshape(-1, 3)
+        a = self.grid.out_dim
+        width = (a + (self.detail.out_dim if self.detail is not None else 0)
+                 + (self.expr_grid_width if self.expr_grid is not None else 0))
+        buf = flat.new_empty(len(flat), width)
+        self.grid.encode_into((flat + 1) * 0.5, buf[:, :a])
+        if self.detail is not None:
+            self._detail_features(x, out=buf[:, a:a + self.detail.out_dim])
+            a += self.detail.out_dim
+        if self.expr_grid is not None:
+            self._expression_features(x, expr, out=buf[:, a:])
+        return buf.view(*x.shape[:-1], width)
+
+    @property
+    def expr_grid_width(self) -> int:
+        return self.cfg.expr_levels * self.cfg.expr_features
+
+    def _detail_features(self, x: Tensor, out: Tensor | None = None) -> Tensor:
         """The detail levels times the head region's weight, evaluated only where it is
         non-zero (the tables then hold the head alone, so its cells collide only with each
-        other). x (*bs, 3) -> (*bs, detail levels·features)."""
+        other). x (*bs, 3) -> (*bs, detail levels·features); or written into `out` (N, ·),
+        a view, without autograd."""
         flat = x.reshape(-1, 3)
         w = ellipsoid_weight(flat, self.detail_centre, self.detail_axes, self.detail_radii,
                              self.cfg.detail_band)
         idx = (w > 0).nonzero()[:, 0]
-        if len(idx) == 0:
-            return flat.new_zeros(*x.shape[:-1], self.detail.out_dim)
-        f = self.detail((flat[idx] + 1) * 0.5) * w[idx, None]
-        # zeros in f's dtype: under CUDA's autocast f may be half, and index_copy does not
-        # promote there (CPU autocast does, so only a GPU run showed it)
-        out = f.new_zeros(len(flat), self.detail.out_dim).index_copy(0, idx, f)
-        return out.view(*x.shape[:-1], -1)
+        f = (self.detail((flat[idx] + 1) * 0.5) * w[idx, None] if len(idx)
+             else flat.new_zeros(0, self.detail.out_dim))
+        return _scatter_rows(f, idx, len(flat), x.shape[:-1], out)
 
-    def _expression_features(self, x: Tensor, expr: Tensor) -> Tensor:
+    def _expression_features(self, x: Tensor, expr: Tensor, out: Tensor | None = None
+                             ) -> Tensor:
         """Σ_r (Aβ)_r G_r(x), evaluated only where β ≠ 0 (elsewhere it is exactly 0).
-        x (*bs, 3), expr per point or broadcastable -> (*bs, levels·features)."""
+        x (*bs, 3), expr per point or broadcastable -> (*bs, levels·features); or written
+        into `out` (N, ·), a view, without autograd."""
         cfg = self.cfg
         L, R, Fe = cfg.expr_levels, cfg.expr_rank, cfg.expr_features
         bs = x.shape[:-1]
         z = self.expr_proj(expr).expand(*bs, R).reshape(-1, R)
         active = (expr.abs().amax(-1, keepdim=True) > 0).expand(*bs, 1).reshape(-1)
         idx = active.nonzero()[:, 0]
-        if len(idx) == 0:
-            return x.new_zeros(*bs, L * Fe)
-        g = self.expr_grid((x.reshape(-1, 3)[idx] + 1) * 0.5).view(-1, L, R, Fe)
-        f = torch.einsum("nlrf,nr->nlf", g, z[idx]).reshape(-1, L * Fe)
-        out = f.new_zeros(z.shape[0], L * Fe).index_copy(0, idx, f)  # f's dtype: see above
-        return out.view(*bs, L * Fe)
+        if len(idx):
+            g = self.expr_grid((x.reshape(-1, 3)[idx] + 1) * 0.5).view(-1, L, R, Fe)
+            # (n, 1, 1, R) @ (n, L, R, F): a batched product, ~1.6x faster than the
+            # equivalent einsum on a CPU
+            f = torch.matmul(z[idx, None, None, :], g).reshape(-1, L * Fe)
+        else:
+            f = x.new_zeros(0, L * Fe)
+        return _scatter_rows(f, idx, z.shape[0], bs, out)
 
     def density(self, x: Tensor, expr: Tensor | None) -> Tensor:
         return trunc_exp(self._geo(x, expr)[..., 0])
@@ -183,6 +208,20 @@ class ProposalField(nn.Module):
         if self.expr_dim and expr is None:
             expr = h.new_zeros(self.expr_dim)
         return self.head(h, expr if self.expr_dim else None)[..., 0]
+
+
+def _scatter_rows(f: Tensor, idx: Tensor, n: int, bs: tuple, out: Tensor | None) -> Tensor:
+    """Rows f (M, C) at idx (M,) of an (n, C) zero tensor -> viewed as (*bs, C); or written
+    into `out` (n, C) (a view into a wider buffer) and returned as it."""
+    if out is not None:
+        out.zero_()
+        if len(idx):
+            out.index_copy_(0, idx, f.to(out.dtype))
+        return out
+    # zeros in f's dtype: under CUDA's autocast f may be half, and index_copy does not
+    # promote there (CPU autocast does, so only a GPU run showed it)
+    z = f.new_zeros(n, f.shape[-1])
+    return (z.index_copy(0, idx, f) if len(idx) else z).view(*bs, f.shape[-1])
 
 
 def make_field(cfg: FieldConfig, expr_dim: int,

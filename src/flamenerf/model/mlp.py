@@ -28,12 +28,12 @@ def fused_cpu_inference(bf16: bool = False) -> Iterator[None]:
     thread: 5.5 ms vs 11.1 ms). Rounding differs from the plain path in the last bits, so
     the training forward (and eval's PSNR figures, rendered with it) never uses it.
 
-    `bf16`: on a CPU with native bfloat16 arithmetic (AVX-512 BF16 or AMX), the layers run
-    in bfloat16 between a float32 input and a float32 output (2.3x faster per 64-wide layer
-    on the Zen 4 development machine); elsewhere it is ignored."""
+    `bf16`: on a CPU with native bfloat16 arithmetic (AVX-512 BF16 or AMX) where it is
+    measured to pay (`bf16_pays`), the layers run in bfloat16 between a float32 input and a
+    float32 output; elsewhere it is ignored."""
     old = getattr(_fusing, "on", False), getattr(_fusing, "bf16", False)
     _fusing.on = _oneDNN_linear() is not None
-    _fusing.bf16 = _fusing.on and bf16 and native_bf16()
+    _fusing.bf16 = _fusing.on and bf16 and bf16_pays()
     try:
         yield
     finally:
@@ -45,6 +45,53 @@ def native_bf16() -> bool:
     cpu = getattr(torch, "cpu", None)
     checks = ("_is_avx512_bf16_supported", "_is_amx_tile_supported")
     return any(bool(getattr(cpu, c, lambda: False)()) for c in checks)
+
+
+_bf16_lock = threading.Lock()
+_bf16_verdict: bool | None = None
+BF16_MIN_GAIN = 1.3
+"""bfloat16 layers are used only where they are at least this much faster than float32:
+a decision near the line would flip between processes with the machine's load."""
+
+
+def bf16_pays() -> bool:
+    """Whether bfloat16 layers beat float32 ones here: native support, then a one-off
+    measurement per process (~20 ms) of a `fast` head layer both ways. The flags alone do
+    not tell: on a Zen 4 CPU bfloat16 was 2.3x faster per 64-wide layer, on an Intel Xeon
+    with the same AVX-512 BF16 flag 2x slower (a 256 px `fast` frame 1.19 s in bfloat16,
+    1.04 s in float32: docs/presets.md)."""
+    global _bf16_verdict
+    with _bf16_lock:
+        if _bf16_verdict is None:
+            _bf16_verdict = native_bf16() and _oneDNN_linear() is not None and \
+                _measured_gain() >= BF16_MIN_GAIN
+        return _bf16_verdict
+
+
+def _measured_gain() -> float:
+    """float32 time / bfloat16 time of one fused 48 -> 64 ReLU layer on 32768 rows, each
+    as `_fused_linear` runs it (bfloat16: the input converted first), best of 5."""
+    import time
+
+    op = torch.ops.mkldnn._linear_pointwise
+    gen = torch.Generator().manual_seed(0)
+    x = torch.randn(32768, 48, generator=gen)
+    w, b = torch.randn(64, 48, generator=gen), torch.randn(64, generator=gen)
+    wb, bb = w.bfloat16(), b.bfloat16()
+
+    def best(f) -> float:
+        f()
+        times = []
+        for _ in range(5):
+            t = time.perf_counter()
+            f()
+            times.append(time.perf_counter() - t)
+        return min(times)
+
+    with torch.no_grad():
+        t32 = best(lambda: op(x, w, b, "relu", [], ""))
+        t16 = best(lambda: op(x.to(torch.bfloat16), wb, bb, "relu", [], ""))
+    return t32 / max(t16, 1e-9)
 
 
 def _oneDNN_linear():

@@ -15,7 +15,8 @@
  * Layouts: x (N, 3) float32 in [0, 1] (clamped here, as the reference does); table l is
  * (T_l, F) float32, an entry's features side by side, so that the two x-neighbours of a
  * corner (indices that differ in the low bits) usually share one cache line; out and gout
- * are (N, L*F) with level-major features.
+ * are (N, L*F) with level-major features; the forward pass writes rows `out_stride` floats
+ * apart (L*F, or a wider buffer's row: the features land beside others without a copy).
  */
 #include <math.h>
 #include <stdint.h>
@@ -70,12 +71,111 @@ static inline void weights(const float f[3], float w[8]) {
     for (int c = 0; c < 8; c++) w[c] = wx[c >> 2] * wy[(c >> 1) & 1] * wz[c & 1];
 }
 
+/* One level with F <= 16 features (every grid of the presets, and the bakes) for 16 points
+ * at a time with AVX-512 (gathers for the table; 32-bit lanes): 3x faster than the generic
+ * loop for `fast`'s grid on an Intel Xeon. 32-bit index arithmetic gives the 64-bit path's
+ * indices while the table holds < 2^31 floats (the hash is masked from the same low bits;
+ * a dense index is < (r+1)^3 <= the table's size). The same operations in the same order
+ * as `locate`, `weights` and the generic loop; only the rounding of a fused multiply-add
+ * may differ. Built only where the compiler targets AVX-512 (-march=native on such a CPU);
+ * elsewhere the generic loop runs. */
+#if defined(__AVX512F__)
+#include <immintrin.h>
+#define HAVE_LEVEL_SIMD 1
+#define SIMD_MAX_F 16
+static inline __attribute__((always_inline)) void
+level_simd(const float *x, int64_t n, const int32_t F, int64_t r, int dense, uint32_t mask,
+           const float *t, float *out, int64_t out_stride) {
+    const __m512 rf = _mm512_set1_ps((float)r), top = _mm512_set1_ps((float)(r - 1));
+    const __m512 zero = _mm512_setzero_ps(), one = _mm512_set1_ps(1.0f);
+    const __m512i lane = _mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13,
+                                           14, 15);
+    const __m512i in3 = _mm512_mullo_epi32(lane, _mm512_set1_epi32(3));
+    const __m512i ost = _mm512_mullo_epi32(lane, _mm512_set1_epi32((int32_t)out_stride));
+    const __m512i s1 = _mm512_set1_epi32((int32_t)(uint32_t)(r + 1)),
+                  s2 = _mm512_set1_epi32((int32_t)(uint32_t)((r + 1) * (r + 1))),
+                  p1 = _mm512_set1_epi32((int32_t)(uint32_t)P1),
+                  p2 = _mm512_set1_epi32((int32_t)(uint32_t)P2),
+                  msk = _mm512_set1_epi32((int32_t)mask), ione = _mm512_set1_epi32(1),
+                  fs = _mm512_set1_epi32(F);
+    for (int64_t i = 0; i < n; i += 16) {
+        const __mmask16 k = n - i >= 16 ? (__mmask16)0xFFFF
+                                        : (__mmask16)((1u << (n - i)) - 1u);
+        const float *xp = x + 3 * i;
+        __m512i b[3];
+        __m512 f[3];
+        for (int a = 0; a < 3; a++) {
+            __m512 v = _mm512_mask_i32gather_ps(zero, k, in3, xp + a, 4);
+            v = _mm512_min_ps(_mm512_max_ps(v, zero), one);
+            __m512 pos = _mm512_mul_ps(v, rf);
+            __m512 bb = _mm512_cvtepi32_ps(_mm512_cvttps_epi32(pos));
+            bb = _mm512_min_ps(bb, top);
+            b[a] = _mm512_cvttps_epi32(bb);
+            f[a] = _mm512_sub_ps(pos, bb);
+        }
+        __m512i tx[2] = {b[0], _mm512_add_epi32(b[0], ione)}, ty[2], tz[2];
+        __m512i by1 = _mm512_add_epi32(b[1], ione), bz1 = _mm512_add_epi32(b[2], ione);
+        if (dense) {
+            ty[0] = _mm512_mullo_epi32(b[1], s1); ty[1] = _mm512_mullo_epi32(by1, s1);
+            tz[0] = _mm512_mullo_epi32(b[2], s2); tz[1] = _mm512_mullo_epi32(bz1, s2);
+        } else {
+            ty[0] = _mm512_mullo_epi32(b[1], p1); ty[1] = _mm512_mullo_epi32(by1, p1);
+            tz[0] = _mm512_mullo_epi32(b[2], p2); tz[1] = _mm512_mullo_epi32(bz1, p2);
+        }
+        __m512 wx[2] = {_mm512_sub_ps(one, f[0]), f[0]}, wy[2] = {_mm512_sub_ps(one, f[1]), f[1]},
+               wz[2] = {_mm512_sub_ps(one, f[2]), f[2]};
+        __m512 acc[SIMD_MAX_F];
+        for (int32_t j = 0; j < F; j++) acc[j] = zero;
+        for (int c = 0; c < 8; c++) {
+            const __m512i X = tx[c >> 2], Y = ty[(c >> 1) & 1], Z = tz[c & 1];
+            __m512i id = dense ? _mm512_add_epi32(_mm512_add_epi32(X, Y), Z)
+                               : _mm512_and_si512(_mm512_xor_si512(_mm512_xor_si512(X, Y), Z),
+                                                  msk);
+            id = F == 1 ? id : F == 2 ? _mm512_add_epi32(id, id) : _mm512_mullo_epi32(id, fs);
+            const __m512 w = _mm512_mul_ps(_mm512_mul_ps(wx[c >> 2], wy[(c >> 1) & 1]),
+                                           wz[c & 1]);
+            for (int32_t j = 0; j < F; j++)
+                acc[j] = _mm512_fmadd_ps(_mm512_mask_i32gather_ps(zero, k, id, t + j, 4), w,
+                                         acc[j]);
+        }
+        float *op = out + i * out_stride;
+        for (int32_t j = 0; j < F; j++) _mm512_mask_i32scatter_ps(op + j, k, ost, acc[j], 4);
+    }
+}
+/* with the feature count a constant where it is small, so that the accumulators stay in
+ * registers (a variable count cost the 2-feature grid ~25 %) */
+static void level_any(const float *x, int64_t n, int32_t F, int64_t r, int dense,
+                      uint32_t mask, const float *t, float *out, int64_t out_stride) {
+    switch (F) {
+    case 1: level_simd(x, n, 1, r, dense, mask, t, out, out_stride); break;
+    case 2: level_simd(x, n, 2, r, dense, mask, t, out, out_stride); break;
+    case 3: level_simd(x, n, 3, r, dense, mask, t, out, out_stride); break;
+    case 4: level_simd(x, n, 4, r, dense, mask, t, out, out_stride); break;
+    default: level_simd(x, n, F, r, dense, mask, t, out, out_stride);
+    }
+}
+#endif
+
 void hashgrid_forward(const float *x, int64_t n, int32_t L, int32_t F,
                       const float *const *tables, const int64_t *res,
-                      const uint8_t *dense, int64_t hash_mask, float *out, int32_t threads) {
+                      const uint8_t *dense, int64_t hash_mask, float *out, int64_t out_stride,
+                      int32_t threads) {
     /* level-major: one level's table stays in cache while every point reads it */
     for (int32_t l = 0; l < L; l++) {
         const float *t = tables[l];
+#ifdef HAVE_LEVEL_SIMD
+        const int64_t entries = dense[l] ? (res[l] + 1) * (res[l] + 1) * (res[l] + 1)
+                                         : hash_mask + 1;
+        if (F <= SIMD_MAX_F && entries * F < (1LL << 31) && res[l] < (1LL << 20)
+                && 16 * out_stride < (1LL << 31)) {
+            const int64_t block = 4096; /* a multiple of 16 */
+#pragma omp parallel for schedule(static) num_threads(threads)
+            for (int64_t lo = 0; lo < n; lo += block)
+                level_any(x + 3 * lo, lo + block < n ? block : n - lo, F, res[l], dense[l],
+                          (uint32_t)hash_mask, t, out + lo * out_stride + l * F, out_stride);
+            continue;
+        }
+#endif
 #pragma omp parallel for schedule(static) num_threads(threads)
         for (int64_t i = 0; i < n; i++) {
             int64_t idx[8];
@@ -86,7 +186,7 @@ void hashgrid_forward(const float *x, int64_t n, int32_t L, int32_t F,
             for (int32_t f = 0; f < F; f++) {
                 float acc = 0.0f;
                 for (int c = 0; c < 8; c++) acc += t[idx[c] * F + f] * w[c];
-                out[i * L * F + l * F + f] = acc;
+                out[i * out_stride + l * F + f] = acc;
             }
         }
     }
