@@ -14,7 +14,8 @@ scene, 256 px, 2-core CPU; docs/bench/render.md):
   silhouette read the proposal's density from its bake (model/baked.py);
 - on a CPU, each MLP layer is one oneDNN matmul with bias and ReLU fused in (model/mlp.py);
 - on CUDA the fields run in half precision (autocast; the warp and compositing stay in
-  float32), on a CPU with native bfloat16 the MLP layers run in bfloat16;
+  float32), on a CPU with native bfloat16 the MLP layers run in bfloat16 where that is
+  measured to be faster (`mlp.bf16_pays`);
 - the viewer's settings (`VIEWER`) take fewer of the main field's samples than training
   placed (`RenderSettings.main_fraction`); `FAST` takes them all.
 """
@@ -60,7 +61,8 @@ class RenderSettings:
     (its training count). The viewer takes fewer (`VIEWER`)."""
     half: bool = True
     """Half precision where the device has it natively: the fields in float16 on CUDA, the
-    MLP layers in bfloat16 on CPUs with AVX-512 BF16 or AMX (model/mlp.py)."""
+    MLP layers in bfloat16 on CPUs with AVX-512 BF16 or AMX where measured faster than
+    float32 (model/mlp.py)."""
 
     threads: int = 0
     """On a CPU: Python threads that render chunks side by side, each with one torch thread
