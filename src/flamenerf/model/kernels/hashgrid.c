@@ -151,6 +151,7 @@ static void level_any(const float *x, int64_t n, int32_t F, int64_t r, int dense
     case 2: level_simd(x, n, 2, r, dense, mask, t, out, out_stride); break;
     case 3: level_simd(x, n, 3, r, dense, mask, t, out, out_stride); break;
     case 4: level_simd(x, n, 4, r, dense, mask, t, out, out_stride); break;
+    case 16: level_simd(x, n, 16, r, dense, mask, t, out, out_stride); break;
     default: level_simd(x, n, F, r, dense, mask, t, out, out_stride);
     }
 }
