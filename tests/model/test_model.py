@@ -269,3 +269,19 @@ def test_inference_features_in_one_buffer_match_the_concatenation():
     assert torch.all(h[:, :, w:w + m.field.detail.out_dim].abs().sum(-1)[x.norm(dim=-1) > 0.9] == 0)
     assert torch.all(h[:10, :, -m.field.expr_grid_width:] == 0)
     assert torch.any(h[10:, :, -m.field.expr_grid_width:] != 0)
+
+
+def test_expression_projection_learns_from_zero():
+    """With the projection A at zero (Aβ = 0 everywhere) the training path still evaluates
+    the expression grid wherever β ≠ 0, so that A gets a gradient; without autograd those
+    points are skipped (their features are exactly 0)."""
+    m = tiny("fast", "hash", **{"field.expr_rank": 2})
+    for t in m.field.expr_grid.tables:
+        torch.nn.init.uniform_(t, -1, 1)
+    torch.nn.init.zeros_(m.field.expr_proj.weight)
+    x, expr = torch.rand(6, 4, 3) - 0.5, torch.randn(6, 1, E)
+    m.field.density(x, expr).sum().backward()
+    assert m.field.expr_proj.weight.grad.abs().sum() > 0
+    with torch.no_grad():
+        h = m.field._expression_features(x, expr)
+    assert torch.all(h == 0)

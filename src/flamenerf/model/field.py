@@ -169,9 +169,11 @@ class HashField(nn.Module):
         L, R, Fe = cfg.expr_levels, cfg.expr_rank, cfg.expr_features
         bs = x.shape[:-1]
         z = self.expr_proj(expr).expand(*bs, R).reshape(-1, R)
-        # where Aβ = 0 the sum is exactly 0 (β = 0, or β in A's null space): z has R
-        # columns to look at where β has E
-        idx = (z != 0).any(-1).nonzero()[:, 0]
+        if torch.is_grad_enabled():  # A's gradient needs G wherever β ≠ 0
+            active = (expr.abs().amax(-1, keepdim=True) > 0).expand(*bs, 1).reshape(-1)
+        else:  # the sum is exactly 0 where Aβ = 0: R columns to look at instead of E
+            active = (z != 0).any(-1)
+        idx = active.nonzero()[:, 0]
         if len(idx):
             g = self.expr_grid((x.reshape(-1, 3)[idx] + 1) * 0.5).view(-1, L, R, Fe)
             # (n, 1, 1, R) @ (n, L, R, F): a batched product, ~1.6x faster than the
