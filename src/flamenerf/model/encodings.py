@@ -99,12 +99,8 @@ class HashGrid(nn.Module):
 
             lib = hashgrid_library()
             if lib is not None:
-                res, dense = self.kernel_layout()
-                x = x.contiguous()
-                lib.hashgrid_forward(x.data_ptr(), x.shape[0], self.levels, self.features,
-                                     _pointers([t.detach().contiguous() for t in self.tables]), res,
-                                     dense, self.size - 1, out.data_ptr(), out.stride(0),
-                                     torch.get_num_threads())
+                _kernel_forward(lib, self, x.contiguous(),
+                                [t.detach().contiguous() for t in self.tables], out)
                 return
         out.copy_(self(x))
 
@@ -217,17 +213,23 @@ def _pointers(tensors) -> ctypes.Array:
     return (ctypes.c_void_p * len(tensors))(*[0 if t is None else t.data_ptr() for t in tensors])
 
 
+def _kernel_forward(lib, grid: HashGrid, x: Tensor, tables, out: Tensor) -> None:
+    """The compiled forward pass: x (N, 3) contiguous float32, tables the grid's (contiguous),
+    out (N, L·F) float32 with unit column stride, its rows out.stride(0) floats apart."""
+    res, dense = grid.kernel_layout()
+    lib.hashgrid_forward(x.data_ptr(), x.shape[0], grid.levels, grid.features,
+                         _pointers(tables), res, dense, grid.size - 1, out.data_ptr(),
+                         out.stride(0), torch.get_num_threads())
+
+
 class _HashGridCPU(torch.autograd.Function):
     """HashGrid.forward through the compiled kernel; gradients for x and every table."""
 
     @staticmethod
     def forward(ctx, x: Tensor, grid: HashGrid, lib, *tables: Tensor) -> Tensor:
-        n, L, F = x.shape[0], grid.levels, grid.features
         tables = tuple(t.detach().contiguous() for t in tables)
-        out = torch.empty(n, L * F, dtype=x.dtype)
-        res, dense = grid.kernel_layout()
-        lib.hashgrid_forward(x.data_ptr(), n, L, F, _pointers(tables), res, dense,
-                             grid.size - 1, out.data_ptr(), L * F, torch.get_num_threads())
+        out = torch.empty(x.shape[0], grid.out_dim, dtype=x.dtype)
+        _kernel_forward(lib, grid, x, tables, out)
         ctx.grid, ctx.lib = grid, lib
         ctx.save_for_backward(x, *tables)
         return out

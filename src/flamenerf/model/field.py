@@ -136,35 +136,34 @@ class HashField(nn.Module):
         buf = flat.new_zeros(len(flat), width) if width > a else flat.new_empty(len(flat), a)
         self.grid.encode_into((flat + 1) * 0.5, buf[:, :a])
         if self.detail is not None:
-            self._detail_features(x, out=buf[:, a:a + self.detail.out_dim], zeroed=True)
+            self._detail_features(x, out=buf[:, a:a + self.detail.out_dim])
             a += self.detail.out_dim
         if self.expr_grid is not None:
-            self._expression_features(x, expr, out=buf[:, a:], zeroed=True)
+            self._expression_features(x, expr, out=buf[:, a:])
         return buf.view(*x.shape[:-1], width)
 
     @property
     def expr_grid_width(self) -> int:
         return self.cfg.expr_levels * self.cfg.expr_features
 
-    def _detail_features(self, x: Tensor, out: Tensor | None = None, zeroed: bool = False
-                         ) -> Tensor:
+    def _detail_features(self, x: Tensor, out: Tensor | None = None) -> Tensor:
         """The detail levels times the head region's weight, evaluated only where it is
         non-zero (the tables then hold the head alone, so its cells collide only with each
         other). x (*bs, 3) -> (*bs, detail levels·features); or written into `out` (N, ·),
-        a view, without autograd (`zeroed`: out holds zeros already)."""
+        a view holding zeros, without autograd."""
         flat = x.reshape(-1, 3)
         w = ellipsoid_weight(flat, self.detail_centre, self.detail_axes, self.detail_radii,
                              self.cfg.detail_band)
         idx = (w > 0).nonzero()[:, 0]
         f = (self.detail((flat[idx] + 1) * 0.5) * w[idx, None] if len(idx)
              else flat.new_zeros(0, self.detail.out_dim))
-        return _scatter_rows(f, idx, len(flat), x.shape[:-1], out, zeroed)
+        return _scatter_rows(f, idx, len(flat), x.shape[:-1], out)
 
-    def _expression_features(self, x: Tensor, expr: Tensor, out: Tensor | None = None,
-                             zeroed: bool = False) -> Tensor:
+    def _expression_features(self, x: Tensor, expr: Tensor, out: Tensor | None = None
+                             ) -> Tensor:
         """Σ_r (Aβ)_r G_r(x), evaluated only where β ≠ 0 (elsewhere it is exactly 0).
         x (*bs, 3), expr per point or broadcastable -> (*bs, levels·features); or written
-        into `out` (N, ·), a view, without autograd (`zeroed`: out holds zeros already)."""
+        into `out` (N, ·), a view holding zeros, without autograd."""
         cfg = self.cfg
         L, R, Fe = cfg.expr_levels, cfg.expr_rank, cfg.expr_features
         bs = x.shape[:-1]
@@ -181,7 +180,7 @@ class HashField(nn.Module):
             f = torch.matmul(z[idx, None, None, :], g).reshape(-1, L * Fe)
         else:
             f = x.new_zeros(0, L * Fe)
-        return _scatter_rows(f, idx, z.shape[0], bs, out, zeroed)
+        return _scatter_rows(f, idx, z.shape[0], bs, out)
 
     def density(self, x: Tensor, expr: Tensor | None) -> Tensor:
         return trunc_exp(self._geo(x, expr)[..., 0])
@@ -216,14 +215,10 @@ class ProposalField(nn.Module):
         return self.head(h, expr if self.expr_dim else None)[..., 0]
 
 
-def _scatter_rows(f: Tensor, idx: Tensor, n: int, bs: tuple, out: Tensor | None,
-                  zeroed: bool = False) -> Tensor:
+def _scatter_rows(f: Tensor, idx: Tensor, n: int, bs: tuple, out: Tensor | None) -> Tensor:
     """Rows f (M, C) at idx (M,) of an (n, C) zero tensor -> viewed as (*bs, C); or written
-    into `out` (n, C) (a view into a wider buffer; `zeroed`: it holds zeros already) and
-    returned as it."""
+    into `out` (n, C), a view into a wider buffer that holds zeros, and returned as it."""
     if out is not None:
-        if not zeroed:
-            out.zero_()
         if len(idx):
             out.index_copy_(0, idx, f.to(out.dtype))
         return out

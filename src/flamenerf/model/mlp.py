@@ -56,10 +56,10 @@ a decision near the line would flip between processes with the machine's load.""
 
 def bf16_pays() -> bool:
     """Whether bfloat16 layers beat float32 ones here: native support, then a one-off
-    measurement per process (~20 ms) of a `fast` head layer both ways. The flags alone do
+    measurement per process (30-40 ms) of a `fast` head layer both ways. The flags alone do
     not tell: on a Zen 4 CPU bfloat16 was 2.3x faster per 64-wide layer, on an Intel Xeon
     with the same AVX-512 BF16 flag 2x slower (a 256 px `fast` frame 1.19 s in bfloat16,
-    1.04 s in float32: docs/presets.md)."""
+    1.04 s in float32, medians of 5 alternating frames: README, "Rendering speed")."""
     global _bf16_verdict
     with _bf16_lock:
         if _bf16_verdict is None:

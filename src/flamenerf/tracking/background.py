@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from flamenerf.tracking.still_head import still_head_hypothesis
+from flamenerf.tracking.still_head import reconstruction_c2w, still_head_hypothesis
 
 # COLMAP / OpenCV camera axes (x right, y down, z forward) -> OpenGL (x right, y up, -z fwd)
 CV_TO_GL = np.diag([1.0, -1.0, -1.0, 1.0])
@@ -324,19 +324,6 @@ def _register(frames, opts: BackgroundOptions, tmp: Path, focal: float | None,
         out.reason = (f"background reprojection error {err:.2f} px > "
                       f"{opts.max_reprojection_px} px")
     return out
-
-
-def reconstruction_c2w(rec, names: list[str]) -> np.ndarray:
-    """The camera-to-world of each named image in a pycolmap reconstruction (OpenCV axes,
-    its units), NaN where it has no pose. -> (len(names), 4, 4)"""
-    pos = {n: k for k, n in enumerate(names)}
-    c2w = np.full((len(names), 4, 4), np.nan)
-    for im in rec.images.values():
-        if im.has_pose and im.name in pos:
-            w2c = np.eye(4)
-            w2c[:3] = im.cam_from_world().matrix()
-            c2w[pos[im.name]] = np.linalg.inv(w2c)
-    return c2w
 
 
 def _bundle_adjust(rec, refine_focal: bool, opts: BackgroundOptions) -> None:

@@ -7,6 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
+from flamenerf.tracking.still_head import RULE_CONTRADICTED
+
 GROUPS_ARKIT = {  # channels plotted in qa/expressions.png (groups are averaged)
     "jawOpen": ["jawOpen"],
     "smile (mouthSmileLeft+Right)/2": ["mouthSmileLeft", "mouthSmileRight"],
@@ -47,7 +49,7 @@ def scene_lines(scene: dict) -> list[str]:
     hyp = bg.get("still_head_hypothesis")
     if hyp and "still_head_error_px" in hyp:
         verdict = "kept" if hyp["chosen"] == "still head" else "not kept"
-        if hyp.get("rule") == "SfM contradicts the face":
+        if hyp.get("rule") == RULE_CONTRADICTED:
             verdict += (", as structure from motion's world has the camera travel against "
                         "the face's account")
         lines.append(
@@ -56,7 +58,7 @@ def scene_lines(scene: dict) -> list[str]:
             f"of its observations with the cameras {hyp['still_head_turn_deg']:.1f} deg from "
             f"the face's; structure from motion: {hyp['sfm_error_px']:.2f} px; source pixels)")
         top = hyp.get("still_head_turn_max_deg", 0.0)
-        if hyp.get("rule") == "SfM contradicts the face" and top > DISAGREE_DEG:
+        if hyp.get("rule") == RULE_CONTRADICTED and top > DISAGREE_DEG:
             lines.append(
                 f"  note: the adjusted cameras turn up to {top:.0f} deg from the face's, so the "
                 "head turns in this world; if it was in fact still, a wrong field of view is "

@@ -39,6 +39,13 @@ import numpy as np
 from flamenerf.geometry import cayley, cayley_grad
 
 
+RULE_AS_GOOD = "as good as SfM"
+"""`info["rule"]` when the adjusted world explains the background about as well as SfM's."""
+RULE_CONTRADICTED = "SfM contradicts the face"
+"""`info["rule"]` when it was kept because SfM's world has the camera travel against the
+face's account (the report then says so, and may point to the field of view)."""
+
+
 @dataclass
 class StillHeadOptions:
     rot_sigma_deg: float = 1.0
@@ -77,6 +84,19 @@ def tracks(rec, names: list[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray, l
             obs.append((pos[im.name], j, u, v))
     obs = np.asarray(obs, np.float64).reshape(-1, 4)
     return obs[:, 0].astype(int), obs[:, 1].astype(int), obs[:, 2:], point_ids
+
+
+def reconstruction_c2w(rec, names: list[str]) -> np.ndarray:
+    """The camera-to-world of each named image in a pycolmap reconstruction (OpenCV axes,
+    its units), NaN where it has no pose. -> (len(names), 4, 4)"""
+    pos = {n: k for k, n in enumerate(names)}
+    c2w = np.full((len(names), 4, 4), np.nan)
+    for im in rec.images.values():
+        if im.has_pose and im.name in pos:
+            w2c = np.eye(4)
+            w2c[:3] = im.cam_from_world().matrix()
+            c2w[pos[im.name]] = np.linalg.inv(w2c)
+    return c2w
 
 
 def triangulate(K: np.ndarray, w2c: np.ndarray, fi: np.ndarray, pj: np.ndarray,
@@ -268,7 +288,6 @@ def sfm_metric_scale(rec, w2c_face: np.ndarray, names: list[str]) -> float:
     """The least-squares metric scale (`world.metric_scale`) that composes SfM's cameras
     with the face's: not positive when the face says the camera travels against SfM's
     path; NaN when too few frames are registered."""
-    from flamenerf.tracking.background import reconstruction_c2w
     from flamenerf.tracking.world import metric_scale
 
     c2w = reconstruction_c2w(rec, names)
@@ -317,7 +336,7 @@ def still_head_hypothesis(rec, w2c_face: np.ndarray, names: list[str],
                     and e_alt <= opts.contradicted_error_ratio * e_sfm)
     if not (plain or contradicted):
         return rec, info
-    info["rule"] = "as good as SfM" if plain else "SfM contradicts the face"
+    info["rule"] = RULE_AS_GOOD if plain else RULE_CONTRADICTED
     alt = pycolmap.Reconstruction(rec)
     pos = {n: k for k, n in enumerate(names)}
     for im in alt.images.values():
