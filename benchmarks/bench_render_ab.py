@@ -1,14 +1,18 @@
-"""Render speed of two source trees side by side, for machines whose speed drifts.
+"""Render (or training-step) speed of two source trees side by side, for machines whose
+speed drifts.
 
 On a shared machine the same frame's time drifts by up to ~35 % between runs minutes apart,
 so a before/after figure from two separate `bench_render.py` runs says little. This script
 times one frame of a trained run with each source tree (`--src`, e.g. a `git worktree` of the
 old commit and this checkout) in fresh processes, alternating them for `--rounds` rounds, and
-reports each tree's best and median time per size.
+reports each tree's best and median time per size. With `--train PRESET` it times training
+steps instead: a fresh run of that preset on `--dataset` at its training size, half-way
+through its schedule (every loss term on), after two warm-up steps.
 
     git worktree add /tmp/old HEAD~1
     python benchmarks/bench_render_ab.py --run RUN --dataset SCENE --src /tmp/old/src src \
         --json docs/bench/render_ab.json
+    python benchmarks/bench_render_ab.py --train fast --dataset SCENE --src /tmp/old/src src
 """
 
 from __future__ import annotations
@@ -55,10 +59,38 @@ for size in json.loads(sys.argv[4]):
 print(json.dumps(out))
 """
 
+# one process: `repeats` training steps of a fresh run of a preset, half-way through its
+# schedule, after two warm-up steps
+_TRAIN_CHILD = r"""
+import json, sys, tempfile, time
+from flamenerf.config import preset
+from flamenerf.training.trainer import Trainer
+cfg = preset(sys.argv[6])
+cfg.train.num_threads = int(sys.argv[3])
+cfg.train.image_every = cfg.train.checkpoint_every = 10**9
+with tempfile.TemporaryDirectory() as d:
+    tr = Trainer(cfg, sys.argv[2], d, quiet=True)
+    tr.step = cfg.train.steps // 2
+    for _ in range(2):
+        tr.train_step()
+    ts = []
+    for _ in range(int(sys.argv[5])):
+        t = time.perf_counter()
+        tr.train_step()
+        ts.append(time.perf_counter() - t)
+print(json.dumps({"step": ts}))
+"""
+
+
+def _label(key: str) -> str:
+    return f"{key} px" if key.isdigit() else key
+
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--run", type=Path, required=True)
+    ap.add_argument("--run", type=Path, default=None, help="a trained run (render speed)")
+    ap.add_argument("--train", default=None, metavar="PRESET",
+                    help="time training steps of this preset on --dataset instead")
     ap.add_argument("--dataset", type=Path, default=None)
     ap.add_argument("--src", nargs=2, required=True, metavar=("A", "B"),
                     help="two source trees (folders holding the flamenerf package)")
@@ -70,21 +102,25 @@ def main() -> int:
                     help="render's settings, or the viewer's (model/inference.py)")
     ap.add_argument("--json", type=Path, default=None)
     a = ap.parse_args()
+    if (a.run is None) == (a.train is None) or (a.train and a.dataset is None):
+        ap.error("give --run RUN (render), or --train PRESET with --dataset")
+    child, what = ((_TRAIN_CHILD, a.train) if a.train else (_CHILD, a.settings))
     times: dict[str, dict[str, list[float]]] = {s: {} for s in a.src}
     for r in range(a.rounds):
         for src in a.src:
             # glibc tuned as `flamenerf` tunes it (runtime.py), the tree under test first
             env = dict(os.environ, **TUNED_ALLOCATOR, PYTHONPATH=str(Path(src).resolve()))
             proc = subprocess.run(
-                [sys.executable, "-c", _CHILD, str(a.run), str(a.dataset or ""),
-                 str(a.threads), json.dumps(a.sizes), str(a.repeats), a.settings],
+                [sys.executable, "-c", child, str(a.run), str(a.dataset or ""),
+                 str(a.threads), json.dumps(a.sizes), str(a.repeats), what],
                 env=env, capture_output=True, text=True, check=True)
             got = json.loads(proc.stdout.strip().splitlines()[-1])
             for size, ts in got.items():
                 times[src].setdefault(size, []).extend(ts)
             print(f"round {r + 1} {src}: " + ", ".join(
-                f"{s} px {min(ts):.3f} s" for s, ts in got.items()), flush=True)
-    res = {"benchmark": "render_ab", "settings": a.settings, "command": "python benchmarks/bench_render_ab.py "
+                f"{_label(s)} {min(ts):.3f} s" for s, ts in got.items()), flush=True)
+    res = {"benchmark": "train_ab" if a.train else "render_ab",
+           "settings": a.train or a.settings, "command": "python benchmarks/bench_render_ab.py "
            + " ".join(sys.argv[1:]), "machine": f"{platform.processor() or platform.machine()}, "
            f"{os.cpu_count()} cores, {a.threads} threads", "results": {}}
     for src, per in times.items():
@@ -92,8 +128,8 @@ def main() -> int:
                                    round(float(np.median(ts)), 3), "n": len(ts)}
                                for s, ts in per.items()}
         for s, v in res["results"][src].items():
-            print(f"{src}: {s} px best {v['best_s']:.3f} s, median {v['median_s']:.3f} s "
-                  f"({v['n']} frames)")
+            print(f"{src}: {_label(s)} best {v['best_s']:.3f} s, median {v['median_s']:.3f} s "
+                  f"({v['n']})")
     if a.json is not None:
         a.json.parent.mkdir(parents=True, exist_ok=True)
         a.json.write_text(json.dumps(res, indent=1) + "\n")

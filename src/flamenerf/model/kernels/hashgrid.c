@@ -193,6 +193,120 @@ void hashgrid_forward(const float *x, int64_t n, int32_t L, int32_t F,
     }
 }
 
+#ifdef HAVE_LEVEL_SIMD
+/* One level of the backward pass for 16 points at a time: the cell, corner indices and
+ * weights as in `level_simd`, the position gradient in vector lanes; the table's gradient
+ * is still added one point, corner and feature at a time in the generic loop's order
+ * (a vector scatter-add would need conflict handling, and that order keeps the result
+ * bit-identical to the generic loop and independent of the thread count). */
+static inline __attribute__((always_inline)) void
+level_back_simd(const float *x, int64_t n, const int32_t F, int64_t gstride, int64_t r,
+                int dense, uint32_t mask, const float *t, const float *gout, float *gt,
+                float *gl) {
+    const __m512 rf = _mm512_set1_ps((float)r), top = _mm512_set1_ps((float)(r - 1));
+    const __m512 zero = _mm512_setzero_ps(), one = _mm512_set1_ps(1.0f);
+    const __m512i lane = _mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13,
+                                           14, 15);
+    const __m512i in3 = _mm512_mullo_epi32(lane, _mm512_set1_epi32(3));
+    const __m512i gst = _mm512_mullo_epi32(lane, _mm512_set1_epi32((int32_t)gstride));
+    const __m512i s1 = _mm512_set1_epi32((int32_t)(uint32_t)(r + 1)),
+                  s2 = _mm512_set1_epi32((int32_t)(uint32_t)((r + 1) * (r + 1))),
+                  p1 = _mm512_set1_epi32((int32_t)(uint32_t)P1),
+                  p2 = _mm512_set1_epi32((int32_t)(uint32_t)P2),
+                  msk = _mm512_set1_epi32((int32_t)mask), ione = _mm512_set1_epi32(1),
+                  fs = _mm512_set1_epi32(F);
+    int32_t ids[8][16];
+    float ws[8][16];
+    for (int64_t i = 0; i < n; i += 16) {
+        const int64_t m = n - i >= 16 ? 16 : n - i;
+        const __mmask16 k = (__mmask16)(m == 16 ? 0xFFFFu : (1u << m) - 1u);
+        const float *xp = x + 3 * i;
+        __m512i b[3];
+        __m512 f[3];
+        __mmask16 in[3];
+        for (int a = 0; a < 3; a++) {
+            __m512 v = _mm512_mask_i32gather_ps(zero, k, in3, xp + a, 4);
+            in[a] = _mm512_cmp_ps_mask(v, zero, _CMP_GE_OQ) & _mm512_cmp_ps_mask(v, one, _CMP_LE_OQ);
+            v = _mm512_min_ps(_mm512_max_ps(v, zero), one);
+            __m512 pos = _mm512_mul_ps(v, rf);
+            __m512 bb = _mm512_cvtepi32_ps(_mm512_cvttps_epi32(pos));
+            bb = _mm512_min_ps(bb, top);
+            b[a] = _mm512_cvttps_epi32(bb);
+            f[a] = _mm512_sub_ps(pos, bb);
+        }
+        __m512i tx[2] = {b[0], _mm512_add_epi32(b[0], ione)}, ty[2], tz[2];
+        __m512i by1 = _mm512_add_epi32(b[1], ione), bz1 = _mm512_add_epi32(b[2], ione);
+        if (dense) {
+            ty[0] = _mm512_mullo_epi32(b[1], s1); ty[1] = _mm512_mullo_epi32(by1, s1);
+            tz[0] = _mm512_mullo_epi32(b[2], s2); tz[1] = _mm512_mullo_epi32(bz1, s2);
+        } else {
+            ty[0] = _mm512_mullo_epi32(b[1], p1); ty[1] = _mm512_mullo_epi32(by1, p1);
+            tz[0] = _mm512_mullo_epi32(b[2], p2); tz[1] = _mm512_mullo_epi32(bz1, p2);
+        }
+        const __m512 wx[2] = {_mm512_sub_ps(one, f[0]), f[0]},
+                     wy[2] = {_mm512_sub_ps(one, f[1]), f[1]},
+                     wz[2] = {_mm512_sub_ps(one, f[2]), f[2]};
+        __m512 dx = zero, dy = zero, dz = zero;
+        const float *go = gout + i * gstride;
+        __m512 gv[SIMD_MAX_F];
+        if (gl)
+            for (int32_t j = 0; j < F; j++)
+                gv[j] = _mm512_mask_i32gather_ps(zero, k, gst, go + j, 4);
+        for (int c = 0; c < 8; c++) {
+            const int ix = c >> 2, iy = (c >> 1) & 1, iz = c & 1;
+            const __m512i X = tx[ix], Y = ty[iy], Z = tz[iz];
+            __m512i id = dense ? _mm512_add_epi32(_mm512_add_epi32(X, Y), Z)
+                               : _mm512_and_si512(_mm512_xor_si512(_mm512_xor_si512(X, Y), Z),
+                                                  msk);
+            id = F == 1 ? id : F == 2 ? _mm512_add_epi32(id, id) : _mm512_mullo_epi32(id, fs);
+            if (gt) {
+                _mm512_storeu_si512(ids[c], id);
+                _mm512_storeu_ps(ws[c], _mm512_mul_ps(_mm512_mul_ps(wx[ix], wy[iy]), wz[iz]));
+            }
+            if (gl) {
+                /* s_c = sum_f gout_f * table_f[idx_c], then the corner's share of each slope */
+                __m512 sc = zero;
+                for (int32_t j = 0; j < F; j++)
+                    sc = _mm512_fmadd_ps(gv[j], _mm512_mask_i32gather_ps(zero, k, id, t + j, 4),
+                                         sc);
+                const __m512 sx = ix ? sc : _mm512_sub_ps(zero, sc);
+                const __m512 sy = iy ? sc : _mm512_sub_ps(zero, sc);
+                const __m512 sz = iz ? sc : _mm512_sub_ps(zero, sc);
+                dx = _mm512_fmadd_ps(sx, _mm512_mul_ps(wy[iy], wz[iz]), dx);
+                dy = _mm512_fmadd_ps(sy, _mm512_mul_ps(wx[ix], wz[iz]), dy);
+                dz = _mm512_fmadd_ps(sz, _mm512_mul_ps(wx[ix], wy[iy]), dz);
+            }
+        }
+        if (gl) {
+            /* the reference clamps x to [0, 1]: no gradient outside */
+            float *gp = gl + 3 * i;
+            _mm512_mask_i32scatter_ps(gp + 0, k, in3, _mm512_maskz_mul_ps(in[0], dx, rf), 4);
+            _mm512_mask_i32scatter_ps(gp + 1, k, in3, _mm512_maskz_mul_ps(in[1], dy, rf), 4);
+            _mm512_mask_i32scatter_ps(gp + 2, k, in3, _mm512_maskz_mul_ps(in[2], dz, rf), 4);
+        }
+        if (gt)
+            for (int64_t p = 0; p < m; p++) {
+                const float *g = go + p * gstride;
+                for (int c = 0; c < 8; c++) {
+                    float *e = gt + ids[c][p];
+                    const float w = ws[c][p];
+                    for (int32_t j = 0; j < F; j++) e[j] += g[j] * w;
+                }
+            }
+    }
+}
+static void level_back_any(const float *x, int64_t n, int32_t F, int64_t gstride, int64_t r,
+                           int dense, uint32_t mask, const float *t, const float *gout,
+                           float *gt, float *gl) {
+    switch (F) {
+    case 1: level_back_simd(x, n, 1, gstride, r, dense, mask, t, gout, gt, gl); break;
+    case 2: level_back_simd(x, n, 2, gstride, r, dense, mask, t, gout, gt, gl); break;
+    case 4: level_back_simd(x, n, 4, gstride, r, dense, mask, t, gout, gt, gl); break;
+    default: level_back_simd(x, n, F, gstride, r, dense, mask, t, gout, gt, gl);
+    }
+}
+#endif
+
 /* gtables[l] (T_l, F), zero-filled by the caller, or NULL to skip a level (or the whole
  * array NULL); gx (N, 3) or NULL, with scratch (L, N, 3) for the per-level position
  * gradients, which are summed afterwards in level order so that the result does not
@@ -210,6 +324,16 @@ void hashgrid_backward(const float *x, int64_t n, int32_t L, int32_t F,
         float *gl = gx ? scratch + (int64_t)l * n * 3 : 0;
         const float r = (float)res[l];
         if (!gt && !gl) continue;
+#ifdef HAVE_LEVEL_SIMD
+        const int64_t entries = dense[l] ? (res[l] + 1) * (res[l] + 1) * (res[l] + 1)
+                                         : hash_mask + 1;
+        if (F <= SIMD_MAX_F && entries * F < (1LL << 31) && res[l] < (1LL << 20)
+                && 16 * (int64_t)L * F < (1LL << 31)) {
+            level_back_any(x, n, F, (int64_t)L * F, res[l], dense[l], (uint32_t)hash_mask, t,
+                           gout + l * F, gt, gl);
+            continue;
+        }
+#endif
         for (int64_t i = 0; i < n; i++) {
             int64_t idx[8];
             float fr[3], w[8];
