@@ -75,6 +75,63 @@ def test_control_response_with_companions_sweeps_what_a_keyframe_renders():
     assert res["mean_gain_with_companions"] > res["mean_gain"]
 
 
+def test_landmark_gain_reads_how_far_the_face_moves_along_the_mesh_model():
+    rng = np.random.default_rng(0)
+    rest = rng.uniform(0, 100, (468, 2))
+    direction = np.zeros((468, 2))
+    direction[:20, 1] = -3.0  # the brows go up by 3 px at the last step ...
+    direction[20:25, 1] = -0.5  # ... a few neighbours a little (below the cut: not counted)
+    steps = np.linspace(0, 1, 5)
+    expected = [rest + t * direction for t in steps]
+    half = [rest + 0.5 * t * direction + 5.0 for t in steps]  # half the motion; shifted
+    gain, corr, px = C.landmark_gain(half, expected)
+    assert gain == pytest.approx(0.5) and corr == pytest.approx(1.0) and px == pytest.approx(3.0)
+    # vertices the command barely moves do not count (there the tracker's noise is larger
+    # than the command's motion)
+    noisy = [h.copy() for h in half]
+    for t, h in zip(steps, noisy):
+        h[20:25] += 30 * t * direction[20:25]
+    assert C.landmark_gain(noisy, expected)[0] == pytest.approx(0.5)
+    # motion elsewhere on the face does not count as the command's
+    wrong = [rest + t * np.roll(direction, 100, 0) for t in steps]
+    assert abs(C.landmark_gain(wrong, expected)[0]) < 1e-9
+    # a step without a face is left out; the first one without a face leaves nothing to read
+    assert C.landmark_gain([half[0], None, *half[2:]], expected)[0] == pytest.approx(0.5)
+    assert math.isnan(C.landmark_gain([None, *half[1:]], expected)[0])
+    # a command the mesh model does not move
+    assert math.isnan(C.landmark_gain(half, [rest] * 5)[0])
+
+
+def test_control_response_reads_sweeps_as_geometry_where_given():
+    """A control whose score the tracker misses but whose geometry moves as the mesh model
+    says: score gain 0, landmark gain 1."""
+    names = ["browInnerUp", "jawOpen"]
+    train = np.random.default_rng(0).uniform(0, 1, (40, 2))
+    rest = np.zeros((468, 2))
+
+    def mesh(beta):  # brows up by 4 px per unit, the jaw down by 10
+        m = rest.copy()
+        m[:10, 1] -= 4 * beta[0]
+        m[10:20, 1] += 10 * beta[1]
+        return m
+
+    def render(beta):
+        return beta
+
+    def track(img):  # the scores see the jaw only
+        return {"browInnerUp": 0.0, "jawOpen": float(img[1])}
+
+    motion = C.LandmarkMotion(expected=mesh, retrack=lambda img: mesh(img))
+    res = C.control_response(render, names, np.zeros(2), train, track, steps=4, motion=motion)
+    brow = res["controls"]["browInnerUp"]
+    assert abs(brow["gain"]) < 1e-9
+    assert brow["landmark_gain"] == pytest.approx(1.0)
+    assert brow["landmark_correlation"] == pytest.approx(1.0)
+    assert res["mean_landmark_gain"] == pytest.approx(1.0)
+    assert "landmark_gain" not in C.control_response(render, names, np.zeros(2), train, track,
+                                                     steps=4)["controls"]["jawOpen"]
+
+
 def _face(mouth: float, eye_l: float, eye_r: float, scale: float = 1.0) -> np.ndarray:
     """478 landmarks with the eye centres 2·scale apart and the given gaps (in units of
     that distance)."""

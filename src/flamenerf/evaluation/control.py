@@ -9,7 +9,14 @@ control response   at a fixed camera, sweep one control across the range the tra
                    cover (everything else at the reference frame's β), render, re-track the
                    renders with MediaPipe's FaceLandmarker and regress the re-tracked value on
                    the commanded one: gain (slope) and correlation. A model that ignores β
-                   gets gain 0 whatever its held-out PSNR.
+                   gets gain 0 whatever its held-out PSNR. Where the face mesh is
+                   MediaPipe's, the sweep is also read as geometry (*landmark gain*): how
+                   far the re-tracked landmarks move along the motion that the clip's own
+                   β -> mesh model gives the command, projected into the camera. The
+                   landmarker's blendshape scores read a part of the face in the context of
+                   the rest (an open mouth doubles the brows' scores, the brows' pixels
+                   unchanged), so a control commanded alone can move the face as the clip
+                   does and still score low.
 drive correlation  for a driving sequence, the correlation over time of driving and
                    re-tracked controls.
 """
@@ -142,6 +149,17 @@ class Retracker:
                                                       Image.BICUBIC))
         return self._lm.detect(u8)
 
+    def landmarks(self, img: np.ndarray) -> np.ndarray | None:
+        """img (H, W, 3) -> the re-tracked face mesh's vertices (468, 2) in img's pixels (the
+        irises left out), or None when no face is found."""
+        from flamenerf.tracking.landmarker import NUM_MESH_VERTICES
+
+        det = self.detect(img)
+        if det is None:
+            return None
+        s = max(1.0, self.min_size / min(img.shape[:2]))  # detect's upscaling
+        return det.landmarks[:NUM_MESH_VERTICES, :2] / s
+
     def __call__(self, img: np.ndarray) -> dict[str, float] | None:
         """img (H, W, 3) float in [0, 1] -> {control: score}, or None when no face is found."""
         det = self.detect(img)
@@ -175,10 +193,49 @@ RenderFn = Callable[[np.ndarray], np.ndarray]
 """β (E,) -> rendered image (H, W, 3) at the sweep's fixed camera."""
 
 
+@dataclass
+class LandmarkMotion:
+    """How a sweep's renders are read as geometry: `expected` β (E,) -> the face mesh of that
+    expression projected into the sweep's camera (V, 2) pixels, `retrack` image -> the
+    re-tracked mesh (V, 2) or None; the vertices of both are the same (MediaPipe's mesh)."""
+
+    expected: Callable[[np.ndarray], np.ndarray]
+    retrack: Callable[[np.ndarray], np.ndarray | None]
+
+
+def landmark_gain(retracked: list[np.ndarray | None], expected: list[np.ndarray],
+                  moved_fraction: float = 0.3, min_motion_px: float = 0.05
+                  ) -> tuple[float, float, float]:
+    """A sweep read as geometry. retracked: the re-tracked vertices (V, 2) of each step's
+    render (None: no face), expected: the projected mesh of each step's β (V, 2). Motions
+    are taken from the first step; the vertices that count are those the command moves by
+    at least `moved_fraction` of its largest motion at the last step. Each step's expected
+    and achieved motion as a fraction of the last step's expected motion (projections on
+    it) are regressed: -> (gain, correlation, the largest expected motion in pixels). Gain
+    1: the render moves the face as the mesh model says; NaN where the model moves no
+    vertex by `min_motion_px` or the first step has no face."""
+    e_last = expected[-1] - expected[0]
+    size = np.linalg.norm(e_last, axis=1)
+    if retracked[0] is None or size.max() < min_motion_px:
+        return float("nan"), float("nan"), float(size.max())
+    sel = size >= moved_fraction * size.max()
+    ref = e_last[sel].ravel()
+    norm = float(ref @ ref)
+    x, y = [], []
+    for got, exp in zip(retracked, expected):
+        if got is None:
+            continue
+        x.append(float((exp - expected[0])[sel].ravel() @ ref) / norm)
+        y.append(float((got - retracked[0])[sel].ravel() @ ref) / norm)
+    gain, corr = fit_line(np.array(x), np.array(y))
+    return gain, corr, float(size.max())
+
+
 def control_response(render: RenderFn, names: list[str], base: np.ndarray,
                      train_expressions: np.ndarray, track: Callable, steps: int = 5,
                      controls: list[str] | None = None,
-                     companions: Companions | None = None) -> dict[str, Any]:
+                     companions: Companions | None = None,
+                     motion: LandmarkMotion | None = None) -> dict[str, Any]:
     """Sweep each trackable control that varies in the training frames; re-track.
 
     base (E,) the β the other controls keep; train_expressions (N, E). With `companions`
@@ -186,22 +243,31 @@ def control_response(render: RenderFn, names: list[str], base: np.ndarray,
     along, as `render --expressions` keyframes move them: `gain_with_companions`,
     `correlation_with_companions` (the re-tracked value of the swept control itself).
     Renders are made in order: each control's sweep alone, then with its companions.
+    With `motion`, each sweep is also read as geometry (`landmark_gain`):
+    `landmark_gain`, `landmark_correlation`, `landmark_motion_px` (and `..._with_companions`).
     -> {"controls": {name: {commanded, retracked, gain, correlation, detected, ...}},
     "mean_gain", "mean_correlation", "mean_gain_with_companions" (each control's gain with
-    its companions where it has some, else alone), "skipped": {name: why}}.
+    its companions where it has some, else alone), "mean_landmark_gain" (likewise, with
+    `motion`), "skipped": {name: why}}.
     """
     out: dict[str, Any] = {"controls": {}, "skipped": {}}
     want = controls if controls is not None else trackable_controls(names)
 
     def sweep(vals: np.ndarray, name: str, make: Callable[[float], np.ndarray]):
-        got = []
+        got, meshes, expected = [], [], []
         for v in vals:
-            scores = track(render(make(v)))
+            beta = make(v)
+            img = render(beta)
+            scores = track(img)
             got.append(float("nan") if scores is None else scores.get(name, float("nan")))
+            if motion is not None:
+                meshes.append(motion.retrack(img))
+                expected.append(motion.expected(beta))
         got_a = np.array(got)
         ok = np.isfinite(got_a)
         fit = fit_line(vals[ok], got_a[ok]) if ok.sum() >= 2 else (math.nan, math.nan)
-        return got, fit, int(ok.sum())
+        geo = landmark_gain(meshes, expected) if motion is not None else None
+        return got, fit, int(ok.sum()), geo
 
     for name in names:
         if name not in want:
@@ -217,14 +283,18 @@ def control_response(render: RenderFn, names: list[str], base: np.ndarray,
             beta[k] = v
             return beta
 
-        got, (gain, corr), n = sweep(vals, name, alone)
+        got, (gain, corr), n, geo = sweep(vals, name, alone)
         row = {"commanded": vals.tolist(), "retracked": got, "gain": gain,
                "correlation": corr, "detected": n}
+        if geo is not None:
+            row.update(zip(_GEO_KEYS, geo))
         if companions is not None and companions.of(name):
-            got_c, (gain_c, corr_c), _ = sweep(
+            got_c, (gain_c, corr_c), _, geo_c = sweep(
                 vals, name, lambda v, k=k: companions.complete(base, {k: float(v)}))
             row.update(companions=companions.of(name), retracked_with_companions=got_c,
                        gain_with_companions=gain_c, correlation_with_companions=corr_c)
+            if geo_c is not None:
+                row.update(zip((k + "_with_companions" for k in _GEO_KEYS), geo_c))
         out["controls"][name] = row
     rows = out["controls"].values()
     out["mean_gain"] = finite_mean(c["gain"] for c in rows)
@@ -232,7 +302,13 @@ def control_response(render: RenderFn, names: list[str], base: np.ndarray,
     if companions is not None:
         out["mean_gain_with_companions"] = finite_mean(
             c.get("gain_with_companions", c["gain"]) for c in rows)
+    if motion is not None:
+        out["mean_landmark_gain"] = finite_mean(
+            c.get("landmark_gain_with_companions", c["landmark_gain"]) for c in rows)
     return out
+
+
+_GEO_KEYS = ("landmark_gain", "landmark_correlation", "landmark_motion_px")
 
 
 def finite_mean(values) -> float:

@@ -345,6 +345,9 @@ def control_section(run, ds: Dataset, intr, omega0, phi0, opts: EvalOptions,
     from flamenerf.evaluation import control as C
     from flamenerf.data.dataset import reference_position
     from flamenerf.data.prior import dataset_dilation, mesh_function
+    from flamenerf.data.face_parts import MEDIAPIPE_VERTEX_COUNTS
+    from flamenerf.geometry import project_points
+    from flamenerf.tracking.landmarker import NUM_MESH_VERTICES
 
     names = run.expression_names
     train_e = ds.expression_matrix(ds.split("train"))
@@ -355,8 +358,15 @@ def control_section(run, ds: Dataset, intr, omega0, phi0, opts: EvalOptions,
             return C.sweep_response(fs, preds, track)
         pos = reference_position(ds)
         fr = ds.frames[pos]
-        render = C.model_renderer(run.model, ds, intr, fr.c2w, omega0, phi0,
-                                  mesh_function(run.model, ds), dataset_dilation(ds))
+        mesh_of = mesh_function(run.model, ds)
+        render = C.model_renderer(run.model, ds, intr, fr.c2w, omega0, phi0, mesh_of,
+                                  dataset_dilation(ds))
+        motion = None
+        if ds.face_vertices.shape[1] in MEDIAPIPE_VERTEX_COUNTS:  # the landmarker's own mesh
+            motion = C.LandmarkMotion(
+                expected=lambda b: project_points(mesh_of(b)[:NUM_MESH_VERTICES], intr,
+                                                  fr.c2w)[0],
+                retrack=track.landmarks)
         renders: list[np.ndarray] = []
 
         def keep(beta):
@@ -366,7 +376,8 @@ def control_section(run, ds: Dataset, intr, omega0, phi0, opts: EvalOptions,
         from flamenerf.data.companions import dataset_companions
 
         res = C.control_response(keep, names, ds.expression_matrix([fr])[0], train_e, track,
-                                 opts.control_steps, companions=dataset_companions(ds))
+                                 opts.control_steps, companions=dataset_companions(ds),
+                                 motion=motion)
         res["source"] = f"sweep over the training range at frame {pos}'s camera"
         if images is not None and res["controls"]:
             images["control.png"], res["figure_rows"] = _control_figure(res, renders)
