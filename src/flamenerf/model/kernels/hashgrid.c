@@ -83,57 +83,85 @@ static inline void weights(const float f[3], float w[8]) {
 #include <immintrin.h>
 #define HAVE_LEVEL_SIMD 1
 #define SIMD_MAX_F 16
+
+/* 16 points (lanes) of one level: their cells, as `cell` and `corners` compute them */
+typedef struct {
+    __m512i tx[2], ty[2], tz[2]; /* the corner index's terms along x, y, z (low, high) */
+    __m512 w[3][2];              /* the trilinear weights along x, y, z (low, high) */
+    __mmask16 inside[3];         /* lanes whose coordinate lies inside [0, 1] */
+} cells16;
+
+static inline __attribute__((always_inline)) cells16
+locate16(const float *xp, __mmask16 k, int64_t r, int dense) {
+    const __m512 rf = _mm512_set1_ps((float)r), top = _mm512_set1_ps((float)(r - 1));
+    const __m512 zero = _mm512_setzero_ps(), one = _mm512_set1_ps(1.0f);
+    const __m512i in3 = _mm512_mullo_epi32(
+        _mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15),
+        _mm512_set1_epi32(3));
+    const __m512i ione = _mm512_set1_epi32(1);
+    const __m512i sy = dense ? _mm512_set1_epi32((int32_t)(uint32_t)(r + 1))
+                             : _mm512_set1_epi32((int32_t)(uint32_t)P1);
+    const __m512i sz = dense ? _mm512_set1_epi32((int32_t)(uint32_t)((r + 1) * (r + 1)))
+                             : _mm512_set1_epi32((int32_t)(uint32_t)P2);
+    cells16 c;
+    __m512i b[3];
+    for (int a = 0; a < 3; a++) {
+        __m512 v = _mm512_mask_i32gather_ps(zero, k, in3, xp + a, 4);
+        c.inside[a] = _mm512_cmp_ps_mask(v, zero, _CMP_GE_OQ)
+                      & _mm512_cmp_ps_mask(v, one, _CMP_LE_OQ);
+        v = _mm512_min_ps(_mm512_max_ps(v, zero), one);
+        __m512 pos = _mm512_mul_ps(v, rf);
+        __m512 bb = _mm512_cvtepi32_ps(_mm512_cvttps_epi32(pos));
+        bb = _mm512_min_ps(bb, top);
+        b[a] = _mm512_cvttps_epi32(bb);
+        const __m512 f = _mm512_sub_ps(pos, bb);
+        c.w[a][0] = _mm512_sub_ps(one, f);
+        c.w[a][1] = f;
+    }
+    c.tx[0] = b[0]; c.tx[1] = _mm512_add_epi32(b[0], ione);
+    c.ty[0] = _mm512_mullo_epi32(b[1], sy);
+    c.ty[1] = _mm512_mullo_epi32(_mm512_add_epi32(b[1], ione), sy);
+    c.tz[0] = _mm512_mullo_epi32(b[2], sz);
+    c.tz[1] = _mm512_mullo_epi32(_mm512_add_epi32(b[2], ione), sz);
+    return c;
+}
+
+/* corner c's table offsets (its index times F) and trilinear weight, for the 16 lanes */
+static inline __attribute__((always_inline)) __m512i
+corner16(const cells16 *p, int c, int dense, uint32_t mask, const int32_t F, __m512 *w) {
+    const int ix = c >> 2, iy = (c >> 1) & 1, iz = c & 1;
+    const __m512i X = p->tx[ix], Y = p->ty[iy], Z = p->tz[iz];
+    __m512i id = dense ? _mm512_add_epi32(_mm512_add_epi32(X, Y), Z)
+                       : _mm512_and_si512(_mm512_xor_si512(_mm512_xor_si512(X, Y), Z),
+                                          _mm512_set1_epi32((int32_t)mask));
+    *w = _mm512_mul_ps(_mm512_mul_ps(p->w[0][ix], p->w[1][iy]), p->w[2][iz]);
+    return F == 1 ? id : F == 2 ? _mm512_add_epi32(id, id)
+                                : _mm512_mullo_epi32(id, _mm512_set1_epi32(F));
+}
+
+static inline __attribute__((always_inline)) __m512i strided16(int64_t stride) {
+    return _mm512_mullo_epi32(
+        _mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15),
+        _mm512_set1_epi32((int32_t)stride));
+}
+
+static inline __attribute__((always_inline)) __mmask16 lanes16(int64_t left) {
+    return left >= 16 ? (__mmask16)0xFFFF : (__mmask16)((1u << left) - 1u);
+}
+
 static inline __attribute__((always_inline)) void
 level_simd(const float *x, int64_t n, const int32_t F, int64_t r, int dense, uint32_t mask,
            const float *t, float *out, int64_t out_stride) {
-    const __m512 rf = _mm512_set1_ps((float)r), top = _mm512_set1_ps((float)(r - 1));
-    const __m512 zero = _mm512_setzero_ps(), one = _mm512_set1_ps(1.0f);
-    const __m512i lane = _mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13,
-                                           14, 15);
-    const __m512i in3 = _mm512_mullo_epi32(lane, _mm512_set1_epi32(3));
-    const __m512i ost = _mm512_mullo_epi32(lane, _mm512_set1_epi32((int32_t)out_stride));
-    const __m512i s1 = _mm512_set1_epi32((int32_t)(uint32_t)(r + 1)),
-                  s2 = _mm512_set1_epi32((int32_t)(uint32_t)((r + 1) * (r + 1))),
-                  p1 = _mm512_set1_epi32((int32_t)(uint32_t)P1),
-                  p2 = _mm512_set1_epi32((int32_t)(uint32_t)P2),
-                  msk = _mm512_set1_epi32((int32_t)mask), ione = _mm512_set1_epi32(1),
-                  fs = _mm512_set1_epi32(F);
+    const __m512 zero = _mm512_setzero_ps();
+    const __m512i ost = strided16(out_stride);
     for (int64_t i = 0; i < n; i += 16) {
-        const __mmask16 k = n - i >= 16 ? (__mmask16)0xFFFF
-                                        : (__mmask16)((1u << (n - i)) - 1u);
-        const float *xp = x + 3 * i;
-        __m512i b[3];
-        __m512 f[3];
-        for (int a = 0; a < 3; a++) {
-            __m512 v = _mm512_mask_i32gather_ps(zero, k, in3, xp + a, 4);
-            v = _mm512_min_ps(_mm512_max_ps(v, zero), one);
-            __m512 pos = _mm512_mul_ps(v, rf);
-            __m512 bb = _mm512_cvtepi32_ps(_mm512_cvttps_epi32(pos));
-            bb = _mm512_min_ps(bb, top);
-            b[a] = _mm512_cvttps_epi32(bb);
-            f[a] = _mm512_sub_ps(pos, bb);
-        }
-        __m512i tx[2] = {b[0], _mm512_add_epi32(b[0], ione)}, ty[2], tz[2];
-        __m512i by1 = _mm512_add_epi32(b[1], ione), bz1 = _mm512_add_epi32(b[2], ione);
-        if (dense) {
-            ty[0] = _mm512_mullo_epi32(b[1], s1); ty[1] = _mm512_mullo_epi32(by1, s1);
-            tz[0] = _mm512_mullo_epi32(b[2], s2); tz[1] = _mm512_mullo_epi32(bz1, s2);
-        } else {
-            ty[0] = _mm512_mullo_epi32(b[1], p1); ty[1] = _mm512_mullo_epi32(by1, p1);
-            tz[0] = _mm512_mullo_epi32(b[2], p2); tz[1] = _mm512_mullo_epi32(bz1, p2);
-        }
-        __m512 wx[2] = {_mm512_sub_ps(one, f[0]), f[0]}, wy[2] = {_mm512_sub_ps(one, f[1]), f[1]},
-               wz[2] = {_mm512_sub_ps(one, f[2]), f[2]};
+        const __mmask16 k = lanes16(n - i);
+        const cells16 p = locate16(x + 3 * i, k, r, dense);
         __m512 acc[SIMD_MAX_F];
         for (int32_t j = 0; j < F; j++) acc[j] = zero;
         for (int c = 0; c < 8; c++) {
-            const __m512i X = tx[c >> 2], Y = ty[(c >> 1) & 1], Z = tz[c & 1];
-            __m512i id = dense ? _mm512_add_epi32(_mm512_add_epi32(X, Y), Z)
-                               : _mm512_and_si512(_mm512_xor_si512(_mm512_xor_si512(X, Y), Z),
-                                                  msk);
-            id = F == 1 ? id : F == 2 ? _mm512_add_epi32(id, id) : _mm512_mullo_epi32(id, fs);
-            const __m512 w = _mm512_mul_ps(_mm512_mul_ps(wx[c >> 2], wy[(c >> 1) & 1]),
-                                           wz[c & 1]);
+            __m512 w;
+            const __m512i id = corner16(&p, c, dense, mask, F, &w);
             for (int32_t j = 0; j < F; j++)
                 acc[j] = _mm512_fmadd_ps(_mm512_mask_i32gather_ps(zero, k, id, t + j, 4), w,
                                          acc[j]);
@@ -203,65 +231,27 @@ static inline __attribute__((always_inline)) void
 level_back_simd(const float *x, int64_t n, const int32_t F, int64_t gstride, int64_t r,
                 int dense, uint32_t mask, const float *t, const float *gout, float *gt,
                 float *gl) {
-    const __m512 rf = _mm512_set1_ps((float)r), top = _mm512_set1_ps((float)(r - 1));
-    const __m512 zero = _mm512_setzero_ps(), one = _mm512_set1_ps(1.0f);
-    const __m512i lane = _mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13,
-                                           14, 15);
-    const __m512i in3 = _mm512_mullo_epi32(lane, _mm512_set1_epi32(3));
-    const __m512i gst = _mm512_mullo_epi32(lane, _mm512_set1_epi32((int32_t)gstride));
-    const __m512i s1 = _mm512_set1_epi32((int32_t)(uint32_t)(r + 1)),
-                  s2 = _mm512_set1_epi32((int32_t)(uint32_t)((r + 1) * (r + 1))),
-                  p1 = _mm512_set1_epi32((int32_t)(uint32_t)P1),
-                  p2 = _mm512_set1_epi32((int32_t)(uint32_t)P2),
-                  msk = _mm512_set1_epi32((int32_t)mask), ione = _mm512_set1_epi32(1),
-                  fs = _mm512_set1_epi32(F);
+    const __m512 zero = _mm512_setzero_ps(), rf = _mm512_set1_ps((float)r);
+    const __m512i gst = strided16(gstride), in3 = strided16(3);
     int32_t ids[8][16];
     float ws[8][16];
     for (int64_t i = 0; i < n; i += 16) {
         const int64_t m = n - i >= 16 ? 16 : n - i;
-        const __mmask16 k = (__mmask16)(m == 16 ? 0xFFFFu : (1u << m) - 1u);
-        const float *xp = x + 3 * i;
-        __m512i b[3];
-        __m512 f[3];
-        __mmask16 in[3];
-        for (int a = 0; a < 3; a++) {
-            __m512 v = _mm512_mask_i32gather_ps(zero, k, in3, xp + a, 4);
-            in[a] = _mm512_cmp_ps_mask(v, zero, _CMP_GE_OQ) & _mm512_cmp_ps_mask(v, one, _CMP_LE_OQ);
-            v = _mm512_min_ps(_mm512_max_ps(v, zero), one);
-            __m512 pos = _mm512_mul_ps(v, rf);
-            __m512 bb = _mm512_cvtepi32_ps(_mm512_cvttps_epi32(pos));
-            bb = _mm512_min_ps(bb, top);
-            b[a] = _mm512_cvttps_epi32(bb);
-            f[a] = _mm512_sub_ps(pos, bb);
-        }
-        __m512i tx[2] = {b[0], _mm512_add_epi32(b[0], ione)}, ty[2], tz[2];
-        __m512i by1 = _mm512_add_epi32(b[1], ione), bz1 = _mm512_add_epi32(b[2], ione);
-        if (dense) {
-            ty[0] = _mm512_mullo_epi32(b[1], s1); ty[1] = _mm512_mullo_epi32(by1, s1);
-            tz[0] = _mm512_mullo_epi32(b[2], s2); tz[1] = _mm512_mullo_epi32(bz1, s2);
-        } else {
-            ty[0] = _mm512_mullo_epi32(b[1], p1); ty[1] = _mm512_mullo_epi32(by1, p1);
-            tz[0] = _mm512_mullo_epi32(b[2], p2); tz[1] = _mm512_mullo_epi32(bz1, p2);
-        }
-        const __m512 wx[2] = {_mm512_sub_ps(one, f[0]), f[0]},
-                     wy[2] = {_mm512_sub_ps(one, f[1]), f[1]},
-                     wz[2] = {_mm512_sub_ps(one, f[2]), f[2]};
-        __m512 dx = zero, dy = zero, dz = zero;
+        const __mmask16 k = lanes16(m);
+        const cells16 p = locate16(x + 3 * i, k, r, dense);
         const float *go = gout + i * gstride;
+        __m512 dx = zero, dy = zero, dz = zero;
         __m512 gv[SIMD_MAX_F];
         if (gl)
             for (int32_t j = 0; j < F; j++)
                 gv[j] = _mm512_mask_i32gather_ps(zero, k, gst, go + j, 4);
         for (int c = 0; c < 8; c++) {
             const int ix = c >> 2, iy = (c >> 1) & 1, iz = c & 1;
-            const __m512i X = tx[ix], Y = ty[iy], Z = tz[iz];
-            __m512i id = dense ? _mm512_add_epi32(_mm512_add_epi32(X, Y), Z)
-                               : _mm512_and_si512(_mm512_xor_si512(_mm512_xor_si512(X, Y), Z),
-                                                  msk);
-            id = F == 1 ? id : F == 2 ? _mm512_add_epi32(id, id) : _mm512_mullo_epi32(id, fs);
+            __m512 w;
+            const __m512i id = corner16(&p, c, dense, mask, F, &w);
             if (gt) {
                 _mm512_storeu_si512(ids[c], id);
-                _mm512_storeu_ps(ws[c], _mm512_mul_ps(_mm512_mul_ps(wx[ix], wy[iy]), wz[iz]));
+                _mm512_storeu_ps(ws[c], w);
             }
             if (gl) {
                 /* s_c = sum_f gout_f * table_f[idx_c], then the corner's share of each slope */
@@ -272,25 +262,25 @@ level_back_simd(const float *x, int64_t n, const int32_t F, int64_t gstride, int
                 const __m512 sx = ix ? sc : _mm512_sub_ps(zero, sc);
                 const __m512 sy = iy ? sc : _mm512_sub_ps(zero, sc);
                 const __m512 sz = iz ? sc : _mm512_sub_ps(zero, sc);
-                dx = _mm512_fmadd_ps(sx, _mm512_mul_ps(wy[iy], wz[iz]), dx);
-                dy = _mm512_fmadd_ps(sy, _mm512_mul_ps(wx[ix], wz[iz]), dy);
-                dz = _mm512_fmadd_ps(sz, _mm512_mul_ps(wx[ix], wy[iy]), dz);
+                dx = _mm512_fmadd_ps(sx, _mm512_mul_ps(p.w[1][iy], p.w[2][iz]), dx);
+                dy = _mm512_fmadd_ps(sy, _mm512_mul_ps(p.w[0][ix], p.w[2][iz]), dy);
+                dz = _mm512_fmadd_ps(sz, _mm512_mul_ps(p.w[0][ix], p.w[1][iy]), dz);
             }
         }
         if (gl) {
             /* the reference clamps x to [0, 1]: no gradient outside */
             float *gp = gl + 3 * i;
-            _mm512_mask_i32scatter_ps(gp + 0, k, in3, _mm512_maskz_mul_ps(in[0], dx, rf), 4);
-            _mm512_mask_i32scatter_ps(gp + 1, k, in3, _mm512_maskz_mul_ps(in[1], dy, rf), 4);
-            _mm512_mask_i32scatter_ps(gp + 2, k, in3, _mm512_maskz_mul_ps(in[2], dz, rf), 4);
+            _mm512_mask_i32scatter_ps(gp + 0, k, in3, _mm512_maskz_mul_ps(p.inside[0], dx, rf), 4);
+            _mm512_mask_i32scatter_ps(gp + 1, k, in3, _mm512_maskz_mul_ps(p.inside[1], dy, rf), 4);
+            _mm512_mask_i32scatter_ps(gp + 2, k, in3, _mm512_maskz_mul_ps(p.inside[2], dz, rf), 4);
         }
         if (gt)
-            for (int64_t p = 0; p < m; p++) {
-                const float *g = go + p * gstride;
+            for (int64_t q = 0; q < m; q++) {
+                const float *g = go + q * gstride;
                 for (int c = 0; c < 8; c++) {
-                    float *e = gt + ids[c][p];
-                    const float w = ws[c][p];
-                    for (int32_t j = 0; j < F; j++) e[j] += g[j] * w;
+                    float *e = gt + ids[c][q];
+                    const float wc = ws[c][q];
+                    for (int32_t j = 0; j < F; j++) e[j] += g[j] * wc;
                 }
             }
     }
