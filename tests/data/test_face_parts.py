@@ -37,6 +37,10 @@ def test_parts_follow_the_names_and_the_sides():
     assert (col["eyeBlinkLeft"][left_eye] == 1).all()
     assert (col["eyeBlinkLeft"][right_eye] == 0).all()
     assert (col["eyeBlinkRight"][right_eye] == 1).all()
+    # the brows are the brow controls' alone, though they lie within an eye's radius
+    above = np.linalg.norm(v - (3, 4.9, 0), axis=1) < 0.4  # 0.32 eye-mouth units over the eye
+    assert above.any() and (col["eyeBlinkLeft"][above] == 0).all()
+    assert (col["browInnerUp"][above] == 1).all()
     assert (col["_neutral"] == 0).all()
     assert (col["someOtherControl"] == 1).all()  # unknown names are not limited
     # jawLeft moves the whole jaw sideways: not cut at the midline

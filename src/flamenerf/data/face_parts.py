@@ -33,6 +33,11 @@ _LOWER_FACE = (-np.inf, 0.45)     # chin, jaw, lips, up to under the nose
 _MID_FACE = (-0.1, 1.15)          # cheeks and nose
 _UPPER_FACE = (0.9, np.inf)       # brows and forehead
 _EYE_RADIUS = (0.35, 0.5)         # full weight within, none beyond (units of eye-mouth distance)
+# ... and up to the upper lid only (h 1.05 on MediaPipe's mesh of a real face; the brows sit
+# at h 1.13-1.32, within the eyes' radius): the eye controls' scores co-vary with the brow
+# raisers' on real faces, and with the brows in both parts a fit gave the brows' motion to
+# eyeLookDown and eyeBlink and left browInnerUp +0.2 mm of it (the shared expressions clip)
+_EYE_TOP = 1.05
 # "Left" is the subject's left, MediaPipe's left eye (checked on a real clip: a free fit
 # moves the left eye's lid most under eyeBlinkLeft, the right brow under browDownRight);
 # a sided control fades out over ±_MIDLINE across the face's midline. jawLeft/Right and
@@ -102,7 +107,7 @@ def control_weights(kind: str, names: list[str], vertices: np.ndarray) -> np.nda
         "lower": _band(h, *_LOWER_FACE),
         "mid": _band(h, *_MID_FACE),
         "upper": _band(h, *_UPPER_FACE),
-        "eye": np.clip((hi - d_eye) / (hi - lo), 0, 1),
+        "eye": np.clip((hi - d_eye) / (hi - lo), 0, 1) * _band(h, -np.inf, _EYE_TOP),
         "none": np.zeros(len(v)),
         None: np.ones(len(v)),
     }
