@@ -294,7 +294,7 @@ def control_response(render: RenderFn, names: list[str], base: np.ndarray,
             row.update(companions=companions.of(name), retracked_with_companions=got_c,
                        gain_with_companions=gain_c, correlation_with_companions=corr_c)
             if geo_c is not None:
-                row.update(zip((k + "_with_companions" for k in _GEO_KEYS), geo_c))
+                row.update(zip((key + "_with_companions" for key in _GEO_KEYS), geo_c))
         out["controls"][name] = row
     rows = out["controls"].values()
     out["mean_gain"] = finite_mean(c["gain"] for c in rows)
