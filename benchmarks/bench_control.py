@@ -144,8 +144,14 @@ def write(path: Path, results: dict) -> None:
 
 def summary_line(name: str, res: dict) -> str:
     h, d, r, c = res["heldout"], res["driven"], res.get("reanimate") or {}, res.get("control")
-    ctl = "" if not c else (f"; control gain {c.get('mean_gain', float('nan')):.3f} "
-                            f"(ground truth {c.get('mean_gt_gain', float('nan')):.3f})")
+    ctl = ""
+    if c and "mean_gt_gain" in c:  # the built-in scene's sweep, against its ground truth
+        ctl = (f"; control gain {c.get('mean_gain', float('nan')):.3f} "
+               f"(ground truth {c['mean_gt_gain']:.3f})")
+    elif c:  # a tracked clip's sweep at the reference camera
+        ctl = (f"; control gain {c.get('mean_gain', float('nan')):.3f}, with companions "
+               f"{c.get('mean_gain_with_companions', float('nan')):.3f}, landmark gain "
+               f"{c.get('mean_landmark_gain', float('nan')):.3f}")
     return (f"[{name}] held-out {h['psnr']:.2f} dB; driven face {d['psnr_face']:.2f} / "
             f"expressive {d['psnr_expressive']:.2f} / background {d['psnr_background']:.2f} / "
             f"scene {d.get('psnr_scene', float('nan')):.2f} dB, face depth error "
