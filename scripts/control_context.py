@@ -32,7 +32,6 @@ def main() -> int:
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args()
     from flamenerf.data.dataset import reference_position
-    from flamenerf.data.prior import dataset_dilation, mesh_function
     from flamenerf.evaluation import control as C
     from flamenerf.geometry import project_points
     from flamenerf.training.run import load_run
@@ -46,9 +45,7 @@ def main() -> int:
         raise SystemExit(f"{args.run}: no frame {args.frame} or no control {args.control}")
     intr = run.train_intrinsics(ds)
     omega, phi = run.frame_codes(ref.frame_index)
-    mesh_of = mesh_function(run.model, ds)
-    render = C.model_renderer(run.model, ds, intr, ref.c2w, omega, phi, mesh_of,
-                              dataset_dilation(ds))
+    render, _, mesh_of = C.reference_renderer(run.model, ds, intr, omega, phi)
     beta, base = ds.expression_matrix([frame])[0], ds.expression_matrix([ref])[0]
     track = C.Retracker()
     try:

@@ -45,7 +45,6 @@ def main() -> int:
 
     from flamenerf.data.companions import dataset_companions
     from flamenerf.data.dataset import reference_position
-    from flamenerf.data.prior import dataset_dilation, mesh_function
     from flamenerf.evaluation import control as C
     from flamenerf.images import hstack, vstack
     from flamenerf.training.run import load_run
@@ -55,10 +54,9 @@ def main() -> int:
         run = load_run(path, "cpu")
         ds = run.dataset(args.dataset)
         names = run.expression_names
-        ref = ds.frames[reference_position(ds)]
-        omega, phi = run.frame_codes(ref.frame_index)
-        render = C.model_renderer(run.model, ds, run.train_intrinsics(ds), ref.c2w, omega,
-                                  phi, mesh_function(run.model, ds), dataset_dilation(ds))
+        omega, phi = run.frame_codes(ds.frames[reference_position(ds)].frame_index)
+        render, ref, _ = C.reference_renderer(run.model, ds, run.train_intrinsics(ds), omega,
+                                              phi)
         base = ds.expression_matrix([ref])[0]
         train = ds.expression_matrix(ds.split("train"))
         comp = None if args.alone else dataset_companions(ds)

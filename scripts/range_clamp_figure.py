@@ -21,10 +21,8 @@ def main(argv: list[str]) -> None:
     from PIL import Image
 
     from flamenerf.data.companions import dataset_companions
-    from flamenerf.data.dataset import reference_position
     from flamenerf.data.expression_range import training_range
-    from flamenerf.data.prior import dataset_dilation, mesh_function
-    from flamenerf.evaluation.control import model_renderer
+    from flamenerf.evaluation.control import reference_renderer
     from flamenerf.images import hstack, to_uint8, vstack
     from flamenerf.rendering.expressions import parse_keyframe
     from flamenerf.training.run import load_run
@@ -34,10 +32,8 @@ def main(argv: list[str]) -> None:
     run = load_run(argv[0], "cpu")
     ds = run.dataset()
     names = run.expression_names
-    fr = ds.frames[reference_position(ds)]
     omega0, phi0 = run.frame_codes(0)
-    render = model_renderer(run.model, ds, run.train_intrinsics(ds), fr.c2w, omega0, phi0,
-                            mesh_function(run.model, ds), dataset_dilation(ds))
+    render, fr, _ = reference_renderer(run.model, ds, run.train_intrinsics(ds), omega0, phi0)
     base = ds.expression_matrix([fr])[0]
     comp, rng = dataset_companions(ds), training_range(ds)
     rows = []

@@ -121,7 +121,7 @@ def test_control_response_reads_sweeps_as_geometry_where_given():
     def track(img):  # the scores see the jaw only
         return {"browInnerUp": 0.0, "jawOpen": float(img[1])}
 
-    motion = C.LandmarkMotion(expected=mesh, retrack=lambda img: mesh(img))
+    motion = C.LandmarkMotion(expected=mesh, read=lambda img: (track(img), mesh(img)))
     res = C.control_response(render, names, np.zeros(2), train, track, steps=4, motion=motion)
     brow = res["controls"]["browInnerUp"]
     assert abs(brow["gain"]) < 1e-9

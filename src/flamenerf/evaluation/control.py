@@ -149,23 +149,23 @@ class Retracker:
                                                       Image.BICUBIC))
         return self._lm.detect(u8)
 
-    def landmarks(self, img: np.ndarray) -> np.ndarray | None:
-        """img (H, W, 3) -> the re-tracked face mesh's vertices (468, 2) in img's pixels (the
-        irises left out), or None when no face is found."""
+    def read(self, img: np.ndarray) -> tuple[dict[str, float], np.ndarray] | None:
+        """img (H, W, 3) -> ({control: score}, the re-tracked face mesh's vertices (468, 2) in
+        img's pixels, the irises left out) from one detection, or None when no face is
+        found."""
         from flamenerf.tracking.landmarker import NUM_MESH_VERTICES
 
         det = self.detect(img)
         if det is None:
             return None
         s = max(1.0, self.min_size / min(img.shape[:2]))  # detect's upscaling
-        return det.landmarks[:NUM_MESH_VERTICES, :2] / s
+        return (dict(zip(self.names, map(float, det.blendshapes))),
+                det.landmarks[:NUM_MESH_VERTICES, :2] / s)
 
     def __call__(self, img: np.ndarray) -> dict[str, float] | None:
         """img (H, W, 3) float in [0, 1] -> {control: score}, or None when no face is found."""
-        det = self.detect(img)
-        if det is None:
-            return None
-        return dict(zip(self.names, map(float, det.blendshapes)))
+        got = self.read(img)
+        return None if got is None else got[0]
 
     def close(self) -> None:
         self._lm.close()
@@ -196,11 +196,28 @@ RenderFn = Callable[[np.ndarray], np.ndarray]
 @dataclass
 class LandmarkMotion:
     """How a sweep's renders are read as geometry: `expected` β (E,) -> the face mesh of that
-    expression projected into the sweep's camera (V, 2) pixels, `retrack` image -> the
-    re-tracked mesh (V, 2) or None; the vertices of both are the same (MediaPipe's mesh)."""
+    expression projected into the sweep's camera (V, 2) pixels; `read` image -> (the scores
+    by control, the re-tracked mesh (V, 2)) from one detection, or None (`Retracker.read`);
+    the vertices of both meshes are the same (MediaPipe's)."""
 
     expected: Callable[[np.ndarray], np.ndarray]
-    retrack: Callable[[np.ndarray], np.ndarray | None]
+    read: Callable[[np.ndarray], tuple[dict[str, float], np.ndarray] | None]
+
+
+def landmark_motion(ds: Dataset, mesh_of: Callable[[np.ndarray], np.ndarray],
+                    intr: Intrinsics, c2w: np.ndarray, read: Callable
+                    ) -> LandmarkMotion | None:
+    """The geometry reading of a sweep at camera c2w, where the dataset's face mesh is the
+    landmarker's own (MediaPipe's topology); None elsewhere (FLAME, the built-in head)."""
+    from flamenerf.data.face_parts import MEDIAPIPE_VERTEX_COUNTS
+    from flamenerf.geometry import project_points
+    from flamenerf.tracking.landmarker import NUM_MESH_VERTICES
+
+    if ds.face_vertices.shape[1] not in MEDIAPIPE_VERTEX_COUNTS:
+        return None
+    return LandmarkMotion(
+        expected=lambda b: project_points(mesh_of(b)[:NUM_MESH_VERTICES], intr, c2w)[0],
+        read=read)
 
 
 def landmark_gain(retracked: list[np.ndarray | None], expected: list[np.ndarray],
@@ -244,7 +261,8 @@ def control_response(render: RenderFn, names: list[str], base: np.ndarray,
     `correlation_with_companions` (the re-tracked value of the swept control itself).
     Renders are made in order: each control's sweep alone, then with its companions.
     With `motion`, each sweep is also read as geometry (`landmark_gain`):
-    `landmark_gain`, `landmark_correlation`, `landmark_motion_px` (and `..._with_companions`).
+    `landmark_gain`, `landmark_correlation`, `landmark_motion_px` (and `..._with_companions`);
+    its `read` then re-tracks each render once for the scores and the mesh (`track` unused).
     -> {"controls": {name: {commanded, retracked, gain, correlation, detected, ...}},
     "mean_gain", "mean_correlation", "mean_gain_with_companions" (each control's gain with
     its companions where it has some, else alone), "mean_landmark_gain" (likewise, with
@@ -258,11 +276,14 @@ def control_response(render: RenderFn, names: list[str], base: np.ndarray,
         for v in vals:
             beta = make(v)
             img = render(beta)
-            scores = track(img)
-            got.append(float("nan") if scores is None else scores.get(name, float("nan")))
-            if motion is not None:
-                meshes.append(motion.retrack(img))
+            if motion is None:
+                scores = track(img)
+            else:
+                reading = motion.read(img)
+                scores, mesh = (None, None) if reading is None else reading
+                meshes.append(mesh)
                 expected.append(motion.expected(beta))
+            got.append(float("nan") if scores is None else scores.get(name, float("nan")))
         got_a = np.array(got)
         ok = np.isfinite(got_a)
         fit = fit_line(vals[ok], got_a[ok]) if ok.sum() >= 2 else (math.nan, math.nan)
@@ -418,6 +439,20 @@ def model_renderer(model: FlameNeRF, ds: Dataset, intr: Intrinsics, c2w: np.ndar
                             )["rgb"].numpy()
 
     return render
+
+
+def reference_renderer(model: FlameNeRF, ds: Dataset, intr: Intrinsics, omega: torch.Tensor,
+                       phi: torch.Tensor) -> tuple[RenderFn, Any, Callable]:
+    """What the sweeps and the drive render: `model_renderer` at the reference frame's camera
+    with codes (ω, φ), each β's prior mask from that β's mesh (data/prior.mesh_function).
+    -> (render, the reference frame, β -> mesh)."""
+    from flamenerf.data.dataset import reference_position
+    from flamenerf.data.prior import dataset_dilation, mesh_function
+
+    ref = ds.frames[reference_position(ds)]
+    mesh_of = mesh_function(model, ds)
+    return (model_renderer(model, ds, intr, ref.c2w, omega, phi, mesh_of,
+                           dataset_dilation(ds)), ref, mesh_of)
 
 
 def sweep_response(fs: FrameSet, preds: list[np.ndarray], track: Callable) -> dict[str, Any]:

@@ -343,11 +343,6 @@ def control_section(run, ds: Dataset, intr, omega0, phi0, opts: EvalOptions,
     truth when the dataset has one, else a sweep at the reference frame's camera (its
     picture, control.png, goes into `images`)."""
     from flamenerf.evaluation import control as C
-    from flamenerf.data.dataset import reference_position
-    from flamenerf.data.prior import dataset_dilation, mesh_function
-    from flamenerf.data.face_parts import MEDIAPIPE_VERTEX_COUNTS
-    from flamenerf.geometry import project_points
-    from flamenerf.tracking.landmarker import NUM_MESH_VERTICES
 
     names = run.expression_names
     train_e = ds.expression_matrix(ds.split("train"))
@@ -356,17 +351,8 @@ def control_section(run, ds: Dataset, intr, omega0, phi0, opts: EvalOptions,
         if leak_preds is not None:
             fs, preds = leak_preds
             return C.sweep_response(fs, preds, track)
-        pos = reference_position(ds)
-        fr = ds.frames[pos]
-        mesh_of = mesh_function(run.model, ds)
-        render = C.model_renderer(run.model, ds, intr, fr.c2w, omega0, phi0, mesh_of,
-                                  dataset_dilation(ds))
-        motion = None
-        if ds.face_vertices.shape[1] in MEDIAPIPE_VERTEX_COUNTS:  # the landmarker's own mesh
-            motion = C.LandmarkMotion(
-                expected=lambda b: project_points(mesh_of(b)[:NUM_MESH_VERTICES], intr,
-                                                  fr.c2w)[0],
-                retrack=track.landmarks)
+        render, fr, mesh_of = C.reference_renderer(run.model, ds, intr, omega0, phi0)
+        motion = C.landmark_motion(ds, mesh_of, intr, fr.c2w, track.read)
         renders: list[np.ndarray] = []
 
         def keep(beta):
@@ -378,7 +364,7 @@ def control_section(run, ds: Dataset, intr, omega0, phi0, opts: EvalOptions,
         res = C.control_response(keep, names, ds.expression_matrix([fr])[0], train_e, track,
                                  opts.control_steps, companions=dataset_companions(ds),
                                  motion=motion)
-        res["source"] = f"sweep over the training range at frame {pos}'s camera"
+        res["source"] = f"sweep over the training range at frame {fr.position}'s camera"
         if images is not None and res["controls"]:
             images["control.png"], res["figure_rows"] = _control_figure(res, renders)
         return res
@@ -409,8 +395,6 @@ def drive_section(run, ds: Dataset, intr, omega0, phi0, opts: EvalOptions
                   ) -> tuple[dict[str, Any], np.ndarray]:
     """The drive correlation (see module doc) at the reference frame's camera, and a
     picture: six driving frames spread over the sequence, each over its render."""
-    from flamenerf.data.dataset import reference_position
-    from flamenerf.data.prior import dataset_dilation, mesh_function
     from flamenerf.evaluation import control as C
     from flamenerf.images import hstack, vstack
     from flamenerf.rendering.expressions import from_video
@@ -418,9 +402,7 @@ def drive_section(run, ds: Dataset, intr, omega0, phi0, opts: EvalOptions
     names = run.expression_names
     seq = from_video(Path(opts.drive), ds, names, max_frames=opts.drive_frames,
                      panel_height=intr.h)
-    fr = ds.frames[reference_position(ds)]
-    render = C.model_renderer(run.model, ds, intr, fr.c2w, omega0, phi0,
-                              mesh_function(run.model, ds), dataset_dilation(ds))
+    render = C.reference_renderer(run.model, ds, intr, omega0, phi0)[0]
     rendered, notes = seq.values, list(seq.notes)
     if ds.expression_names == names:  # as `render` does by default
         from flamenerf.data.expression_range import training_range
