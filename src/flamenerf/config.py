@@ -220,6 +220,12 @@ class ModelConfig:
     sampler: SamplerConfig = _field(default_factory=SamplerConfig)
     expression_scale: float = 1.0
     """β is multiplied by this before it enters the field (keeps β and PE on one scale)."""
+    expression_centre: bool = False
+    """β enters the networks as β − β̄, β̄ the training frames' mean (stored with the run):
+    the fields without β then hold the average face and β only how a frame differs from it.
+    Scores such as MediaPipe's blendshapes are never negative, so with raw β the expression
+    pathway also carried part of the constant face (lips and irises trained pale in
+    `fast`); the masks, meshes and the meaning of every β a user gives stay as before."""
     mesh_guide: MeshGuideConfig = _field(default_factory=MeshGuideConfig)
     expression_regions: ExpressionRegionsConfig = _field(
         default_factory=ExpressionRegionsConfig)
@@ -321,6 +327,7 @@ def _fast() -> Config:
     # frames that show a control (docs/bench/control_exploration.md)
     cfg.model.field.expr_rank, cfg.model.field.expr_direct = 8, False
     cfg.model.expression_regions.enabled = True
+    cfg.model.expression_centre = True
     # the mesh-guided deformation on tracked clips only: it helped the one real clip's
     # controls and not the built-in scene (docs/bench/control_exploration.md)
     cfg.model.mesh_guide.enabled = None

@@ -94,7 +94,13 @@ def test_the_prior_radius_follows_whether_the_parts_apply(dataset_dir):
     cfg = preset("fast")
     assert cfg.model.expression_regions.radius is None
     assert cfg.model.expression_regions.resolved_radius(True) == RADIUS_PARTS
-    m = build_for_dataset(cfg, load_dataset(dataset_dir))  # the built-in scene: no parts
+    ds = load_dataset(dataset_dir)
+    m = build_for_dataset(cfg, ds)  # the built-in scene: no parts
+    # β enters `fast` centred on the training frames' mean; the paper's preset takes it as is
+    train = ds.expression_matrix(ds.split("train"))
+    assert torch.allclose(m.expression_mean, torch.from_numpy(train.mean(0)))
+    assert m.expression_mean.abs().amax() > 0.01
+    assert float(build_for_dataset(preset("flame-in-nerf"), ds).expression_mean.abs().amax()) == 0
     assert cfg.model.expression_regions.radius == RADIUS_FREE == m.cfg.expression_regions.radius
     # the mesh guide: on for tracked clips (where the parts apply), off on the built-in scene
     assert preset("fast").model.mesh_guide.enabled is None

@@ -92,6 +92,20 @@ def test_mesh_guided_inference_equals_reference():
     assert (ref["rgb"] - render(toy_model(), REFERENCE)["rgb"]).abs().max() > 1e-3  # it acts
 
 
+def test_centred_expression_inference_equals_reference():
+    """With β̄ set (`fast`'s expression_centre) both paths give the networks 𝕀·(β − β̄) and
+    the meshes β: the guide and the per-control prior of the inference path take β's
+    mesh, not the centred input's."""
+    m = toy_model(guided=True)
+    # β̄ = the rendered β: the input inside the silhouette is 0 there as outside, and only
+    # the rays' mask tells the guide that β's mesh applies
+    for mean in ([0.5, -0.3, 0.6], [0.7, -0.4, 0.2]):
+        m.set_expression_mean(torch.tensor(mean))
+        ref, fast = render(m, REFERENCE), render(m, EXACT)
+        assert torch.allclose(fast["rgb"], ref["rgb"], atol=2e-4)
+    assert (ref["rgb"] - render(toy_model(guided=True), REFERENCE)["rgb"]).abs().max() > 1e-3
+
+
 @pytest.mark.parametrize("kernel", ["1", "0"])
 def test_bakes_converge_to_the_fields(kernel, monkeypatch):
     """A bake read at the right places converges to its field as the grid gets finer (a

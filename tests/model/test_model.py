@@ -170,6 +170,31 @@ def test_expression_region_gates_of_many_rays_are_each_rays_own():
                           atol=1e-6)
 
 
+def test_a_centred_expression_reaches_the_networks_as_its_difference_from_the_mean():
+    """`expression_centre`: the networks see 𝕀·(β − β̄), while the meshes behind the
+    per-control prior are those of β itself, and a rebuilt run keeps β̄."""
+    m, plain = regions_model(), regions_model()
+    mean = torch.tensor([0.6, 0.4, 0.2, 0.0, 0.1])
+    m.set_expression_mean(mean)
+    beta = torch.stack([mean, mean + torch.tensor([0.3, -0.2, 0.0, 0.5, 0.0]), mean])
+    face = torch.tensor([True, True, False])
+    e = m.masked_expression(beta, face)
+    assert torch.equal(e[0], torch.zeros(E)), "the mean face inside is what outside is"
+    assert torch.allclose(e[1], beta[1] - mean) and torch.equal(e[2], torch.zeros(E))
+    inside = m.expression_inside(face)
+    raw, _ = m.raw_expression(e, inside)
+    assert torch.allclose(raw[:2], beta[:2]) and torch.equal(raw[2], torch.zeros(E))
+    pts = torch.tensor([[0.0, 0.05, 0.0], [0.32, 0.3, 0.0], [0.05, 0.03, 0.0]]).expand(3, 3, 3)
+    # the gates of β's own mesh (as without centring), not of β − β̄'s
+    gates = plain._region_gates(pts, beta * face[:, None])
+    assert torch.allclose(m.region_expression(pts, e, inside), gates * e[:, None], atol=1e-6)
+    assert not torch.allclose(m._region_gates(pts[:1], beta[:1] - mean), gates[:1], atol=1e-4)
+    assert gates[0].amax() > 0.5, "the mean face's rays keep their gates (input 0)"
+    again = FlameNeRF(m.cfg, **m.init_args)
+    assert torch.allclose(again.expression_mean, mean)
+    assert torch.equal(regions_model().expression_mean, torch.zeros(E))
+
+
 def test_expression_regions_keep_the_silhouette_prior():
     m = regions_model()
     r = rays(m)

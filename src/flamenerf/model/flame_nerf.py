@@ -53,7 +53,8 @@ class FlameNeRF(nn.Module):
     def __init__(self, cfg: ModelConfig, num_codes: int, expr_dim: int, near: float,
                  far: float, box_min: list[float], box_max: list[float],
                  mesh_vertices: int = 0, mesh_faces: int = 0, head_region: dict | None = None,
-                 detail_region: dict | None = None):
+                 detail_region: dict | None = None,
+                 expression_mean: list[float] | None = None):
         super().__init__()
         self.cfg = cfg
         self.captured: tuple[Tensor, Tensor | None, Tensor] | None = None
@@ -90,6 +91,10 @@ class FlameNeRF(nn.Module):
         # isotropic scale, so that rigid warps in normalised space are rigid in the world
         self.register_buffer("half_extent", ((bmax - bmin) / 2).max())
         field_expr = 0 if cfg.expression_mode == "none" else expr_dim
+        # β̄ of `cfg.expression_centre` (set_expression_mean; zeros: β enters as it is)
+        self.register_buffer("expression_mean", torch.zeros(expr_dim), persistent=False)
+        if expression_mean is not None:
+            self.set_expression_mean(torch.tensor(expression_mean))
         self.deform_codes = nn.Embedding(num_codes, cfg.warp.code_dim)
         self.appearance_codes = nn.Embedding(num_codes, cfg.field.appearance_dim)
         nn.init.normal_(self.deform_codes.weight, std=1e-2)
@@ -131,6 +136,22 @@ class FlameNeRF(nn.Module):
         soft = (motion / (thr * top).clamp_min(1e-12)).clamp(max=1.0) * (top > 0)
         self.mesh_regions.copy_(soft.T)
 
+    def set_expression_mean(self, mean: Tensor) -> None:
+        """β̄ (E,): the networks see 𝕀·(β − β̄) (`masked_expression`); kept in init_args so
+        that a loaded run rebuilds it."""
+        self.expression_mean.copy_(mean.to(self.expression_mean))
+        self.init_args["expression_mean"] = [float(v) for v in mean]
+
+    def raw_expression(self, expr: Tensor, inside: Tensor | None) -> tuple[Tensor, Tensor]:
+        """The β behind network inputs `expr` (R, E) (`masked_expression`'s output) of rays
+        whose prior lets β in (`inside` (R,) bool; None: the rays whose input is not 0,
+        right when β is not centred) -> β (R, E), inside (R,). The meshes, the per-control
+        prior and the mesh guide work with β itself."""
+        if inside is None:
+            inside = expr.abs().amax(-1) > 0
+        beta = expr / self.cfg.expression_scale + inside[:, None].to(expr) * self.expression_mean
+        return beta, inside
+
     def face_mesh(self, expression: Tensor) -> Tensor:
         """The face mesh of β in world units: (..., E) -> (..., V, 3)."""
         return expression_mesh(self.mesh_neutral, self.mesh_basis, expression)
@@ -143,14 +164,16 @@ class FlameNeRF(nn.Module):
         return self.normalize(surface_points(self.mesh_neutral, self.mesh_faces, tri, uv))
 
     @torch.no_grad()
-    def guide_points(self, xn: Tensor, expr: Tensor | None) -> Tensor:
-        """Carry normalised points (R, S, 3) of rays with masked expressions 𝕀β (R, E) from
-        their expression's mesh to the neutral mesh. Rays with 𝕀β = 0 (every ray outside
-        the silhouette under the prior) get mesh(0) = neutral, i.e. stay put."""
+    def guide_points(self, xn: Tensor, expr: Tensor | None, inside: Tensor | None = None
+                     ) -> Tensor:
+        """Carry normalised points (R, S, 3) of rays with masked expressions (R, E)
+        (`masked_expression`; `inside` as in `raw_expression`) from their expression's
+        mesh to the neutral mesh. Rays outside the silhouette under the prior, and rays
+        with β = 0, get mesh(0) = neutral, i.e. stay put."""
         if not self.mesh_guided or expr is None:
             return xn
-        beta = expr / self.cfg.expression_scale
-        nonzero = beta.abs().amax(-1) > 0
+        beta, inside = self.raw_expression(expr, inside)
+        nonzero = inside & (beta.abs().amax(-1) > 0)
         if not bool(nonzero.any()):
             return xn
         g = self.cfg.mesh_guide
@@ -167,27 +190,31 @@ class FlameNeRF(nn.Module):
                              ).view(len(r), *xn.shape[1:])
         return out
 
-    def region_expression(self, xn: Tensor, expr: Tensor | None) -> Tensor | None:
-        """Per-point masked expressions under the per-control prior: β_k fades with the
-        distance from the vertices (of the ray's own expression mesh) that control k
-        moves. xn (R, S, 3) normalised, expr (R, E) -> (R, S, E); per-ray `expr` as
-        (R, 1, E) when the prior is off."""
+    def region_expression(self, xn: Tensor, expr: Tensor | None,
+                          inside: Tensor | None = None) -> Tensor | None:
+        """Per-point masked expressions under the per-control prior: input k fades with
+        the distance from the vertices (of the ray's own expression mesh) that control k
+        moves. xn (R, S, 3) normalised, expr (R, E) (`masked_expression`; `inside` as in
+        `raw_expression`) -> (R, S, E); per-ray `expr` as (R, 1, E) when the prior is off."""
         if expr is None:
             return None
         if not self.expression_regions:
             return expr[:, None]
-        return self._region_gates(xn, expr.detach()) * expr[:, None]
+        beta, inside = self.raw_expression(expr.detach(), inside)
+        return self._region_gates(xn, beta, inside) * expr[:, None]
 
     @torch.no_grad()
-    def _region_gates(self, xn: Tensor, expr: Tensor, block: int = 1024) -> Tensor:
-        """(R, S, 3), (R, E) -> (R, S, E) in [0, 1]: each point's share of each control,
-        the membership of its nearest vertex (on the mesh of the ray's own expression) in
-        the control's region times exp(-d²/r²) of the distance d to that vertex, cut to 0
-        beyond d = GATE_CUTOFF·r (where it is below 1e-4: the expression fields then skip
-        the point). Rays with β = 0 get 0."""
-        out = xn.new_zeros(*xn.shape[:2], expr.shape[-1])
-        beta = expr / self.cfg.expression_scale
-        rows = (beta.abs().amax(-1) > 0).nonzero()[:, 0]
+    def _region_gates(self, xn: Tensor, beta: Tensor, inside: Tensor | None = None,
+                      block: int = 1024) -> Tensor:
+        """(R, S, 3), β (R, E), inside (R,) bool -> (R, S, E) in [0, 1]: each point's share
+        of each control, the membership of its nearest vertex (on the mesh of the ray's
+        own β) in the control's region times exp(-d²/r²) of the distance d to that vertex,
+        cut to 0 beyond d = GATE_CUTOFF·r (where it is below 1e-4: the expression fields
+        then skip the point). Rays not `inside` (None: rays with β = 0) get 0."""
+        out = xn.new_zeros(*xn.shape[:2], beta.shape[-1])
+        if inside is None:
+            inside = beta.abs().amax(-1) > 0
+        rows = inside.nonzero()[:, 0]
         if len(rows) == 0:
             return out
         neutral = self.normalize(self.mesh_neutral)
@@ -225,14 +252,23 @@ class FlameNeRF(nn.Module):
         return self.deform_codes(frame_index), self.appearance_codes(frame_index)
 
     def masked_expression(self, expression: Tensor, face_ray: Tensor) -> Tensor | None:
-        """𝕀(x)·β: the spatial prior. (R, E), (R,) -> (R, E), or None for `nerfies`."""
+        """𝕀(x)·β, what the networks see: the spatial prior. (R, E), (R,) -> (R, E), or
+        None for `nerfies`; 𝕀·(β − β̄) with `expression_centre`."""
         mode = self.cfg.expression_mode
         if mode == "none":
             return None
-        e = expression * self.cfg.expression_scale
+        e = (expression - self.expression_mean) * self.cfg.expression_scale
         if mode == "masked":
             e = e * face_ray[:, None].to(e)
         return e
+
+    def expression_inside(self, face_ray: Tensor) -> Tensor | None:
+        """Which rays' β passes the prior: (R,) bool -> (R,) bool (every ray for the
+        no-prior ablation), None for `nerfies`."""
+        mode = self.cfg.expression_mode
+        if mode == "none":
+            return None
+        return face_ray.bool() if mode == "masked" else torch.ones_like(face_ray, dtype=torch.bool)
 
     def head_weight(self, x: Tensor, band: float | None = None) -> Tensor:
         """How much of the head's motion canonical points x (*bs, 3) (world units) take:
@@ -312,22 +348,24 @@ class FlameNeRF(nn.Module):
         return field(xc, dirs, app, expr)
 
     def sample_points(self, origins: Tensor, dirs: Tensor, t: Tensor, expr: Tensor | None,
-                      head: Tensor | None) -> tuple[Tensor, Tensor, Tensor | None]:
+                      head: Tensor | None, inside: Tensor | None = None
+                      ) -> tuple[Tensor, Tensor, Tensor | None]:
         """Samples at depths t (R, S) along rays (R, 3), (R, 3) with masked expressions
         (R, E) and head twists (R, 6) (either None) -> normalised points ready for the warp
         (R, S, 3) (in the head's frame, carried to the neutral mesh when mesh-guided), unit
         view directions (R, 3), and the expression each point gets (R, S, E), or (R, 1, E)
         per ray without the per-control prior. The one place both renderers (training and
-        model/inference.py) prepare samples. Outside training, with captured views set,
+        model/inference.py) prepare samples. `inside` (R,) bool: the rays whose β passes the
+        prior (`expression_inside`; None: those whose `expr` is not 0). Outside training, with captured views set,
         the directions are kept near the capture (`captured_direction`)."""
         x, d, share = self._head_points(origins[:, None] + t[..., None] * dirs[:, None], dirs,
                                         head)
         xn = self.normalize(x)
-        expr_pts = self.region_expression(xn, expr)
+        expr_pts = self.region_expression(xn, expr, inside)
         d = F.normalize(d, dim=-1)
         if self.captured is not None and not self.training:
             d = self.captured_direction(origins, d, head, share)
-        return self.guide_points(xn, expr), d, expr_pts
+        return self.guide_points(xn, expr, inside), d, expr_pts
 
     def proposal_points(self, origins: Tensor, dirs: Tensor, t: Tensor,
                         head: Tensor | None) -> Tensor:
@@ -338,7 +376,8 @@ class FlameNeRF(nn.Module):
     def _query_rays(self, field, rays: RayBatch, t: Tensor, expr: Tensor | None):
         """Samples at depths t (R, S) along each ray -> σ (R, S), rgb (R, S, 3). The ray's
         codes go in once per ray, shaped (R, 1, ·), and broadcast over samples."""
-        xn, dn, expr_pts = self.sample_points(rays.origins, rays.dirs, t, expr, rays.head)
+        xn, dn, expr_pts = self.sample_points(rays.origins, rays.dirs, t, expr, rays.head,
+                                              self.expression_inside(rays.face_ray))
         return self._query(field, xn, dn[:, None], rays.deform_code[:, None],
                            rays.appearance_code[:, None], expr_pts)
 

@@ -184,6 +184,7 @@ def render_rays(model, rays: RayBatch, settings: RenderSettings = FAST
 
 def _render_rays(model, rays: RayBatch, settings: RenderSettings) -> dict[str, Tensor]:
     expr = model.masked_expression(rays.expression, rays.face_ray)
+    inside = model.expression_inside(rays.face_ray)
     dev = rays.origins.device
     warp = _warp_fn(model, rays, settings)
     scale = rays.dirs.norm(dim=-1, keepdim=True) / model.half_extent
@@ -203,7 +204,7 @@ def _render_rays(model, rays: RayBatch, settings: RenderSettings) -> dict[str, T
         def evaluate(rows, lo, hi):
             xn, d, e = model.sample_points(rays.origins[rows], rays.dirs[rows],
                                            t[rows, lo:hi], sub_ray(expr, rows),
-                                           sub_ray(rays.head, rows))
+                                           sub_ray(rays.head, rows), sub_ray(inside, rows))
             counted.append(xn.shape[0] * xn.shape[1])
             xc = warp(xn, rows, e)  # in float32: a half-precision warp would move points
             with _autocast(dev, settings):
