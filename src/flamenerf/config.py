@@ -224,8 +224,9 @@ class ModelConfig:
     """β enters the networks as β − β̄, β̄ the training frames' mean (stored with the run):
     the fields without β then hold the average face and β only how a frame differs from it.
     Scores such as MediaPipe's blendshapes are never negative, so with raw β the expression
-    pathway also carried part of the constant face (lips and irises trained pale in
-    `fast`); the masks, meshes and the meaning of every β a user gives stay as before."""
+    pathway can also carry part of the constant face (the reason it was tried; measured:
+    docs/presets.md item 5). The masks, meshes and the meaning of every β a user gives stay
+    as before."""
     mesh_guide: MeshGuideConfig = _field(default_factory=MeshGuideConfig)
     expression_regions: ExpressionRegionsConfig = _field(
         default_factory=ExpressionRegionsConfig)

@@ -212,10 +212,15 @@ def test_mesh_guided_training_carries_the_expression_model(synth_scene, tmp_path
     chin = m.normalize(m.face_mesh(jaw))  # (V, 3): where the open jaw's vertices are
     far = torch.tensor([[0.9, 0.9, -0.9]])
     x = torch.cat([chin, far])[:, None]  # (V + 1, 1, 3) as rays of one sample
-    moved = (m.guide_points(x, jaw.expand(len(x), -1)) - x).norm(dim=-1)[:, 0]
+    # the guide takes what the networks see (`masked_expression`: β centred in `fast`) and
+    # which rays the prior lets β reach
+    inside, outside = torch.ones(len(x), dtype=torch.bool), torch.zeros(len(x), dtype=torch.bool)
+    e = m.masked_expression(jaw.expand(len(x), -1), inside)
+    moved = (m.guide_points(x, e, inside) - x).norm(dim=-1)[:, 0]
     assert moved[:-1].max() > 0.01 and moved[-1] == 0
     # and with β masked to zero (a ray outside the prior's silhouette) nothing moves
-    assert torch.equal(m.guide_points(x, torch.zeros(len(x), ds.expression_dim)), x)
+    e = m.masked_expression(jaw.expand(len(x), -1), outside)
+    assert torch.equal(m.guide_points(x, e, m.expression_inside(outside)), x)
 
 
 def test_face_ray_fraction_draws_that_share_from_the_silhouettes(tiny_scene):
