@@ -36,8 +36,8 @@ def test_eval_writes_the_documented_schema(evaluated):
     assert res["resolution"] == [16, 16]
     assert res["protocol"]["fit_steps"] == 3 and res["protocol"]["split"] == "val"
     h = res["heldout"]
-    for k in ("mse", "psnr", "ssim", "psnr_face", "psnr_background", "psnr_scene",
-              "fit_seconds"):
+    for k in ("mse", "psnr", "ssim", "psnr_face", "psnr_face_interior", "psnr_background",
+              "psnr_scene", "fit_seconds"):
         assert isinstance(h[k], float), k
     assert isinstance(res["driven"]["psnr_scene"], float)
     # the rendered face's depth against the quad's (0.5 .. 1.6 is the toy's depth range)

@@ -95,3 +95,25 @@ def test_scene_masks_leave_out_the_person(tiny_scene):
     m = image_metrics(pred, gt, face[0], scene[0])
     assert m["psnr_scene"] == float("inf") or m["psnr_scene"] > 90
     assert m["psnr_background"] < 40
+
+
+def test_face_interior_leaves_out_the_outline():
+    """An error on the face mask's outline only counts in psnr_face, not in its interior."""
+    from scipy import ndimage
+
+    from flamenerf.evaluation.protocol import face_interior, image_metrics
+
+    face = np.zeros((128, 128), bool)
+    face[30:90, 40:100] = True
+    inner = face_interior(face)
+    assert inner.sum() == 56 * 56  # two pixels off each side at 128 px
+    rng = np.random.default_rng(0)
+    gt = rng.random((128, 128, 3)).astype(np.float32)
+    pred = gt.copy()
+    outline = face & ~ndimage.binary_erosion(face)
+    pred[outline] = 1 - pred[outline]
+    m = image_metrics(pred, gt, face)
+    assert m["psnr_face"] < 30 and m["psnr_face_interior"] > 100
+    pred[45, 60] = 1 - pred[45, 60]  # and an error inside counts in both
+    assert image_metrics(pred, gt, face)["psnr_face_interior"] < 60
+

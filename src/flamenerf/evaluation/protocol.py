@@ -98,20 +98,33 @@ def scene_masks(fs: FrameSet) -> np.ndarray:
     return np.stack(out)
 
 
+def face_interior(face: np.ndarray) -> np.ndarray:
+    """The face mask (H, W) bool without its outline: eroded by H/64 pixels (two at 128 px).
+    The outline's pixels mix the face with what lies behind it, so at a new camera they
+    also measure the background and the edge's sharpness, alike with and without β."""
+    from scipy import ndimage
+
+    return ndimage.binary_erosion(face, iterations=max(1, round(face.shape[0] / 64)))
+
+
 def image_metrics(pred: np.ndarray, gt: np.ndarray, face: np.ndarray,
                   scene: np.ndarray | None = None) -> dict[str, float]:
     """pred, gt (H, W, 3) in [0, 1]; face (H, W) bool; scene (H, W) bool (`scene_masks`;
-    None: no psnr_scene)."""
+    None: no psnr_scene). `psnr_face_interior`: the face without its outline
+    (`face_interior`)."""
     m = M.mse(pred, gt)
     out = {"mse": m, "psnr": M.psnr(pred, gt), "ssim": M.ssim(pred, gt),
-           "psnr_face": M.psnr(pred, gt, face), "psnr_background": M.psnr(pred, gt, ~face)}
+           "psnr_face": M.psnr(pred, gt, face),
+           "psnr_face_interior": M.psnr(pred, gt, face_interior(face)),
+           "psnr_background": M.psnr(pred, gt, ~face)}
     if scene is not None:
         out["psnr_scene"] = M.psnr(pred, gt, scene)
     return out
 
 
 def summarize(per_frame: list[dict[str, Any]], keys=("mse", "psnr", "ssim", "psnr_face",
-                                                     "psnr_background", "psnr_scene")
+                                                     "psnr_face_interior", "psnr_background",
+                                                     "psnr_scene")
               ) -> dict[str, Any]:
     """Means over frames (frames where a value is NaN, e.g. no face pixels, are skipped)."""
     out: dict[str, Any] = {"num_frames": len(per_frame)}
