@@ -334,8 +334,9 @@ def _fast() -> Config:
     cfg.model.mesh_guide.enabled = None
     cfg.model.sampler = SamplerConfig(kind="proposal", num_proposal=48, num_main=32,
                                       proposal_levels=5, proposal_max_res=128)
-    # 680 steps: what fits in 10 minutes on the 2-core CPU (548 s uninterrupted), so that the
-    # learning rate has decayed when the time is up (docs/presets.md)
+    # 680 steps: what fitted in 10 minutes on the 2-core CPU when chosen (548 s), so that the
+    # learning rate has decayed when the time is up; now ~6-7 minutes on the built-in scene
+    # and the real clips, longer with head poses (docs/presets.md item 3)
     # the face-depth prior from a fifth of the run on: without it the face trains as a fog
     # centred ~3 cm behind its surface, which new cameras see wrongly (docs/presets.md)
     # rays over a random colour: over black, a half-transparent room with fog in front of it
