@@ -15,18 +15,20 @@ def preprocess(
     out: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="OUT")],
     opts: Annotated[PreprocessOptions, tyro.conf.OmitArgPrefixes, tyro.conf.arg(name="")],
 ) -> None:
-    """Turn a portrait video (head still, camera moving) into a flamenerf dataset.
+    """Turn a portrait video (the camera, the head or both moving) into a flamenerf dataset.
 
     Decodes VIDEO (rotation metadata honoured), tracks the face in every selected frame
     with MediaPipe's FaceLandmarker (478 landmarks, head pose, 52 ARKit blendshape scores
-    = the expression vector), solves one focal length and every camera pose jointly with a
-    per-subject face template (world = the head's frame, metres), cuts one stable square
-    crop around the face, resizes it, and rasterises the face mesh of each frame into the
-    silhouette mask (the spatial prior). Frames without a face, or whose landmarks the
-    solve cannot explain, are dropped and listed in OUT/qa/tracking_report.json, next to an
-    overlay video and a camera-trajectory plot. Every --val-every'th frame goes to the val
-    split. Needs the landmarker model once: python scripts/get_landmarker.py. See
-    docs/preprocessing.md.
+    = the expression vector), solves one focal length and each frame's camera-from-head
+    pose with a per-subject face template (metres), then registers the cameras against the
+    static background with the person masked out (COLMAP) and gives each frame its head
+    pose in that world; `--cameras head` keeps the head as the world. It cuts one stable
+    square crop around the face, resizes it, and rasterises the face mesh of each frame
+    into the silhouette mask (the spatial prior). Frames without a face, or whose landmarks
+    the solve cannot explain, are dropped and listed in OUT/qa/tracking_report.json, next
+    to an overlay video and the camera and head motion plots. Every --val-every'th frame
+    goes to the val split. The landmarker model comes with `scripts/setup.sh`
+    (scripts/get_landmarker.py). See docs/preprocessing.md and docs/head_pose.md.
 
     Example: flamenerf preprocess selfie.mp4 data/me --fps 15 --max-frames 300
 
