@@ -114,6 +114,7 @@ def test_face_interior_leaves_out_the_outline():
     pred[outline] = 1 - pred[outline]
     m = image_metrics(pred, gt, face)
     assert m["psnr_face"] < 30 and m["psnr_face_interior"] > 100
+    assert m["psnr_face_outline"] < m["psnr_face"]  # the outline holds all of the error
     pred[45, 60] = 1 - pred[45, 60]  # and an error inside counts in both
     assert image_metrics(pred, gt, face)["psnr_face_interior"] < 60
 

@@ -74,8 +74,8 @@ def region_metrics(pred: np.ndarray, gt: np.ndarray, face: np.ndarray,
             "psnr_expressive": M.psnr(pred, gt, region)}
 
 
-DRIVEN_KEYS = ("psnr", "ssim", "psnr_face", "psnr_face_interior", "psnr_background",
-               "psnr_scene", "psnr_expressive", "face_depth_error")
+DRIVEN_KEYS = ("psnr", "ssim", "psnr_face", "psnr_face_interior", "psnr_face_outline",
+               "psnr_background", "psnr_scene", "psnr_expressive", "face_depth_error")
 
 
 def driven(model: FlameNeRF, ds: Dataset, fs: FrameSet, omega0: torch.Tensor,

@@ -110,12 +110,14 @@ def face_interior(face: np.ndarray) -> np.ndarray:
 def image_metrics(pred: np.ndarray, gt: np.ndarray, face: np.ndarray,
                   scene: np.ndarray | None = None) -> dict[str, float]:
     """pred, gt (H, W, 3) in [0, 1]; face (H, W) bool; scene (H, W) bool (`scene_masks`;
-    None: no psnr_scene). `psnr_face_interior`: the face without its outline
-    (`face_interior`)."""
+    None: no psnr_scene). `psnr_face_interior` / `psnr_face_outline`: the face without its
+    outline (`face_interior`) / the outline alone."""
     m = M.mse(pred, gt)
+    inner = face_interior(face)
     out = {"mse": m, "psnr": M.psnr(pred, gt), "ssim": M.ssim(pred, gt),
            "psnr_face": M.psnr(pred, gt, face),
-           "psnr_face_interior": M.psnr(pred, gt, face_interior(face)),
+           "psnr_face_interior": M.psnr(pred, gt, inner),
+           "psnr_face_outline": M.psnr(pred, gt, face & ~inner),
            "psnr_background": M.psnr(pred, gt, ~face)}
     if scene is not None:
         out["psnr_scene"] = M.psnr(pred, gt, scene)
@@ -123,8 +125,8 @@ def image_metrics(pred: np.ndarray, gt: np.ndarray, face: np.ndarray,
 
 
 def summarize(per_frame: list[dict[str, Any]], keys=("mse", "psnr", "ssim", "psnr_face",
-                                                     "psnr_face_interior", "psnr_background",
-                                                     "psnr_scene")
+                                                     "psnr_face_interior", "psnr_face_outline",
+                                                     "psnr_background", "psnr_scene")
               ) -> dict[str, Any]:
     """Means over frames (frames where a value is NaN, e.g. no face pixels, are skipped)."""
     out: dict[str, Any] = {"num_frames": len(per_frame)}

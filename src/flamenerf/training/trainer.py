@@ -116,7 +116,7 @@ def build_for_dataset(cfg: Config, ds: Dataset) -> FlameNeRF:
                       detail_region=model_detail_region(cfg, ds))
     if cfg.model.expression_centre and cfg.model.expression_mode != "none" and ds.expression_dim:
         model.set_expression_mean(torch.from_numpy(
-            ds.expression_matrix(ds.split("train") or ds.frames).mean(0)))
+            ds.expression_matrix(ds.training_frames()).mean(0)))
     if model.uses_mesh_model:
         neutral, basis = fit_dataset_expression_model(ds, cfg.model.mesh_guide.ridge,
                                                      cfg.model.mesh_guide.face_parts)
