@@ -31,14 +31,22 @@ def test_numpy_rotations_agree_with_so3_exp():
     w = np.array([0.3, -0.5, 0.8])
     R = G.so3_exp(torch.from_numpy(w)).numpy()
     np.testing.assert_allclose(G.matrix_to_rotvec(R), w, atol=1e-12)
-    p = np.array([0.2, 0.1, -0.4])
-    c = np.array([1.0, 2.0, 3.0])
     angle = np.linalg.norm(w)
-    np.testing.assert_allclose(G.rotate_about(p, w, angle, c), (p - c) @ R.T + c, atol=1e-12)
     # quaternion (w, x, y, z) of a rotation by `angle` about axis k
     k = w / angle
     q = np.concatenate([[np.cos(angle / 2)], np.sin(angle / 2) * k]) * 3.0  # any norm
     np.testing.assert_allclose(G.quat_wxyz_to_matrix(q), R, atol=1e-12)
+
+
+def test_rotation_between_is_the_smallest_turn():
+    a, b = np.array([0.2, 0.1, -0.9]), np.array([-0.5, 0.3, -0.6])
+    R = G.rotation_between(a, b)
+    np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
+    assert np.linalg.det(R) == pytest.approx(1.0)
+    np.testing.assert_allclose(R @ (a / np.linalg.norm(a)), b / np.linalg.norm(b), atol=1e-12)
+    axis = np.cross(a, b)
+    np.testing.assert_allclose(R @ axis, axis, atol=1e-12)  # turns about a x b only
+    np.testing.assert_allclose(G.rotation_between(a, 3 * a), np.eye(3), atol=1e-12)
 
 
 def test_look_at_uses_opengl_axes():

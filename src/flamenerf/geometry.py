@@ -146,15 +146,14 @@ def quat_wxyz_to_matrix(wxyz: np.ndarray) -> np.ndarray:
     return Rotation.from_quat(np.asarray(wxyz, np.float64), scalar_first=True).as_matrix()
 
 
-def rotate_about(points: np.ndarray, axis: np.ndarray, angle: float, center: np.ndarray
-                 ) -> np.ndarray:
-    """Rotate points (..., 3) by `angle` radians about the line through `center` along
-    `axis`."""
-    from scipy.spatial.transform import Rotation
-
-    k = np.asarray(axis, np.float64) / np.linalg.norm(axis)
-    R = Rotation.from_rotvec(angle * k).as_matrix()
-    return (np.asarray(points, np.float64) - center) @ R.T + center
+def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The smallest rotation (3, 3) taking direction a (3,) to direction b (3,) (Rodrigues;
+    not for opposite directions, where any half turn would do)."""
+    a = np.asarray(a, np.float64) / np.linalg.norm(a)
+    b = np.asarray(b, np.float64) / np.linalg.norm(b)
+    K = skew(np.cross(a, b))
+    s2 = float(np.sum(np.cross(a, b) ** 2))
+    return np.eye(3) + K + K @ K * ((1 - float(a @ b)) / s2 if s2 > 1e-24 else 0.5)
 
 
 def umeyama(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:

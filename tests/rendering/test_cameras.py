@@ -19,7 +19,6 @@ def rig(toy_dataset):
 
 def test_rig_from_the_capture(rig):
     np.testing.assert_allclose(rig.center, 0, atol=1e-6)  # the toy face's centroid
-    assert rig.radius == pytest.approx(1.0, abs=0.01)
     assert rig.swing_deg > 0
     lo, hi = rig.azimuth_range
     assert lo <= 0 <= hi and hi - lo == pytest.approx(2 * rig.swing_deg)
@@ -45,26 +44,91 @@ def test_default_orbit_stays_within_the_captured_azimuths(rig):
 
 
 @pytest.mark.parametrize("kind", C.PATH_KINDS)
-def test_paths_look_at_the_head(rig, kind):
+@pytest.mark.parametrize("off_centre", [False, True])
+def test_paths_keep_the_head_where_the_reference_sees_it(rig, kind, off_centre):
+    from dataclasses import replace
+
+    from flamenerf.geometry import look_at
+
+    if off_centre:  # a crop that put the face left of the image's centre
+        ref = look_at(rig.eye, rig.center + np.array([0.15, -0.05, 0.0]), rig.up)
+        rig = replace(rig, reference=ref)
+
+    def towards_head(c2w):  # the head's direction in camera axes: its pixel
+        v = c2w[:3, :3].T @ (rig.center - c2w[:3, 3])
+        return v / np.linalg.norm(v)
+
     P = C.camera_path(kind, 12, rig)
     assert P.shape == (12, 4, 4)
     np.testing.assert_allclose(P[:, 3], np.tile([0, 0, 0, 1.0], (12, 1)))
+    np.testing.assert_allclose(P[0], rig.reference, atol=1e-12)
     for c2w in P:
         R = c2w[:3, :3]
         np.testing.assert_allclose(R.T @ R, np.eye(3), atol=1e-9)
         assert np.linalg.det(R) == pytest.approx(1.0)
-        if kind != "static":
-            to_head = rig.center - c2w[:3, 3]
-            cos = (-R[:, 2]) @ to_head / np.linalg.norm(to_head)
-            assert cos == pytest.approx(1.0, abs=1e-9)
+        np.testing.assert_allclose(towards_head(c2w), towards_head(rig.reference), atol=1e-9)
         assert np.linalg.norm(c2w[:3, 3] - rig.center) >= rig.min_distance - 1e-9
+    if kind != "static":
+        assert np.ptp(P[:, :3, 3], axis=0).max() > 1e-3  # it moves
+
+
+def test_orbit_keeps_to_the_captures_distance_and_height(rig):
+    """A handheld capture's cameras drift in and up as they go round; the orbit follows
+    them instead of an arc at frame 0's distance."""
+    from dataclasses import replace
+
+    az = np.linspace(-20.0, 20.0, 41)
+    v = rig.eye - rig.center
+    h0 = v @ rig.up
+    r0 = np.linalg.norm(v - h0 * rig.up)
+    captured = np.stack([az, r0 - 0.004 * az, h0 + 0.002 * az], 1)
+    r = replace(rig, azimuth_range=(-20.0, 20.0), captured=captured)
+    for a in (-12.0, 6.0, 15.0):
+        e = r.orbit_eye(a) - r.center
+        h = e @ r.up
+        assert h == pytest.approx(h0 + 0.002 * a, abs=2e-3)
+        assert np.linalg.norm(e - h * r.up) == pytest.approx(r0 - 0.004 * a, abs=4e-3)
+    np.testing.assert_allclose(r.orbit_eye(0.0), r.eye, atol=1e-12)
+    flat = replace(r, captured=None)  # an arc
+    d = [np.linalg.norm(flat.orbit_eye(a) - r.center) for a in (-12.0, 15.0)]
+    np.testing.assert_allclose(d, np.linalg.norm(v))
+
+
+def test_default_range_is_where_the_head_was_seen_from_too(tmp_path):
+    """Cameras that swing 0..20 deg round a head that turns after them by half as much
+    saw the face from 0..10 deg only: the default orbit stays there."""
+    from toy import TOY_NAMES
+
+    from flamenerf.data.dataset import DatasetWriter, Intrinsics
+    from flamenerf.geometry import euler_head, look_at
+
+    intr = Intrinsics(16, 16, 20.0, 20.0, 8.0, 8.0)
+    s = 0.1
+    verts = np.array([[-s, -s, 0], [s, -s, 0], [s, s, 0], [-s, s, 0]], np.float64)
+    up = np.array([0.0, 1.0, 0.0])
+    with DatasetWriter(tmp_path / "d", intr, 0.5, 1.6, TOY_NAMES, "synthetic",
+                       source={"name": "test"}, prior_dilation_px=1) as w:
+        for i, yaw in enumerate(np.linspace(0.0, 20.0, 5)):
+            y = np.radians(yaw)
+            c2w = look_at(np.array([np.sin(y), 0.0, np.cos(y)]), np.zeros(3), up)
+            head = np.eye(4)
+            head[:3, :3] = euler_head(yaw / 2, 0.0, 0.0)
+            posed = verts @ head[:3, :3].T
+            w.add_frame(np.zeros((16, 16, 3), np.float32), np.ones((16, 16), bool), c2w,
+                        np.zeros(len(TOY_NAMES)), i, "train", verts=posed.astype(np.float32),
+                        head_pose=head)
+        w.set_faces(np.array([[0, 1, 2], [0, 2, 3]], np.int32))
+    rig = C.rig_from_dataset(load_dataset(tmp_path / "d"))
+    lo, hi = rig.azimuth_range
+    assert lo == pytest.approx(0.0, abs=1e-6)
+    assert abs(hi) == pytest.approx(10.0, abs=0.1)
 
 
 def test_path_shapes_and_amplitudes(rig):
     np.testing.assert_array_equal(C.camera_path("static", 3, rig)[1], rig.reference)
     orbit = C.camera_path("orbit", 20, rig, amplitude=20)
     d = np.linalg.norm(orbit[:, :3, 3] - rig.center, axis=1)
-    np.testing.assert_allclose(d, d[0])
+    np.testing.assert_allclose(d, d[0], rtol=1e-5)  # the toy capture keeps its distance
     np.testing.assert_allclose(orbit[0, :3, 3], rig.eye, atol=1e-12)
     v0, v5 = orbit[0, :3, 3] - rig.center, orbit[5, :3, 3] - rig.center  # a quarter period
     ang = np.degrees(np.arccos(v0 @ v5 / (np.linalg.norm(v0) * np.linalg.norm(v5))))

@@ -4,17 +4,26 @@ Conventions (the dataset's): camera-to-world 4x4 matrices with OpenGL camera axe
 y up, the camera looks down -z).
 
 Every path starts from the reference camera (the camera of frame 0, whose codes ω_0, φ_0
-re-animation uses) and looks at the head: the centroid of frame 0's face mesh. Its scale
-comes from the capture: the radius is the mean distance of the training cameras from the
-head, and by default a path stays within the azimuths the training cameras covered about the
-capture's mean up vector, where the model has seen the scene (a still camera gives a still
-path: views beyond the capture extrapolate, ask for them with an explicit amplitude).
+re-animation uses) and keeps the head where that camera sees it: the centroid of frame 0's
+face mesh stays at the same pixel, however the camera moves (a crop of the video can put the
+face off the image's centre). Its scale comes from the capture: by default a path stays
+within the azimuths the training cameras covered about the capture's mean up vector, where
+the model has seen the scene (a still camera gives a still path: views beyond the capture
+extrapolate, ask for them with an explicit amplitude). An orbit also keeps to the capture's distance and
+height at each azimuth: a handheld capture films the scene from one curve, and a model is
+only sure of it near that curve (on the shared orbit clip an arc at frame 0's distance, 5 cm
+further back and 2 cm lower than the capture at its far end, showed the chin twice). Where
+the dataset has head poses, a path holds the head at frame 0's pose, so the face is seen
+from where each camera stood relative to the head, not in the room: the default range is
+the part of the room's azimuths that the head's also cover (a head that turned with the
+camera was never seen from the room's far end).
 
 Kinds:
   static  the reference camera itself, every frame;
-  orbit   an arc around the head at the reference camera's distance, swinging
-          +-amplitude deg in azimuth (one back-and-forth over the video); by default from
-          the reference out to each end of the captured azimuths;
+  orbit   around the head, swinging +-amplitude deg in azimuth (one back-and-forth over
+          the video) at the capture's distance and height for each azimuth (held at the
+          ends of the captured range beyond them); by default from the reference out to
+          each end of the captured azimuths;
   spiral  an LLFF/Nerfies-style spiral: the camera circles the reference position in the
           image plane (radius = tan(amplitude/2) x distance) while moving 10 % in and out;
   dolly   along the line to the head, in to (1 - amplitude) times the reference distance
@@ -32,8 +41,9 @@ from pathlib import Path
 import numpy as np
 
 from flamenerf.data.dataset import Dataset, reference_position
+from flamenerf.data.head_pose import canonical_from_world, transform_points
 from flamenerf.errors import UserError
-from flamenerf.geometry import look_at, rotate_about
+from flamenerf.geometry import rotation_between
 from flamenerf.io import read_json
 
 PATH_KINDS = ("static", "orbit", "spiral", "dolly")
@@ -46,12 +56,16 @@ class CameraRig:
     center: np.ndarray  # (3,) the head: centroid of frame 0's face mesh
     up: np.ndarray  # (3,) unit, mean camera up vector of the training cameras
     reference: np.ndarray  # (4, 4) frame 0's camera
-    radius: float  # mean distance of the training cameras from `center`
     swing_deg: float  # half-range of the training cameras' azimuths about `up`
     min_distance: float = 0.0  # closer to `center` than this, the face crosses the near plane
     azimuth_range: tuple[float, float] | None = None
     """(lowest, highest) training-camera azimuth in degrees, relative to the reference
-    camera (so lowest <= 0 <= highest); None: +-swing_deg."""
+    camera (so lowest <= 0 <= highest), in the room and, with head poses, relative to the
+    head too; None: +-swing_deg."""
+    captured: np.ndarray | None = None
+    """(N, 3) the training cameras about the head: azimuth (degrees, as azimuth_range),
+    distance from the `up` axis through `center`, and height along it; None: an arc at the
+    reference camera's distance and height."""
 
     def clamp(self, eye: np.ndarray) -> np.ndarray:
         """Push an eye position out to `min_distance` from the head if it is closer."""
@@ -63,6 +77,47 @@ class CameraRig:
     def eye(self) -> np.ndarray:
         return self.reference[:3, 3].copy()
 
+    def basis(self) -> tuple[np.ndarray, np.ndarray]:
+        """Unit vectors (3,), (3,) perpendicular to `up`: towards the reference camera, and
+        the direction of increasing azimuth."""
+        e0 = self.eye - self.center
+        e0 = e0 - self.up * (e0 @ self.up)
+        e0 = e0 / max(np.linalg.norm(e0), 1e-12)
+        return e0, np.cross(self.up, e0)
+
+    def aim(self, eye: np.ndarray) -> np.ndarray:
+        """Camera-to-world (4, 4) at `eye` that sees `center` where the reference camera
+        does: the reference orientation turned by the smallest rotation between the two
+        directions to the head."""
+        R = rotation_between(self.center - self.eye, self.center - eye)
+        c2w = self.reference.copy()
+        c2w[:3, :3] = R @ self.reference[:3, :3]
+        c2w[:3, 3] = eye
+        return c2w
+
+    def orbit_eye(self, azimuth_deg: float) -> np.ndarray:
+        """Where an orbit's camera stands at an azimuth: the reference camera turned about
+        the head, moved in and up or down as the capture's cameras are, on average, there
+        against at the reference (a Gaussian kernel over their azimuths)."""
+        e0, e1 = self.basis()
+        v = self.eye - self.center
+        h0 = float(v @ self.up)
+        r0 = float(np.linalg.norm(v - h0 * self.up))
+        dr = dh = 0.0
+        if self.captured is not None and len(self.captured) > 1:
+            az, r, h = self.captured.T
+            lo, hi = float(az.min()), float(az.max())
+            width = max(2.0, (hi - lo) / 10)
+
+            def smooth(a: float) -> tuple[float, float]:
+                w = np.exp(-0.5 * ((az - np.clip(a, lo, hi)) / width) ** 2) + 1e-12
+                return float(w @ r / w.sum()), float(w @ h / w.sum())
+
+            (ra, ha), (rz, hz) = smooth(azimuth_deg), smooth(0.0)
+            dr, dh = ra - rz, ha - hz
+        a = np.radians(azimuth_deg)
+        return self.center + (r0 + dr) * (np.cos(a) * e0 + np.sin(a) * e1) + (h0 + dh) * self.up
+
 
 def rig_from_dataset(ds: Dataset) -> CameraRig:
     ref = reference_position(ds)
@@ -72,22 +127,30 @@ def rig_from_dataset(ds: Dataset) -> CameraRig:
     up = c2ws[:, :3, 1].mean(0)
     up = up / max(np.linalg.norm(up), 1e-12)
     eyes = c2ws[:, :3, 3]
-    radius = float(np.linalg.norm(eyes - center, axis=1).mean())
     # azimuths about `up`, measured from the reference camera's direction
     ref_c2w = ds.frames[ref].c2w.astype(np.float64)
-    e0 = ref_c2w[:3, 3] - center
-    e0 = e0 - up * (e0 @ up)
-    e0 /= max(np.linalg.norm(e0), 1e-12)
-    e1 = np.cross(up, e0)
-    v = eyes - center
-    az = np.degrees(np.arctan2(v @ e1, v @ e0))
-    swing = float(az.max() - az.min()) / 2
+    rig = CameraRig(center, up, ref_c2w, 0.0)
+    e0, e1 = rig.basis()
+
+    def azimuths(points: np.ndarray) -> np.ndarray:
+        v = points - center
+        return np.degrees(np.arctan2(v @ e1, v @ e0))
+
+    az = azimuths(eyes)
+    lo, hi = min(0.0, float(az.min())), max(0.0, float(az.max()))
+    T = canonical_from_world(ds, train)
+    if T is not None:  # the cameras as the head (held at frame 0's pose) saw them
+        az_head = azimuths(transform_points(T, eyes[:, None])[:, 0])
+        lo, hi = max(lo, min(0.0, float(az_head.min()))), min(hi, max(0.0, float(az_head.max())))
+    height = (eyes - center) @ up
+    dist = np.linalg.norm(eyes - center - height[:, None] * up, axis=1)
+    swing = (hi - lo) / 2
     # how far the face reaches out towards the reference camera, plus 10 % of near
     verts = ds.face_vertices[ref].astype(np.float64) - center
     to_cam = (ref_c2w[:3, 3] - center) / max(np.linalg.norm(ref_c2w[:3, 3] - center), 1e-12)
     reach = max(0.0, float((verts @ to_cam).max()))
-    return CameraRig(center, up, ref_c2w, radius, swing, 1.1 * ds.near + reach,
-                     (min(0.0, float(az.min())), max(0.0, float(az.max()))))
+    return CameraRig(center, up, ref_c2w, swing, 1.1 * ds.near + reach, (lo, hi),
+                     np.stack([az, dist, height], 1))
 
 
 def camera_path(kind: str, num: int, rig: CameraRig, amplitude: float | None = None
@@ -108,11 +171,10 @@ def camera_path(kind: str, num: int, rig: CameraRig, amplitude: float | None = N
         else:  # out to each end of the captured range, however far off-centre frame 0 is
             lo, hi = np.radians(rig.azimuth_range)
             ang = np.where(wave >= 0, hi * wave, -lo * wave)
-        return np.stack([look_at(rotate_about(eye0, rig.up, a, target), target, rig.up)
-                         for a in ang])
+        return np.stack([rig.aim(rig.clamp(rig.orbit_eye(np.degrees(a)))) for a in ang])
     if kind == "spiral":
         amp = np.radians(rig.swing_deg if amplitude is None else amplitude)
-        base = look_at(eye0, target, rig.up)
+        base = rig.reference
         right, up, back = base[:3, 0], base[:3, 1], base[:3, 2]
         dist = np.linalg.norm(eye0 - target)
         r = np.tan(amp / 2) * dist
@@ -121,15 +183,15 @@ def camera_path(kind: str, num: int, rig: CameraRig, amplitude: float | None = N
             a = 2 * np.pi * t
             eye = (eye0 + r * (np.cos(a) - 1) * right + r * np.sin(a) * up
                    + 0.1 * dist * np.sin(2 * a) * back)
-            out.append(look_at(rig.clamp(eye), target, rig.up))
+            out.append(rig.aim(rig.clamp(eye)))
         return np.stack(out)
     if kind == "dolly":
         amp = 0.2 if amplitude is None else float(amplitude)
         if not 0 <= amp < 1:
             raise UserError(f"--amplitude {amp}: a dolly's amplitude is a fraction in [0, 1)")
         d = eye0 - target
-        return np.stack([look_at(rig.clamp(target + d * (1 - amp * (1 - np.cos(2 * np.pi * t))
-                                                        / 2)), target, rig.up) for t in s])
+        return np.stack([rig.aim(rig.clamp(target + d * (1 - amp * (1 - np.cos(2 * np.pi * t))
+                                                          / 2))) for t in s])
     raise UserError(f"unknown camera path {kind!r} (choose from {', '.join(PATH_KINDS)}, or "
                     "give a JSON file of poses)")
 
