@@ -155,3 +155,36 @@ def test_load_poses_formats_and_errors(tmp_path):
     with pytest.raises(UserError, match="missing.json: camera path file does not exist"):
         C.load_poses(tmp_path / "missing.json")
     assert len(C.resample(np.zeros((3, 4, 4)), 7)) == 7
+
+
+def test_default_spiral_stays_where_the_capture_filmed(rig):
+    """The toy's cameras lie on one arc: the default spiral shrinks to stay near it (a model
+    is sure of the scene only near its cameras), an explicit amplitude does not."""
+    eyes = rig.captured_eyes()
+
+    def off(P):
+        return np.linalg.norm(P[:, None, :3, 3] - eyes[None], axis=-1).min(1).max()
+
+    P = C.camera_path("spiral", 24, rig)
+    assert off(P) <= rig.capture_tolerance() + 1e-9
+    assert np.ptp(P[:, :3, 3], axis=0).max() > 0.5 * rig.capture_tolerance()  # still moves
+    assert off(C.camera_path("spiral", 24, rig, amplitude=20.0)) > rig.capture_tolerance()
+
+
+def test_a_capture_that_sweeps_an_area_covers_it(rig):
+    from dataclasses import replace
+
+    e0, e1 = rig.basis()
+    v = rig.eye - rig.center
+    h0 = v @ rig.up
+    r0 = np.linalg.norm(v - h0 * rig.up)
+    t = np.linspace(0, 1, 60)  # a zigzag over +-15 deg and +-0.1 m of height
+    zig = np.stack([30 * t - 15, r0 + 0 * t, h0 + 0.1 * np.sign(np.sin(6 * np.pi * t))], 1)
+    r = replace(rig, captured=zig)
+    between = r.orbit_eye(5.0)  # between the zigzag's passes, far from any of its cameras
+    assert np.linalg.norm(r.captured_eyes() - between, axis=1).min() > r.capture_tolerance()
+    assert r.near_capture(between[None])[0]
+    outside = between + 0.3 * rig.up  # above all of it
+    assert not r.near_capture(outside[None])[0]
+    line = replace(rig, captured=np.stack([30 * t - 15, r0 + 0 * t, h0 + 0 * t], 1))
+    assert not line.near_capture((between + 0.05 * rig.up)[None])[0]
