@@ -259,3 +259,21 @@ def test_a_slider_stops_at_the_training_range_unless_unticked(tiny_run):
         assert v.worker.expression()[0] == pytest.approx(0.8)
     finally:
         v.stop()
+
+
+def test_status_says_when_the_camera_leaves_the_capture(tiny_run):
+    """At frame 0's camera the status line says nothing more; well away from every training
+    camera it says how far (views there extrapolate)."""
+    from types import SimpleNamespace
+
+    from flamenerf.training.run import load_run
+    from flamenerf.viewer.app import Viewer
+    from flamenerf.viewer.options import ViewerOptions
+
+    run = load_run(tiny_run, device="cpu")
+    v = Viewer(run, ViewerOptions(port=1, resolution=16, verbose=False))  # never started
+    at_home = SimpleNamespace(camera=SimpleNamespace(position=v.home.position))
+    assert v.capture_note(at_home) == ""
+    far = v.home.position + 0.5 * v.home.up  # half a metre above frame 0's camera
+    note = v.capture_note(SimpleNamespace(camera=SimpleNamespace(position=far)))
+    assert note.startswith(" · outside the capture (") and "cm from its cameras" in note

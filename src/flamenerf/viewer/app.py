@@ -58,6 +58,9 @@ class Viewer:
         self.ds = run.dataset(opts.dataset)
         self.names = run.expression_names
         self.home = home_camera(self.ds)
+        from flamenerf.rendering.cameras import rig_from_dataset
+
+        self.rig = rig_from_dataset(self.ds)  # where the capture filmed from (status line)
         self.masker = FaceMasker(self.ds, self.home.frame_position, run.model)
         self.lo, self.hi = slider_range(self.ds)
         fi = self.ds.frames[self.home.frame_position]
@@ -410,6 +413,18 @@ class Viewer:
             self._synced_after.pop(client.client_id, None)
         self.worker.set_camera(client.client_id, c2w, fov, aspect)
 
+    def capture_note(self, client) -> str:
+        """' · outside the capture (N cm)' when the browser's camera stands where no training
+        camera filmed from (views there extrapolate: rendering/cameras.py), else ''."""
+        try:
+            eye = np.asarray(client.camera.position, np.float64)
+        except (AssertionError, AttributeError):
+            return ""
+        if not np.all(np.isfinite(eye)) or self.rig.near_capture(eye[None])[0]:
+            return ""
+        d = np.linalg.norm(self.rig.captured_eyes() - eye, axis=1).min()
+        return f" · outside the capture ({100 * d:.0f} cm from its cameras)"
+
     def _on_disconnect(self, client) -> None:
         self._clients.pop(client.client_id, None)
         self._status.pop(client.client_id, None)
@@ -434,5 +449,5 @@ class Viewer:
             state = "final" if frame.final else f"preview {frame.level + 1}"
             status.content = (f"{STATUS_PREFIX}: {frame.seconds * 1000:.0f} ms · "
                               f"{frame.intr.w}×{frame.intr.h} px · {state} · "
-                              f"#{frame.count}")
+                              f"#{frame.count}{self.capture_note(client)}")
         self.last_frame = frame
