@@ -100,6 +100,9 @@ def main() -> int:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--settings", choices=["FAST", "VIEWER"], default="FAST",
                     help="render's settings, or the viewer's (model/inference.py)")
+    ap.add_argument("--untuned", action="store_true",
+                    help="glibc as a library user's process has it (not tuned as the "
+                         "`flamenerf` command tunes it)")
     ap.add_argument("--json", type=Path, default=None)
     a = ap.parse_args()
     if (a.run is None) == (a.train is None) or (a.train and a.dataset is None):
@@ -109,7 +112,12 @@ def main() -> int:
     for r in range(a.rounds):
         for src in a.src:
             # glibc tuned as `flamenerf` tunes it (runtime.py), the tree under test first
-            env = dict(os.environ, **TUNED_ALLOCATOR, PYTHONPATH=str(Path(src).resolve()))
+            env = dict(os.environ, PYTHONPATH=str(Path(src).resolve()))
+            if a.untuned:
+                for k in TUNED_ALLOCATOR:
+                    env.pop(k, None)
+            else:
+                env.update(TUNED_ALLOCATOR)
             proc = subprocess.run(
                 [sys.executable, "-c", child, str(a.run), str(a.dataset or ""),
                  str(a.threads), json.dumps(a.sizes), str(a.repeats), what],
@@ -120,7 +128,9 @@ def main() -> int:
             print(f"round {r + 1} {src}: " + ", ".join(
                 f"{_label(s)} {min(ts):.3f} s" for s, ts in got.items()), flush=True)
     res = {"benchmark": "train_ab" if a.train else "render_ab",
-           "settings": a.train or a.settings, "command": "python benchmarks/bench_render_ab.py "
+           "settings": a.train or a.settings,
+           "allocator": "glibc default" if a.untuned else "tuned (runtime.TUNED_ALLOCATOR)",
+           "command": "python benchmarks/bench_render_ab.py "
            + " ".join(sys.argv[1:]), "machine": f"{platform.processor() or platform.machine()}, "
            f"{os.cpu_count()} cores, {a.threads} threads", "results": {}}
     for src, per in times.items():

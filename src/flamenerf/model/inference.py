@@ -4,7 +4,7 @@
 What differs from the training forward (measured on the trained `fast` run of the built-in
 scene, 256 px, 2-core CPU; docs/bench/render.md):
 - no autograd, no interlevel loss, deterministic (mid-interval) samples;
-- rays in chunks that stay in the CPU's cache (4096 rays; 8192 were once 2x slower);
+- rays in chunks of 2048 on a CPU (`RenderSettings.chunk`; 8192 were once 2x slower);
 - early ray termination: samples are evaluated front to back in groups, and a ray stops
   once its transmittance is below ε — its remaining samples could add at most ε to any
   output; the proposal stops likewise (skipping ~20 % of its samples), and a ray the
@@ -44,8 +44,11 @@ class RenderSettings:
     fast: bool = True
     """The inference path (this module); False: the training forward, exactly."""
     chunk: int = 0
-    """Rays per batch; 0: 4096 on a CPU (fits the cache; a few percent faster than 2048 on
-    the 2-core CPU: docs/bench/render_ab_chunk4096*.json), 65536 on a GPU (fills it)."""
+    """Rays per batch; 0: 2048 on a CPU, 65536 on a GPU (fills it). On a CPU 4096 was as
+    fast under the allocator `flamenerf` tunes (runtime.py), but at `fast`'s 32 samples a
+    layer's 64-wide activations for 4096 rays are 32 MiB, the size from which glibc's
+    default allocator maps and unmaps every such buffer: a library user's 256 px frame took
+    ~35 % longer (docs/bench/render_ab_chunk2048*.json)."""
     min_transmittance: float = 1e-4
     """ε: a ray stops once less than this much light can still reach its samples."""
     group: int = 16
@@ -77,7 +80,7 @@ class RenderSettings:
     def rays_per_chunk(self, device: torch.device) -> int:
         if self.chunk > 0:
             return self.chunk
-        return 4096 if device.type == "cpu" else 1 << 16
+        return 2048 if device.type == "cpu" else 1 << 16
 
 
 FAST = RenderSettings()
