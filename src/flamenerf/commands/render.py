@@ -22,10 +22,12 @@ def render(opts: Annotated[RenderOptions, tyro.conf.OmitArgPrefixes, tyro.conf.a
     --drive VIDEO (tracked like `flamenerf track`). Named controls are mapped onto the
     run's; missing ones are 0. Without any, frame 0's expression is held.
 
-    Camera paths (--camera): static (frame 0's camera), orbit (an arc around the head),
-    spiral, dolly, or a JSON file of camera-to-world poses; `auto` uses a split's own
-    cameras, else static. Paths look at the head (the centroid of frame 0's face mesh)
-    and take their radius and swing from the training cameras. The spatial prior's mask
+    Camera paths (--camera): static (frame 0's camera), orbit (around the head, at the
+    capture's distance and height), spiral, dolly, or a JSON file of camera-to-world
+    poses; `auto` uses a split's own cameras, else static. Paths keep the head (the
+    centroid of frame 0's face mesh) where frame 0's camera sees it and stay where the
+    capture filmed from unless --amplitude asks for more (for a moving head: where it
+    filmed the head from too; a still camera gives a still path). The prior's mask
     for each frame is the face mesh (frame 0's, or the split's per-frame mesh) rasterised
     for that camera with the dataset's dilation.
 
