@@ -55,6 +55,10 @@ def main() -> None:
     ap.add_argument("--figure", type=Path, default=None,
                     help="write the sweep picture: ground truth, then each variant")
     a = ap.parse_args()
+    from flamenerf.runtime import reexec_with_tuned_allocator
+
+    # glibc tuned as the `flamenerf` command tunes it, so that training times are a user's
+    reexec_with_tuned_allocator([str(Path(__file__).resolve()), *sys.argv[1:]])
 
     from flamenerf.data.dataset import load_dataset
     from flamenerf.evaluation.protocol import EvalOptions, evaluate_run

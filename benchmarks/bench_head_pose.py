@@ -51,6 +51,10 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=0)
     ap.add_argument("--json", type=Path, default=Path("docs/bench/head_pose.json"))
     a = ap.parse_args()
+    from flamenerf.runtime import reexec_with_tuned_allocator
+
+    # glibc tuned as the `flamenerf` command tunes it, so that training times are a user's
+    reexec_with_tuned_allocator([str(Path(__file__).resolve()), *sys.argv[1:]])
 
     from flamenerf.config import override, parse_variants, preset
     from flamenerf.data.dataset import load_dataset
