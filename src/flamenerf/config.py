@@ -253,6 +253,9 @@ class TrainConfig:
     appearance_lr_scale: float = 1.0
     """The appearance codes φ_i learn at `lr * appearance_lr_scale`: fast, they soak up
     per-frame residuals that the held-out protocol (which uses φ_0) cannot reproduce."""
+    deform_code_lr_scale: float = 1.0
+    """The deformation codes ω_i learn at `lr * deform_code_lr_scale` (1: with the field;
+    a re-animation has only ω_0, so what the other codes learn it cannot show)."""
     face_reg_weight: float = 1.0
     """Weight of ‖D(x_3DMM; ω_i) − x_3DMM‖ (paper's runs: 0.1 to 10)."""
     face_reg_points: int = 1024

@@ -56,6 +56,13 @@ def test_warp_and_appearance_codes_learn_at_their_own_rates(tiny_scene, tmp_path
     # every parameter is optimised, and only once
     ids = [id(p) for g in t.opt.param_groups for p in g["params"]]
     assert sorted(ids) == sorted(id(p) for p in t.model.parameters())
+    cfg.train.deform_code_lr_scale = 0.1
+    t = Trainer(cfg, tiny_scene, tmp_path / "run2", quiet=True)
+    t.train_step()
+    rate = {id(p): g["lr"] for g in t.opt.param_groups for p in g["params"]}
+    assert rate[id(t.model.deform_codes.weight)] == pytest.approx(lr * 0.1)
+    ids = [id(p) for g in t.opt.param_groups for p in g["params"]]
+    assert sorted(ids) == sorted(id(p) for p in t.model.parameters())
 
 
 @pytest.mark.slow

@@ -43,6 +43,8 @@ def param_groups(model: FlameNeRF, cfg) -> list[dict]:
     """The deformation MLP and the appearance codes in groups of their own, so that they
     can learn more slowly than the rest (`lr_scale`, applied by `Trainer.train_step`)."""
     special = [(model.warp, cfg.warp_lr_scale), (model.appearance_codes, cfg.appearance_lr_scale)]
+    if cfg.deform_code_lr_scale != 1.0:  # a group only when asked: older runs' optimiser
+        special.append((model.deform_codes, cfg.deform_code_lr_scale))  # states still load
     taken: set[int] = set()
     groups = []
     for module, scale in special:
