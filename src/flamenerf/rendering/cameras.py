@@ -9,9 +9,9 @@ face mesh stays at the same pixel, however the camera moves (a crop of the video
 face off the image's centre). Its scale comes from the capture: by default a path stays
 within the azimuths the training cameras covered about the capture's mean up vector, where
 the model has seen the scene (a still camera gives a still path: views beyond the capture
-extrapolate, ask for them with an explicit amplitude). An orbit also keeps to the capture's distance and
-height at each azimuth: a handheld capture films the scene from one curve, and a model is
-only sure of it near that curve (on the shared orbit clip an arc at frame 0's distance, 5 cm
+extrapolate, ask for them with an explicit amplitude). An orbit also keeps to the
+capture's distance and height at each azimuth: a handheld capture films the scene from one
+curve, and a model is only sure of it near that curve (on the shared orbit clip an arc at frame 0's distance, 5 cm
 further back and 2 cm lower than the capture at its far end, showed the chin twice). Where
 the dataset has head poses, a path holds the head at frame 0's pose, so the face is seen
 from where each camera stood relative to the head, not in the room: the default range is
@@ -164,8 +164,9 @@ class CameraRig:
 
     def orbit_eye(self, azimuth_deg: float) -> np.ndarray:
         """Where an orbit's camera stands at an azimuth: the reference camera turned about
-        the head, moved in and up or down as the capture's cameras are, on average, there
-        against at the reference (a Gaussian kernel over their azimuths)."""
+        the head, then moved in or out and up or down by as much as the capture's cameras
+        at that azimuth differ, on average, from those at the reference's (a Gaussian
+        kernel over their azimuths)."""
         e0, e1 = self.basis()
         v = self.eye - self.center
         h0 = float(v @ self.up)
