@@ -337,17 +337,20 @@ def _fast() -> Config:
     cfg.model.mesh_guide.enabled = None
     cfg.model.sampler = SamplerConfig(kind="proposal", num_proposal=48, num_main=32,
                                       proposal_levels=5, proposal_max_res=128)
-    # 680 steps: what fitted in 10 minutes on the 2-core CPU when chosen (548 s), so that the
-    # learning rate has decayed when the time is up; now ~6-7 minutes on the built-in scene
-    # and the real clips, longer with head poses (docs/presets.md item 3)
+    # 900 steps with the per-frame deformation codes at a tenth of the learning rate: the
+    # extra steps sharpen the face a re-animation shows (built-in margin over the Nerfies
+    # variant +0.4 dB on three seeds); at full rate the codes took them instead and a real
+    # clip's driven face fell 0.9 dB. 7.5-9.5 minutes on the 2-core CPU (docs/presets.md
+    # item 3)
     # the face-depth prior from a fifth of the run on: without it the face trains as a fog
     # centred ~3 cm behind its surface, which new cameras see wrongly (docs/presets.md)
     # rays over a random colour: over black, a half-transparent room with fog in front of it
     # passed for the captured views in some trainings and not for new ones (item 7)
-    # 30 % of the rays from the face silhouettes: 680 steps otherwise leave the face's small
+    # 30 % of the rays from the face silhouettes: uniform rays otherwise leave the face's small
     # saturated parts (lips, irises) and the mouth's shapes pale and soft (item 8)
-    cfg.train = TrainConfig(steps=680, batch_rays=4096, lr=1e-2, lr_final=1e-3,
+    cfg.train = TrainConfig(steps=900, batch_rays=4096, lr=1e-2, lr_final=1e-3,
                             lr_warmup=50, warp_lr_scale=0.1, appearance_lr_scale=0.01,
+                            deform_code_lr_scale=0.1,
                             face_depth_weight=0.01, face_depth_start=0.2,
                             random_background=True, face_ray_fraction=0.3,
                             checkpoint_every=200,
