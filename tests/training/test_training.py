@@ -45,6 +45,7 @@ def test_warp_and_appearance_codes_learn_at_their_own_rates(tiny_scene, tmp_path
     cfg = small(preset("fast"), 5)
     cfg.train.lr_warmup = 0
     cfg.train.warp_lr_scale, cfg.train.appearance_lr_scale = 0.1, 0.01
+    cfg.train.deform_code_lr_scale = 1.0  # with the rest (`fast` slows them: below)
     t = Trainer(cfg, tiny_scene, tmp_path / "run", quiet=True)
     t.train_step()
     lr = learning_rate(0, cfg.train)
