@@ -40,6 +40,11 @@ def test_split_and_file_sources_set_the_length(toy_run, tmp_path):
 def test_bad_inputs_are_user_errors(toy_run, tmp_path):
     with pytest.raises(UserError, match="nope: run directory does not exist"):
         render(RenderOptions(tmp_path / "nope"))
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(UserError, match="empty: not a run directory"):
+        render(RenderOptions(tmp_path / "empty"))
+    with pytest.raises(UserError, match="--camera 'orbitt': neither a camera path"):
+        render(RenderOptions(toy_run, out=tmp_path / "x.mp4", camera="orbitt", device="cpu"))
     with pytest.raises(UserError, match="unknown control 'jawOpn'"):
         render(RenderOptions(toy_run, out=tmp_path / "x.mp4", expressions=["jawOpn=0.8"],
                              device="cpu"))

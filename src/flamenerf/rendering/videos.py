@@ -218,6 +218,9 @@ def camera_poses(opts: RenderOptions, seq: X.ExpressionSequence, rig: C.CameraRi
         return C.camera_path("static", len(seq), rig), "static", seq
     if camera in C.PATH_KINDS:
         return C.camera_path(camera, len(seq), rig, opts.amplitude), camera, seq
+    if not Path(camera).exists():  # most likely a mistyped path name, not a missing file
+        raise UserError(f"--camera {camera!r}: neither a camera path ({', '.join(C.PATH_KINDS)}, "
+                        "auto, split) nor an existing JSON file of poses")
     poses = C.load_poses(Path(camera))
     if seq.resizable and len(poses) != len(seq):
         seq = (X.from_items(opts.expressions, names, base, len(poses), companions)

@@ -68,6 +68,9 @@ def load_run(run_dir: str | Path, device: str = "auto") -> Run:
                         "train` (the folder holding config.json)")
     if not run_dir.is_dir():
         raise UserError(f"{run_dir}: run directory does not exist")
+    if not (run_dir / "config.json").is_file():
+        raise UserError(f"{run_dir}: not a run directory (no config.json; give the folder "
+                        "`flamenerf train --out` made)")
     meta = read_json(run_dir / "config.json")
     found = load_latest(run_dir)  # skips an unreadable newest checkpoint, with a warning
     if found is None:
