@@ -1,0 +1,45 @@
+"""A strip of chosen frames of `flamenerf render` videos, one row per video (the README's
+docs/real_keyframes.png and docs/builtin_blink_leak.png).
+
+    python scripts/video_strip.py R/kf.mp4 R/kf_depth.mp4 --frames 0 15 29 30 45 59 \
+        --out docs/real_keyframes.png
+    python scripts/video_strip.py R/blink.mp4 R/brow.mp4 --frames 0 1 --diff \
+        --out docs/builtin_blink_leak.png
+
+`--diff` appends |last frame - first frame| x 4 (grey) to each row.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("videos", type=Path, nargs="+")
+    ap.add_argument("--frames", type=int, nargs="+", required=True)
+    ap.add_argument("--diff", action="store_true")
+    ap.add_argument("--out", type=Path, required=True)
+    a = ap.parse_args()
+    from flamenerf.data.video import read_frames
+    from flamenerf.images import abs_diff, hstack, vstack
+    from flamenerf.io import save_png
+
+    rows = []
+    for video in a.videos:
+        frames = read_frames(video)
+        if max(a.frames) >= len(frames):
+            raise SystemExit(f"{video}: {len(frames)} frames, asked for frame {max(a.frames)}")
+        picked = [frames[i].astype(np.float32) / 255 for i in a.frames]
+        if a.diff:
+            picked.append(abs_diff(picked[-1], picked[0], 4.0))
+        rows.append(hstack(picked))
+    save_png(a.out, np.clip(vstack(rows), 0, 1))
+    print(f"wrote {a.out}")
+
+
+if __name__ == "__main__":
+    main()
