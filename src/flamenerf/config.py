@@ -155,8 +155,10 @@ class MeshGuideConfig:
     """Ridge of the β -> mesh least-squares fit (relative to the mean squared control)."""
     face_parts: bool = True
     """Fit the β -> mesh model with each ARKit-named control limited to its part of the
-    face (brows, eyes, mid face, lower face) on MediaPipe meshes: the tracker's scores
-    co-vary, and a free fit lets brow controls open the jaw (data/face_parts.py). Used by
+    face (brows, eyes, mid face, lower face) where the mesh's eyes and mouth are known
+    (MediaPipe's meshes, the built-in scene's): a tracker's scores co-vary, and a free fit
+    let brow controls open the jaw; on the built-in mesh it gave the lips' non-linear motion
+    to the blinks, and a commanded blink opened the mouth (data/face_parts.py). Used by
     every preset that fits the model (per-control prior, mesh guide, driven silhouettes)."""
 
     def resolved_enabled(self, face_parts: bool) -> bool:

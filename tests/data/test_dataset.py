@@ -77,3 +77,22 @@ def test_head_pose_is_optional_validated_and_all_or_none(toy_dataset, tmp_path):
         tj.write_text(json.dumps(m))
         with pytest.raises(DatasetError, match=f"transforms.json.*{msg}"):
             load_dataset(posed)
+
+
+def test_face_landmarks_are_validated(dataset_dir, tmp_path):
+    import shutil
+
+    assert set(load_dataset(dataset_dir).face_landmarks) == {"eye_left", "eye_right", "mouth"}
+    copy = tmp_path / "copy"
+    shutil.copytree(dataset_dir, copy)
+    tj = copy / "transforms.json"
+    meta = json.loads(tj.read_text())
+    for bad in ({"eye_left": [0], "eye_right": [1]}, {"eye_left": [0], "eye_right": [1],
+                                                      "mouth": [10 ** 6]}, [1, 2]):
+        meta["face_landmarks"] = bad
+        tj.write_text(json.dumps(meta))
+        with pytest.raises(DatasetError, match="transforms.json.*face_landmarks"):
+            load_dataset(copy)
+    del meta["face_landmarks"]  # optional
+    tj.write_text(json.dumps(meta))
+    assert load_dataset(copy).face_landmarks is None

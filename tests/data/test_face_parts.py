@@ -4,7 +4,7 @@ scores must not let a brow control move the jaw."""
 import numpy as np
 import torch
 
-from flamenerf.data.face_parts import control_weights
+from flamenerf.data.face_parts import applies, control_weights
 from flamenerf.meshes import expression_mesh, fit_expression_model
 
 NAMES = ["_neutral", "browInnerUp", "eyeBlinkLeft", "eyeBlinkRight", "jawOpen",
@@ -110,3 +110,28 @@ def test_the_prior_radius_follows_whether_the_parts_apply(dataset_dir):
     off.model.mesh_guide.enabled = False
     assert off.model.mesh_guide.resolved_enabled(True) is False
     assert preset("flame-in-nerf").model.mesh_guide.resolved_enabled(True) is False
+
+
+def test_the_builtin_scene_names_its_eyes_and_mouth_and_gets_face_parts(dataset_dir):
+    """The built-in mesh's lips slide into the open mouth (not linear in jawOpen): without
+    face parts a fit may hand that to a blink. With them a blink cannot reach the mouth and
+    the jaw cannot reach the eyes, while the parts' defaults for tracked clips stay off."""
+    from flamenerf.data.dataset import load_dataset
+    from flamenerf.data.scene import canonical_vertices, fit_dataset_expression_model
+
+    ds = load_dataset(dataset_dir)
+    assert ds.face_landmarks is not None
+    assert not applies(ds.expression_kind, ds.expression_names, ds.face_vertices.shape[1])
+    _, basis = fit_dataset_expression_model(ds)
+    v = canonical_vertices(ds, ds.training_frames()).mean(0)
+    mouth = v[ds.face_landmarks["mouth"]].mean(0)
+    eye = v[ds.face_landmarks["eye_left"]].mean(0)
+    span = np.linalg.norm(eye - mouth)
+    near_mouth = torch.from_numpy(np.linalg.norm(v - mouth, axis=1) < 0.3 * span)
+    near_eye = torch.from_numpy(np.linalg.norm(v - eye, axis=1) < 0.2 * span)
+    k = {n: i for i, n in enumerate(ds.expression_names)}
+    motion = basis.norm(dim=-1)  # (E, V)
+    assert motion[k["jawOpen"]][near_mouth].amax() > 1e-3  # the jaw opens (metres)
+    for name in ("eyeBlinkLeft", "eyeBlinkRight", "eyeWideLeft", "browInnerUp"):
+        assert motion[k[name]][near_mouth].amax() == 0, name
+    assert motion[k["jawOpen"]][near_eye].amax() == 0

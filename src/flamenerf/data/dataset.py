@@ -93,6 +93,9 @@ class Dataset:
     face_vertices: np.ndarray  # (num_frames, V, 3) float32, world coordinates
     source: dict[str, Any]
     meta: dict[str, Any]  # the whole transforms.json, for fields not modelled above
+    face_landmarks: dict[str, list[int]] | None = None
+    """Vertex indices of the eyes and the mouth on the face mesh (`eye_left`, `eye_right`,
+    `mouth`) where the mesh is not MediaPipe's (data/face_parts.py)."""
 
     @property
     def expression_dim(self) -> int:
@@ -218,6 +221,27 @@ def _flat(values):
 
 
 HEAD_POSE_TOL = 1e-4  # how far a head pose's rotation may be from orthonormal
+
+
+def _face_landmarks(meta: dict, where: str, num_vertices: int) -> dict[str, list[int]] | None:
+    """The optional `face_landmarks`, checked: each of the keys a non-empty list of vertex
+    indices of the face mesh."""
+    from flamenerf.data.face_parts import LANDMARK_KEYS
+
+    raw = meta.get("face_landmarks")
+    if raw is None:
+        return None
+    if not isinstance(raw, dict):
+        raise DatasetError(f"{where}: face_landmarks must be an object")
+    out = {}
+    for k in LANDMARK_KEYS:
+        idx = raw.get(k)
+        if (not isinstance(idx, list) or not idx
+                or not all(isinstance(i, int) and 0 <= i < num_vertices for i in idx)):
+            raise DatasetError(f"{where}: face_landmarks.{k} must list vertex indices of "
+                               f"the face mesh (in [0, {num_vertices}))")
+        out[k] = idx
+    return out
 
 
 def _head_pose(fr: dict, w: str) -> np.ndarray | None:
@@ -354,6 +378,7 @@ def load_dataset(root: str | os.PathLike, check_files: bool = True) -> Dataset:
     if faces.size and (faces.min() < 0 or faces.max() >= verts.shape[1]):
         raise DatasetError(f"{mesh_path}: 'faces' index vertices out of range")
 
+    landmarks = _face_landmarks(meta, where, verts.shape[1])
     ds = Dataset(
         root=root,
         intrinsics=intr,
@@ -367,6 +392,7 @@ def load_dataset(root: str | os.PathLike, check_files: bool = True) -> Dataset:
         face_vertices=verts,
         source=meta.get("source", {}),
         meta=meta,
+        face_landmarks=landmarks,
     )
     if check_files:
         for fr in frames:

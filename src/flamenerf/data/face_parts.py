@@ -7,12 +7,17 @@ fitted by least squares on such frames spreads the jaw's motion over the brow co
 per-control spatial prior built from it lets a brow control open the mouth, so that
 commanding jawOpen alone opens it a fraction. Anatomy settles what the data cannot: a brow
 control moves the brows, a jaw or mouth control the lower face. This module gives, for
-ARKit-named controls on MediaPipe's face-mesh topology (what `flamenerf preprocess`
-writes), a soft weight per vertex and control; the β -> mesh fit (meshes.
-fit_expression_model) only lets control k move vertex v by as much as that weight.
+ARKit-named controls on a face mesh whose eyes and mouth it can find, a soft weight per
+vertex and control; the β -> mesh fit (meshes.fit_expression_model) only lets control k
+move vertex v by as much as that weight.
 
-Other expression kinds (FLAME's PCA components, the synthetic rig's own topology) get no
-weights: their controls are either a model's own basis or uncorrelated by construction.
+The eyes and mouth are MediaPipe's landmarks on its topology (what `flamenerf preprocess`
+writes), or the vertices a dataset names in `face_landmarks` (the built-in scene's mesh).
+The built-in scene needs them too although its controls are uncorrelated by construction:
+its mesh's lip vertices slide into the open mouth (not linear in jawOpen), and a free fit
+spread that residual over the rarely used controls (eyeBlinkLeft's largest motion was 5 mm
+on the lips, eyeWideLeft's 48 mm), so that a commanded blink opened the mouth. FLAME's PCA
+components get no weights: they are the model's own basis.
 """
 
 from __future__ import annotations
@@ -21,10 +26,16 @@ import numpy as np
 
 # MediaPipe's canonical face mesh (468 landmarks; 478 with the irises): the eye corners,
 # the lip centres and the mouth corners, which place the eyes and the mouth on any face
-_EYE_LEFT = (263, 362)   # the subject's left eye, outer and inner corner
-_EYE_RIGHT = (33, 133)
-_MOUTH = (13, 14, 61, 291)
+MEDIAPIPE_LANDMARKS = {
+    "eye_left": (263, 362),    # the subject's left eye, outer and inner corner
+    "eye_right": (33, 133),
+    "mouth": (13, 14, 61, 291),
+}
 MEDIAPIPE_VERTEX_COUNTS = (468, 478)
+LANDMARK_KEYS = tuple(MEDIAPIPE_LANDMARKS)
+PART_KINDS = ("arkit", "synthetic")
+"""Expression kinds whose controls are ARKit-named blendshapes (the tracker's scores, the
+built-in rig's controls)."""
 
 # (lower, upper) bounds of a part along the face's vertical axis h (0 at the mouth, 1 at the
 # eyes), with a soft edge of _EDGE on each side; the eyes are a distance from either eye.
@@ -75,25 +86,42 @@ def _band(h: np.ndarray, lo: float, hi: float) -> np.ndarray:
 
 
 def applies(kind: str, names: list[str], num_vertices: int) -> bool:
-    """Whether `control_weights` limits anything for such an expression model and mesh."""
+    """Whether the dataset is a tracked clip with face parts (MediaPipe's ARKit scores on
+    its own mesh): its scores co-vary, which the companions (data/companions.py) and the
+    presets' per-dataset defaults (the per-control prior's radius, the mesh guide) answer.
+    The built-in scene's face parts (`control_weights`) do not count: its controls are
+    independent, and those defaults were measured on it without them."""
     return (kind == "arkit" and num_vertices in MEDIAPIPE_VERTEX_COUNTS
             and any(_part_of(n) is not None for n in names))
 
 
-def control_weights(kind: str, names: list[str], vertices: np.ndarray) -> np.ndarray | None:
-    """Soft per-vertex limits of each control, or None where none apply (not ARKit names,
-    not MediaPipe's topology, or no name this module knows).
+def mesh_landmarks(num_vertices: int, given: dict | None = None
+                   ) -> dict[str, tuple[int, ...]] | None:
+    """Vertex indices of the eyes and the mouth on a face mesh: `given` (a dataset's
+    `face_landmarks`), else MediaPipe's on its topology, else None."""
+    if given is not None:
+        return {k: tuple(int(i) for i in given[k]) for k in LANDMARK_KEYS}
+    return MEDIAPIPE_LANDMARKS if num_vertices in MEDIAPIPE_VERTEX_COUNTS else None
 
-    kind: the dataset's expression kind (`arkit` for MediaPipe's blendshape scores);
-    names (E,); vertices (V, 3) a typical mesh of the subject (e.g. the mean training
-    mesh), any units. -> (V, E) float32 in [0, 1].
+
+def control_weights(kind: str, names: list[str], vertices: np.ndarray,
+                    landmarks: dict | None = None) -> np.ndarray | None:
+    """Soft per-vertex limits of each control, or None where none apply (not ARKit names,
+    no eyes and mouth known on the mesh, or no name this module knows).
+
+    kind: the dataset's expression kind (`arkit` for MediaPipe's blendshape scores,
+    `synthetic` for the built-in rig's); names (E,); vertices (V, 3) a typical mesh of the
+    subject (e.g. the mean training mesh), any units; landmarks: the dataset's
+    `face_landmarks` (`mesh_landmarks`). -> (V, E) float32 in [0, 1].
     """
-    if not applies(kind, names, vertices.shape[0]):
+    marks = mesh_landmarks(vertices.shape[0], landmarks)
+    if kind not in PART_KINDS or marks is None or all(_part_of(n) is None for n in names):
         return None
     parts = [_part_of(n) for n in names]
     v = np.asarray(vertices, np.float64)
-    eye_l, eye_r = v[list(_EYE_LEFT)].mean(0), v[list(_EYE_RIGHT)].mean(0)
-    mouth = v[list(_MOUTH)].mean(0)
+    eye_l = v[list(marks["eye_left"])].mean(0)
+    eye_r = v[list(marks["eye_right"])].mean(0)
+    mouth = v[list(marks["mouth"])].mean(0)
     up = (eye_l + eye_r) / 2 - mouth
     scale = float(np.linalg.norm(up))
     h = (v - mouth) @ (up / scale) / scale

@@ -72,8 +72,8 @@ def fit_dataset_expression_model(ds: Dataset, ridge: float = 1e-3, face_parts: b
     -> neutral (V, 3), basis (E, V, 3) in world units."""
     train = ds.training_frames()
     verts = canonical_vertices(ds, train)
-    weights = (control_weights(ds.expression_kind, ds.expression_names, verts.mean(0))
-               if face_parts else None)
+    weights = (control_weights(ds.expression_kind, ds.expression_names, verts.mean(0),
+                               ds.face_landmarks) if face_parts else None)
     return fit_expression_model(torch.from_numpy(ds.expression_matrix(train)),
                                 torch.from_numpy(verts), ridge,
                                 None if weights is None else torch.from_numpy(weights))

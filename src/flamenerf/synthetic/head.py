@@ -709,6 +709,18 @@ def mesh_layout() -> tuple[np.ndarray, np.ndarray]:
     return uv, f
 
 
+def mesh_landmarks() -> dict[str, list[int]]:
+    """The face mesh's vertices at the eyes' and the mouth's centres (a dataset's
+    `face_landmarks`, data/face_parts.py): the grid vertex nearest each."""
+    uv, _ = mesh_layout()
+
+    def nearest(u: float, v: float) -> list[int]:
+        return [int(np.argmin((uv[:, 0] - u) ** 2 + (uv[:, 1] - v) ** 2))]
+
+    return {"eye_left": nearest(EYE_U, EYE_V), "eye_right": nearest(-EYE_U, EYE_V),
+            "mouth": nearest(0.0, MOUTH_V)}
+
+
 def _box(grid: Grid, u0: float, u1: float, v0: float, v1: float) -> tuple[slice, slice]:
     """Row and column slices of the grid texels inside the angular box."""
     h, w = grid.shape

@@ -32,7 +32,7 @@ import numpy as np
 
 from flamenerf.synthetic.cameras import capture_path, novel_path
 from flamenerf.synthetic.expressions import leakage_sweep, speech_trajectory
-from flamenerf.synthetic.head import CONTROLS
+from flamenerf.synthetic.head import CONTROLS, mesh_landmarks
 
 SOURCE_NAME = "flamenerf synth"
 
@@ -217,6 +217,7 @@ def make_scene(out: str | os.PathLike, seed: int = 0, size: int = 256, frames: i
             if progress is not None:
                 progress(i + 1)
         writer.set_faces(SyntheticScene.mesh_faces())
+        writer.set_meta("face_landmarks", mesh_landmarks())
         writer.set_meta("near", round(0.9 * lo, 4))
         writer.set_meta("far", round(1.05 * hi, 4))
         return writer.close()
