@@ -69,6 +69,31 @@ def test_displacement_by_k_d_tree_matches_every_vertex_blended():
         assert torch.allclose(bd2[fin], td2[fin], atol=1e-6) and torch.equal(bidx, tidx)
 
 
+def test_displacement_of_many_meshes_at_once_is_each_mesh_alone():
+    """A training batch guides points of ~100 frames at once (one k-d tree on a CPU,
+    batched distances elsewhere): each point must move with its own frame's mesh."""
+    g = torch.Generator().manual_seed(4)
+    base = torch.rand(200, 3, generator=g) * 0.3
+    meshes = base + 0.02 * torch.randn(5, 200, 3, generator=g)  # overlapping in space
+    target = base
+    x = torch.rand(3000, 3, generator=g) * 0.4 - 0.05
+    which = torch.randint(5, (3000,), generator=g)
+    got = mesh_displacement(x, meshes, target, 0.03, which=which)
+    ref = torch.zeros_like(x)
+    for m in range(5):
+        sel = which == m
+        ref[sel] = mesh_displacement(x[sel], meshes[m], target, 0.03)
+    assert (got - ref).abs().max() < 1e-6 and (ref.norm(dim=-1) > 1e-3).sum() > 100
+    # the path off the CPU (brute force over each point's own mesh) agrees with the tree
+    for k in (1, 4):
+        td2, tidx = nearest_vertices(x, meshes, k, 0.05, which)
+        bd2, bidx = nearest_vertices_brute(x, meshes.reshape(-1, 3), k, 0.05, which, 200)
+        fin = torch.isfinite(td2)
+        assert bool(fin.any()) and torch.equal(fin, torch.isfinite(bd2))
+        assert torch.allclose(bd2[fin], td2[fin], atol=1e-6) and torch.equal(bidx, tidx)
+        assert bool((tidx[fin] // 200 == which[:, None].expand_as(tidx)[fin]).all())
+
+
 def test_surface_points_lie_in_their_triangles():
     verts = torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
     faces = torch.tensor([[0, 1, 2], [0, 1, 3]])

@@ -81,39 +81,58 @@ GUIDE_CUTOFF = 4.0
 below exp(-16) ≈ 1e-7 of the vertices')."""
 
 
-def mesh_displacement(x: Tensor, mesh: Tensor, target: Tensor, falloff: float, k: int = 4
-                      ) -> Tensor:
+def mesh_displacement(x: Tensor, mesh: Tensor, target: Tensor, falloff: float, k: int = 4,
+                      which: Tensor | None = None) -> Tensor:
     """The displacement that carries space near `mesh` along with its vertices to `target`.
 
-    x (P, 3) points; mesh, target (V, 3) the same vertices in two poses; `falloff` the
-    distance at which the motion has faded to 1/e (points far from the face stay put).
-    Each point moves by the inverse-square-distance blend of its k nearest vertices'
-    motions, scaled by exp(-(d_min / falloff)^2), and not at all beyond GUIDE_CUTOFF
-    falloffs. -> (P, 3).
+    x (P, 3) points; mesh (V, 3), or (M, V, 3) several meshes with `which` (P,) long saying
+    whose mesh each point moves with; target (V, 3) the same vertices in the common pose;
+    `falloff` the distance at which the motion has faded to 1/e (points far from the face
+    stay put). Each point moves by the inverse-square-distance blend of its k nearest
+    vertices' motions (on its own mesh), scaled by exp(-(d_min / falloff)^2), and not at
+    all beyond GUIDE_CUTOFF falloffs. -> (P, 3).
     """
     if x.shape[0] == 0:
         return torch.zeros_like(x)
-    k = min(k, mesh.shape[0])
-    d2k, idx = nearest_vertices(x, mesh, k, GUIDE_CUTOFF * falloff)  # (P, k), inf: none
+    meshes = mesh if mesh.dim() == 3 else mesh[None]
+    if which is None:
+        which = torch.zeros(len(x), dtype=torch.long, device=x.device)
+    k = min(k, meshes.shape[1])
+    d2k, idx = nearest_vertices(x, meshes, k, GUIDE_CUTOFF * falloff, which)  # inf: none
     w = 1.0 / (d2k + 1e-10)  # 0 for the missing (d² = inf)
     w = w / w.sum(-1, keepdim=True).clamp_min(1e-30)  # rows with none: 0, not 0/0
-    motion = (target - mesh)[idx]  # (P, k, 3)
+    motion = (target[None] - meshes).reshape(-1, 3)[idx]  # (P, k, 3)
     fade = torch.exp(-d2k[:, :1] / (falloff * falloff))  # (P, 1): 0 where none is near
     return (w[..., None] * motion).sum(1) * fade
 
 
-def nearest_vertices(pts: Tensor, verts: Tensor, k: int, bound: float
-                     ) -> tuple[Tensor, Tensor]:
+def nearest_vertices(pts: Tensor, verts: Tensor, k: int, bound: float,
+                     which: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """Squared distances to, and indices of, the k nearest of verts (V, 3) for pts (P, 3),
-    nearest first; neighbours farther than `bound` get d² = inf and index 0. A k-d tree on
-    a CPU (brute-force distances to every vertex were over a third of a mesh-guided
-    frame's time), brute force elsewhere. -> (P, k), (P, k) long."""
+    nearest first; neighbours farther than `bound` get d² = inf and index 0. With several
+    meshes verts (M, V, 3) and `which` (P,) long, each point's neighbours come from its own
+    mesh, indexed into the M·V stacked vertices. A k-d tree on a CPU (brute-force distances
+    to every vertex were over a third of a mesh-guided frame's time), brute force
+    elsewhere. -> (P, k), (P, k) long."""
+    if verts.dim() == 3 and pts.device.type != "cpu":
+        d2, i = nearest_vertices_brute(pts, verts.reshape(-1, 3), k, bound, which,
+                                       verts.shape[1])
+        return d2, i
     if pts.device.type == "cpu":
         from scipy.spatial import cKDTree
 
-        d, i = cKDTree(verts.double().numpy()).query(
-            pts.double().numpy(), k=k, distance_upper_bound=bound,
-            workers=_tree_workers(len(pts)))
+        v = verts.double().reshape(-1, 3).numpy()
+        p = pts.double().numpy()
+        if verts.dim() == 3:
+            # one tree for all the meshes (a training batch has ~100 distinct β; a tree and
+            # a query each cost more in overhead than in work): a fourth coordinate, far
+            # apart for different meshes, keeps every point's neighbours on its own mesh
+            gap = 2.0 * bound + 1.0
+            m = np.repeat(np.arange(verts.shape[0], dtype=np.float64), verts.shape[1])
+            v = np.concatenate([v, (m * gap)[:, None]], 1)
+            p = np.concatenate([p, which.double().numpy()[:, None] * gap], 1)
+        d, i = cKDTree(v).query(p, k=k, distance_upper_bound=bound,
+                                workers=_tree_workers(len(pts)))
         d, i = d.reshape(len(pts), k), i.reshape(len(pts), k)
         far = ~np.isfinite(d)
         i[far] = 0
@@ -121,9 +140,18 @@ def nearest_vertices(pts: Tensor, verts: Tensor, k: int, bound: float
     return nearest_vertices_brute(pts, verts, k, bound)
 
 
-def nearest_vertices_brute(pts: Tensor, verts: Tensor, k: int, bound: float
+def nearest_vertices_brute(pts: Tensor, verts: Tensor, k: int, bound: float,
+                           which: Tensor | None = None, per_mesh: int = 0
                            ) -> tuple[Tensor, Tensor]:
-    """`nearest_vertices` by distances to every vertex (the path off the CPU)."""
+    """`nearest_vertices` by distances to every vertex (the path off the CPU); with
+    `which`, verts are M meshes of `per_mesh` vertices stacked (M·V, 3)."""
+    if which is not None:
+        own = verts.view(-1, per_mesh, 3)[which]  # (P, V, 3)
+        d2 = (pts[:, None] - own).square().sum(-1)
+        d2, i = torch.topk(d2, k, dim=-1, largest=False)
+        far = d2 > bound * bound
+        i = i + which[:, None] * per_mesh
+        return d2.masked_fill(far, float("inf")), i.masked_fill(far, 0)
     d2 = torch.cdist(pts, verts).square()
     if k == 1:  # a reduction: topk's radix select was 15 % of an H100's 256 px frame
         d2, i = d2.min(-1, keepdim=True)
@@ -134,17 +162,20 @@ def nearest_vertices_brute(pts: Tensor, verts: Tensor, k: int, bound: float
 
 
 def _tree_workers(n: int) -> int:
-    # a training batch queries one small tree per distinct β: starting threads for each
-    # query cost more than the query (a third of a mesh-guided step's guide)
-    return max(1, torch.get_num_threads()) if n >= 65536 else 1
+    # threads pay from a few thousand points: a training step's one query of ~50k points
+    # took 49 ms with 2 threads against 87 ms with one; small queries (a viewer's few rays)
+    # stay on one
+    return max(1, torch.get_num_threads()) if n >= 8192 else 1
 
 
-def nearest_vertex(pts: Tensor, verts: Tensor, bound: float) -> tuple[Tensor, Tensor]:
+def nearest_vertex(pts: Tensor, verts: Tensor, bound: float, which: Tensor | None = None
+                   ) -> tuple[Tensor, Tensor]:
     """Distance to, and index of, the nearest of verts (V, 3) for pts (P, 3); points farther
     than `bound` get d = inf and index 0 (`nearest_vertices` with k = 1: a k-d tree on a CPU,
-    where the brute-force distances were a third of a 256 px frame's time). -> (P,), (P,)
-    long."""
+    where the brute-force distances were a third of a 256 px frame's time). With several
+    meshes verts (M, V, 3) and `which` (P,) long, on each point's own mesh (the index is
+    still the vertex's, in [0, V)). -> (P,), (P,) long."""
     if len(pts) == 0:
         return pts.new_zeros(0), torch.zeros(0, dtype=torch.long, device=pts.device)
-    d2, i = nearest_vertices(pts, verts, 1, bound)
-    return d2[:, 0].sqrt(), i[:, 0]
+    d2, i = nearest_vertices(pts, verts, 1, bound, which)
+    return d2[:, 0].sqrt(), i[:, 0] % verts.shape[-2]
