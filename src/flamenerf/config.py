@@ -141,11 +141,14 @@ class MeshGuideConfig:
     from a per-subject linear model fitted on the training frames' tracked meshes."""
 
     enabled: bool | None = False
-    """None: on where the face parts apply (`face_parts` on MediaPipe meshes with ARKit
-    names: tracked clips), off elsewhere; settled per dataset when a run is built. On the
-    shared expressions clip it raised the controls' mean re-tracked gain with companions
-    from 0.30 to 0.41 (two trainings each) at no cost in PSNR; on the built-in scene it did
-    not help (two trainings: driven face -0.3 to -0.6 dB, the rest mixed;
+    """None: on where the face parts are known (`face_parts` with ARKit names on a mesh
+    whose eyes and mouth are known: tracked clips, the built-in scene), off elsewhere;
+    settled per dataset when a run is built. On the shared expressions clip it raised the
+    controls' mean re-tracked gain with companions from 0.30 to 0.41 (two trainings each)
+    at no cost in PSNR. On the built-in scene, once its β -> mesh fit had face parts
+    (2026-11-26), it made the jaw follow (sweep gain 0.17-0.24 -> 0.27-0.32, ground truth
+    0.30; a real person driving it: jawOpen correlation 0.26 -> 0.75-0.91) at 0.4-0.8 dB of
+    re-animation face PSNR and ~15 % more training time (three seeds;
     docs/bench/control_exploration.md)."""
     falloff: float = 0.15
     """Distance (fraction of the neutral mesh's bounding-box diagonal) over which the motion
@@ -334,8 +337,9 @@ def _fast() -> Config:
     cfg.model.field.expr_rank, cfg.model.field.expr_direct = 8, False
     cfg.model.expression_regions.enabled = True
     cfg.model.expression_centre = True
-    # the mesh-guided deformation on tracked clips only: it helped the one real clip's
-    # controls and not the built-in scene (docs/bench/control_exploration.md)
+    # the mesh-guided deformation wherever the face parts are known (tracked clips, the
+    # built-in scene): the jaw follows β, not only the face's colours
+    # (docs/bench/control_exploration.md)
     cfg.model.mesh_guide.enabled = None
     cfg.model.sampler = SamplerConfig(kind="proposal", num_proposal=48, num_main=32,
                                       proposal_levels=5, proposal_max_res=128)

@@ -95,6 +95,14 @@ def applies(kind: str, names: list[str], num_vertices: int) -> bool:
             and any(_part_of(n) is not None for n in names))
 
 
+def has_parts(kind: str, names: list[str], num_vertices: int, landmarks: dict | None = None
+              ) -> bool:
+    """Whether `control_weights` gives such a dataset face parts (tracked clips, the
+    built-in scene; not FLAME's components, nor a mesh whose eyes and mouth are unknown)."""
+    return (kind in PART_KINDS and mesh_landmarks(num_vertices, landmarks) is not None
+            and any(_part_of(n) is not None for n in names))
+
+
 def mesh_landmarks(num_vertices: int, given: dict | None = None
                    ) -> dict[str, tuple[int, ...]] | None:
     """Vertex indices of the eyes and the mouth on a face mesh: `given` (a dataset's
@@ -114,9 +122,9 @@ def control_weights(kind: str, names: list[str], vertices: np.ndarray,
     subject (e.g. the mean training mesh), any units; landmarks: the dataset's
     `face_landmarks` (`mesh_landmarks`). -> (V, E) float32 in [0, 1].
     """
-    marks = mesh_landmarks(vertices.shape[0], landmarks)
-    if kind not in PART_KINDS or marks is None or all(_part_of(n) is None for n in names):
+    if not has_parts(kind, names, vertices.shape[0], landmarks):
         return None
+    marks = mesh_landmarks(vertices.shape[0], landmarks)
     parts = [_part_of(n) for n in names]
     v = np.asarray(vertices, np.float64)
     eye_l = v[list(marks["eye_left"])].mean(0)

@@ -87,13 +87,15 @@ def settle_dataset_defaults(cfg: Config, ds: Dataset) -> Config:
     whether the deformation is mesh-guided, whether and how closely it stays in the head's
     region, the hash grid's finest resolution), so that a run's config.json holds what it
     trained with. -> cfg."""
-    from flamenerf.data.face_parts import applies
+    from flamenerf.data.face_parts import applies, has_parts
 
-    parts = cfg.model.mesh_guide.face_parts and applies(
-        ds.expression_kind, ds.expression_names, ds.face_vertices.shape[1])
+    kind, names, nv = ds.expression_kind, ds.expression_names, ds.face_vertices.shape[1]
+    use_parts = cfg.model.mesh_guide.face_parts
     regions = cfg.model.expression_regions
-    regions.radius = regions.resolved_radius(parts)
-    cfg.model.mesh_guide.enabled = cfg.model.mesh_guide.resolved_enabled(parts)
+    # the wider fade was measured on tracked clips, the narrower on the built-in scene
+    regions.radius = regions.resolved_radius(use_parts and applies(kind, names, nv))
+    cfg.model.mesh_guide.enabled = cfg.model.mesh_guide.resolved_enabled(
+        use_parts and has_parts(kind, names, nv, ds.face_landmarks))
     cfg.model.warp.settle()
     field = cfg.model.field
     if field.kind == "hash" and (field.hash_max_res == 0 or
