@@ -99,6 +99,15 @@ def mesh_displacement(x: Tensor, mesh: Tensor, target: Tensor, falloff: float, k
         which = torch.zeros(len(x), dtype=torch.long, device=x.device)
     k = min(k, meshes.shape[1])
     d2k, idx = nearest_vertices(x, meshes, k, GUIDE_CUTOFF * falloff, which)  # inf: none
+    return displacement_of_neighbours(d2k, idx, meshes, target, falloff)
+
+
+def displacement_of_neighbours(d2k: Tensor, idx: Tensor, meshes: Tensor, target: Tensor,
+                               falloff: float) -> Tensor:
+    """`mesh_displacement` from the points' k nearest vertices found already: d2k (P, k)
+    squared distances (inf: none), idx (P, k) into the M·V stacked vertices of meshes
+    (M, V, 3); target (V, 3). Neighbours beyond GUIDE_CUTOFF falloffs do not count. -> (P, 3)."""
+    d2k = d2k.masked_fill(d2k > (GUIDE_CUTOFF * falloff) ** 2, float("inf"))
     w = 1.0 / (d2k + 1e-10)  # 0 for the missing (d² = inf)
     w = w / w.sum(-1, keepdim=True).clamp_min(1e-30)  # rows with none: 0, not 0/0
     motion = (target[None] - meshes).reshape(-1, 3)[idx]  # (P, k, 3)

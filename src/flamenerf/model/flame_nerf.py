@@ -19,8 +19,9 @@ from torch import Tensor, nn
 from flamenerf.config import ModelConfig
 from flamenerf.geometry import ellipsoid_weight
 from flamenerf.data.rays import RayBatch  # noqa: F401 - the model's input, re-exported
-from flamenerf.meshes import (expression_mesh, mesh_displacement, nearest_vertex,
-                               surface_points)
+from flamenerf.meshes import (GUIDE_CUTOFF, displacement_of_neighbours, expression_mesh,
+                              mesh_displacement, nearest_vertex, nearest_vertices,
+                              surface_points)
 from flamenerf.model.field import ProposalField, make_field
 from flamenerf.model.render import (composite, interlevel_loss, render_weights, sample_pdf,
                                     stratified_samples)
@@ -163,48 +164,95 @@ class FlameNeRF(nn.Module):
         uv = torch.rand(n, 2, generator=generator).to(dev)
         return self.normalize(surface_points(self.mesh_neutral, self.mesh_faces, tri, uv))
 
+    def _neutral_diagonal(self) -> float:
+        neutral = self.normalize(self.mesh_neutral)
+        return float((neutral.amax(0) - neutral.amin(0)).norm())
+
+    def _guide_falloff(self) -> float:
+        return self.cfg.mesh_guide.falloff * self._neutral_diagonal()
+
+    def _gate_radius(self) -> float:
+        # settled per dataset when a run is built (trainer.settle_dataset_defaults); a model
+        # made without a dataset (tests, untrained benchmarks) has no face parts
+        return self.cfg.expression_regions.resolved_radius(False) * self._neutral_diagonal()
+
     @torch.no_grad()
-    def guide_points(self, xn: Tensor, expr: Tensor | None, inside: Tensor | None = None
-                     ) -> Tensor:
+    def shared_neighbours(self, xn: Tensor, expr: Tensor | None,
+                          inside: Tensor | None = None) -> dict | None:
+        """On a CPU, with both the per-control prior and the mesh guide: the k nearest
+        vertices of the points (R, S, 3) of rays `inside` on their own β's meshes, found by
+        one k-d tree query that serves both (`_region_gates` takes the nearest, the guide
+        all k; two queries were a sixth of a guided 256 px frame). None where not both, or
+        off the CPU."""
+        if (expr is None or not (self.mesh_guided and self.expression_regions)
+                or xn.device.type != "cpu"):
+            return None
+        beta, inside = self.raw_expression(expr.detach(), inside)
+        rows = inside.nonzero()[:, 0]
+        if len(rows) == 0:
+            return None
+        uniq, inv = distinct_rows(beta[rows])
+        meshes = self.normalize(self.face_mesh(uniq))  # (U, V, 3)
+        k = min(self.cfg.mesh_guide.neighbours, meshes.shape[1])
+        bound = max(GUIDE_CUTOFF * self._guide_falloff(), GATE_CUTOFF * self._gate_radius())
+        d2k, idx = nearest_vertices(xn[rows].reshape(-1, 3), meshes, k, bound,
+                                    inv.repeat_interleave(xn.shape[1]))
+        return {"rows": rows, "beta": beta[rows], "meshes": meshes, "d2k": d2k, "idx": idx}
+
+    @torch.no_grad()
+    def guide_points(self, xn: Tensor, expr: Tensor | None, inside: Tensor | None = None,
+                     shared: dict | None = None) -> Tensor:
         """Carry normalised points (R, S, 3) of rays with masked expressions (R, E)
         (`masked_expression`; `inside` as in `raw_expression`) from their expression's
         mesh to the neutral mesh. Rays outside the silhouette under the prior, and rays
-        with β = 0, get mesh(0) = neutral, i.e. stay put."""
+        with β = 0, get mesh(0) = neutral, i.e. stay put. `shared`: `shared_neighbours`."""
         if not self.mesh_guided or expr is None:
             return xn
+        neutral = self.normalize(self.mesh_neutral)
+        falloff, S = self._guide_falloff(), xn.shape[1]
+        out = xn.clone()
+        if shared is not None:
+            moving = shared["beta"].abs().amax(-1) > 0  # of the shared rows
+            if not bool(moving.any()):
+                return xn
+            k = shared["d2k"].shape[-1]
+            d2k = shared["d2k"].view(-1, S, k)[moving].reshape(-1, k)
+            idx = shared["idx"].view(-1, S, k)[moving].reshape(-1, k)
+            rows = shared["rows"][moving]
+            move = displacement_of_neighbours(d2k, idx, shared["meshes"], neutral, falloff)
+            out[rows] = xn[rows] + move.view(len(rows), S, 3)
+            return out
         beta, inside = self.raw_expression(expr, inside)
         nonzero = inside & (beta.abs().amax(-1) > 0)
         if not bool(nonzero.any()):
             return xn
-        g = self.cfg.mesh_guide
-        neutral = self.normalize(self.mesh_neutral)
-        falloff = g.falloff * float((neutral.amax(0) - neutral.amin(0)).norm())
         rows = nonzero.nonzero()[:, 0]
         uniq, inv = distinct_rows(beta[rows])  # one mesh per distinct β, not per ray
         meshes = self.normalize(self.face_mesh(uniq))  # (U, V, 3)
         pts = xn[rows].reshape(-1, 3)
-        which = inv.repeat_interleave(xn.shape[1])
-        out = xn.clone()
-        out[rows] = pts.add(mesh_displacement(pts, meshes, neutral, falloff, g.neighbours,
-                                              which)).view(len(rows), *xn.shape[1:])
+        out[rows] = pts.add(mesh_displacement(pts, meshes, neutral, falloff,
+                                              self.cfg.mesh_guide.neighbours,
+                                              inv.repeat_interleave(S))).view(len(rows), S, 3)
         return out
 
     def region_expression(self, xn: Tensor, expr: Tensor | None,
-                          inside: Tensor | None = None) -> Tensor | None:
+                          inside: Tensor | None = None, shared: dict | None = None
+                          ) -> Tensor | None:
         """Per-point masked expressions under the per-control prior: input k fades with
         the distance from the vertices (of the ray's own expression mesh) that control k
         moves. xn (R, S, 3) normalised, expr (R, E) (`masked_expression`; `inside` as in
-        `raw_expression`) -> (R, S, E); per-ray `expr` as (R, 1, E) when the prior is off."""
+        `raw_expression`; `shared`: `shared_neighbours`) -> (R, S, E); per-ray `expr` as
+        (R, 1, E) when the prior is off."""
         if expr is None:
             return None
         if not self.expression_regions:
             return expr[:, None]
         beta, inside = self.raw_expression(expr.detach(), inside)
-        return self._region_gates(xn, beta, inside) * expr[:, None]
+        return self._region_gates(xn, beta, inside, shared=shared) * expr[:, None]
 
     @torch.no_grad()
     def _region_gates(self, xn: Tensor, beta: Tensor, inside: Tensor | None = None,
-                      block: int = 1024) -> Tensor:
+                      block: int = 1024, shared: dict | None = None) -> Tensor:
         """(R, S, 3), β (R, E), inside (R,) bool -> (R, S, E) in [0, 1]: each point's share
         of each control, the membership of its nearest vertex (on the mesh of the ray's
         own β) in the control's region times exp(-d²/r²) of the distance d to that vertex,
@@ -216,16 +264,19 @@ class FlameNeRF(nn.Module):
         rows = inside.nonzero()[:, 0]
         if len(rows) == 0:
             return out
-        neutral = self.normalize(self.mesh_neutral)
-        # settled per dataset when a run is built (trainer.settle_dataset_defaults); a model
-        # made without a dataset (tests, untrained benchmarks) has no face parts
-        r = (self.cfg.expression_regions.resolved_radius(False)
-             * float((neutral.amax(0) - neutral.amin(0)).norm()))
+        r = self._gate_radius()
+        S, cut = xn.shape[1], GATE_CUTOFF * r
+        if shared is not None:  # the nearest of the k found for the guide
+            d = shared["d2k"][:, 0].sqrt()
+            d = d.masked_fill(d > cut, float("inf"))
+            nn_ = shared["idx"][:, 0] % self.mesh_regions.shape[0]
+            out[shared["rows"]] = (self.mesh_regions[nn_] * torch.exp(-(d / r).square())[:, None]
+                                   ).view(len(shared["rows"]), S, -1)
+            return out
         # one mesh per distinct β (a batch holds a few frames' β; an image or a viewer
         # update one): the per-ray meshes cost more than the distances
         uniq, inv = distinct_rows(beta[rows])
         meshes = self.normalize(self.face_mesh(uniq))  # (U, V, 3)
-        S, cut = xn.shape[1], GATE_CUTOFF * r
         if len(uniq) == 1 or xn.device.type == "cpu":  # k-d trees on a CPU
             # an image or a viewer update has one mesh; a training batch ~100, in one tree
             # (twice as fast as the batched distances below on the 2-core CPU)
@@ -364,11 +415,12 @@ class FlameNeRF(nn.Module):
         x, d, share = self._head_points(origins[:, None] + t[..., None] * dirs[:, None], dirs,
                                         head)
         xn = self.normalize(x)
-        expr_pts = self.region_expression(xn, expr, inside)
+        shared = self.shared_neighbours(xn, expr, inside)
+        expr_pts = self.region_expression(xn, expr, inside, shared)
         d = F.normalize(d, dim=-1)
         if self.captured is not None and not self.training:
             d = self.captured_direction(origins, d, head, share)
-        return self.guide_points(xn, expr, inside), d, expr_pts
+        return self.guide_points(xn, expr, inside, shared), d, expr_pts
 
     def proposal_points(self, origins: Tensor, dirs: Tensor, t: Tensor,
                         head: Tensor | None) -> Tensor:
