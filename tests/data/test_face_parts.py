@@ -139,3 +139,20 @@ def test_the_builtin_scene_names_its_eyes_and_mouth_and_gets_face_parts(dataset_
     for name in ("eyeBlinkLeft", "eyeBlinkRight", "eyeWideLeft", "browInnerUp"):
         assert motion[k[name]][near_mouth].amax() == 0, name
     assert motion[k["jawOpen"]][near_eye].amax() == 0
+
+
+def test_train_notes_a_builtin_scene_without_landmarks(dataset_dir, tmp_path, capsys):
+    import json
+    import shutil
+
+    from flamenerf.commands.train import note_missing_landmarks
+
+    note_missing_landmarks(dataset_dir)
+    assert "landmarks" not in capsys.readouterr().out
+    old = tmp_path / "old"
+    shutil.copytree(dataset_dir, old)
+    meta = json.loads((old / "transforms.json").read_text())
+    del meta["face_landmarks"]
+    (old / "transforms.json").write_text(json.dumps(meta))
+    note_missing_landmarks(old)
+    assert "names no face landmarks" in capsys.readouterr().out

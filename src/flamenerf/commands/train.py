@@ -143,6 +143,8 @@ def train(
             and device != "cpu" and _has_cuda()):
         print("note: on a GPU, --preset fast-gpu trains `fast` with four times the rays per "
               "step for ~10 % more time per step (docs/presets.md)")
+    if ranks.main and not resume:
+        note_missing_landmarks(dataset)
     res = run_train(dataset, out, cfg, resume=resume, device=device, steps=steps)
     if not ranks.main:  # rank 0 speaks for the job
         if res.interrupted:
@@ -177,3 +179,15 @@ def _flags(values: dict[str, Any], skip: set[str]) -> list[str]:
         else:
             out += [flag, str(v)]
     return out
+
+
+def note_missing_landmarks(dataset) -> None:
+    """A built-in scene made before it named its face landmarks trains without face parts
+    and mesh guide (silently otherwise): say so, and how to get them."""
+    from flamenerf.data.dataset import load_dataset
+
+    ds = load_dataset(dataset, check_files=False)
+    if ds.expression_kind == "synthetic" and ds.face_landmarks is None:
+        print(f"note: {dataset} names no face landmarks (made by an older `flamenerf synth`): "
+              "its controls are fitted without face parts and the mesh guide stays off; "
+              "make it again with `flamenerf synth` for both (docs/synthetic_scene.md)")
