@@ -7,7 +7,9 @@ The expression model is what lets a commanded β move the face: fitted on the tr
 frames' tracked meshes, it gives the mesh of any β (re-animation, the viewer's sliders, the
 spatial prior's silhouette of the driven expression), and the mesh-guided deformation
 (`mesh_displacement`) carries points near the face from the expression's mesh to the
-neutral one, as RigNeRF does with its 3DMM.
+neutral one, as RigNeRF does with its 3DMM. The model takes its two steps separately
+(`nearest_vertices`, `displacement_of_neighbours`) so that one query also gives the
+per-control gates their nearest vertex.
 """
 
 from __future__ import annotations
@@ -123,6 +125,8 @@ def nearest_vertices(pts: Tensor, verts: Tensor, k: int, bound: float,
     mesh, indexed into the M·V stacked vertices. A k-d tree on a CPU (brute-force distances
     to every vertex were over a third of a mesh-guided frame's time), brute force
     elsewhere. -> (P, k), (P, k) long."""
+    if verts.dim() == 3 and which is None:
+        raise ValueError("nearest_vertices: several meshes need `which`")
     if verts.dim() == 3 and pts.device.type != "cpu":
         d2, i = nearest_vertices_brute(pts, verts.reshape(-1, 3), k, bound, which,
                                        verts.shape[1])
@@ -180,14 +184,12 @@ def _tree_workers(n: int) -> int:
     return max(1, torch.get_num_threads()) if n >= 8192 else 1
 
 
-def nearest_vertex(pts: Tensor, verts: Tensor, bound: float, which: Tensor | None = None
-                   ) -> tuple[Tensor, Tensor]:
+def nearest_vertex(pts: Tensor, verts: Tensor, bound: float) -> tuple[Tensor, Tensor]:
     """Distance to, and index of, the nearest of verts (V, 3) for pts (P, 3); points farther
     than `bound` get d = inf and index 0 (`nearest_vertices` with k = 1: a k-d tree on a CPU,
-    where the brute-force distances were a third of a 256 px frame's time). With several
-    meshes verts (M, V, 3) and `which` (P,) long, on each point's own mesh (the index is
-    still the vertex's, in [0, V)). -> (P,), (P,) long."""
+    where the brute-force distances were a third of a 256 px frame's time). -> (P,), (P,)
+    long."""
     if len(pts) == 0:
         return pts.new_zeros(0), torch.zeros(0, dtype=torch.long, device=pts.device)
-    d2, i = nearest_vertices(pts, verts, 1, bound, which)
-    return d2[:, 0].sqrt(), i[:, 0] % verts.shape[-2]
+    d2, i = nearest_vertices(pts, verts, 1, bound)
+    return d2[:, 0].sqrt(), i[:, 0]

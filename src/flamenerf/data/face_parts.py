@@ -87,10 +87,10 @@ def _band(h: np.ndarray, lo: float, hi: float) -> np.ndarray:
 
 def applies(kind: str, names: list[str], num_vertices: int) -> bool:
     """Whether the dataset is a tracked clip with face parts (MediaPipe's ARKit scores on
-    its own mesh): its scores co-vary, which the companions (data/companions.py) and the
-    presets' per-dataset defaults (the per-control prior's radius, the mesh guide) answer.
-    The built-in scene's face parts (`control_weights`) do not count: its controls are
-    independent, and those defaults were measured on it without them."""
+    its own mesh): its scores co-vary, which the companions (data/companions.py) answer,
+    and the per-control prior's wider fade radius was measured on such clips. The built-in
+    scene's face parts do not count here (its controls are independent); whether any
+    dataset has face parts at all (and so the mesh guide): `has_parts`."""
     return (kind == "arkit" and num_vertices in MEDIAPIPE_VERTEX_COUNTS
             and any(_part_of(n) is not None for n in names))
 

@@ -20,8 +20,7 @@ from flamenerf.config import ModelConfig
 from flamenerf.geometry import ellipsoid_weight
 from flamenerf.data.rays import RayBatch  # noqa: F401 - the model's input, re-exported
 from flamenerf.meshes import (GUIDE_CUTOFF, displacement_of_neighbours, expression_mesh,
-                              mesh_displacement, nearest_vertex, nearest_vertices,
-                              surface_points)
+                              nearest_vertices, surface_points)
 from flamenerf.model.field import ProposalField, make_field
 from flamenerf.model.render import (composite, interlevel_loss, render_weights, sample_pdf,
                                     stratified_samples)
@@ -176,14 +175,25 @@ class FlameNeRF(nn.Module):
         # made without a dataset (tests, untrained benchmarks) has no face parts
         return self.cfg.expression_regions.resolved_radius(False) * self._neutral_diagonal()
 
+    def _ray_neighbours(self, xn: Tensor, beta: Tensor, rows: Tensor, k: int, bound: float
+                        ) -> dict:
+        """The k nearest vertices (within `bound`) of the points xn[rows] (n, S, 3) on the
+        mesh of their ray's own β (R, E), one mesh per distinct β (a training batch has
+        ~100, an image one) -> {"rows", "beta" (n, E), "meshes" (U, V, 3), "d2k" (n·S, k),
+        "idx" (n·S, k) into the U·V stacked vertices}."""
+        uniq, inv = distinct_rows(beta[rows])
+        meshes = self.normalize(self.face_mesh(uniq))  # (U, V, 3)
+        d2k, idx = nearest_vertices(xn[rows].reshape(-1, 3), meshes, min(k, meshes.shape[1]),
+                                    bound, inv.repeat_interleave(xn.shape[1]))
+        return {"rows": rows, "beta": beta[rows], "meshes": meshes, "d2k": d2k, "idx": idx}
+
     @torch.no_grad()
     def shared_neighbours(self, xn: Tensor, expr: Tensor | None,
                           inside: Tensor | None = None) -> dict | None:
-        """On a CPU, with both the per-control prior and the mesh guide: the k nearest
-        vertices of the points (R, S, 3) of rays `inside` on their own β's meshes, found by
-        one k-d tree query that serves both (`_region_gates` takes the nearest, the guide
-        all k; two queries were a sixth of a guided 256 px frame). None where not both, or
-        off the CPU."""
+        """On a CPU, with both the per-control prior and the mesh guide: `_ray_neighbours`
+        of the rays `inside`, one k-d tree query that serves both (`_region_gates` takes the
+        nearest, the guide all k; two queries were a sixth of a guided 256 px frame). None
+        where not both, or off the CPU (there the gates take bounded distance blocks)."""
         if (expr is None or not (self.mesh_guided and self.expression_regions)
                 or xn.device.type != "cpu"):
             return None
@@ -191,13 +201,8 @@ class FlameNeRF(nn.Module):
         rows = inside.nonzero()[:, 0]
         if len(rows) == 0:
             return None
-        uniq, inv = distinct_rows(beta[rows])
-        meshes = self.normalize(self.face_mesh(uniq))  # (U, V, 3)
-        k = min(self.cfg.mesh_guide.neighbours, meshes.shape[1])
         bound = max(GUIDE_CUTOFF * self._guide_falloff(), GATE_CUTOFF * self._gate_radius())
-        d2k, idx = nearest_vertices(xn[rows].reshape(-1, 3), meshes, k, bound,
-                                    inv.repeat_interleave(xn.shape[1]))
-        return {"rows": rows, "beta": beta[rows], "meshes": meshes, "d2k": d2k, "idx": idx}
+        return self._ray_neighbours(xn, beta, rows, self.cfg.mesh_guide.neighbours, bound)
 
     @torch.no_grad()
     def guide_points(self, xn: Tensor, expr: Tensor | None, inside: Tensor | None = None,
@@ -208,31 +213,27 @@ class FlameNeRF(nn.Module):
         with β = 0, get mesh(0) = neutral, i.e. stay put. `shared`: `shared_neighbours`."""
         if not self.mesh_guided or expr is None:
             return xn
-        neutral = self.normalize(self.mesh_neutral)
         falloff, S = self._guide_falloff(), xn.shape[1]
-        out = xn.clone()
-        if shared is not None:
-            moving = shared["beta"].abs().amax(-1) > 0  # of the shared rows
+        if shared is None:
+            beta, inside = self.raw_expression(expr, inside)
+            rows = (inside & (beta.abs().amax(-1) > 0)).nonzero()[:, 0]
+            if len(rows) == 0:
+                return xn
+            nb = self._ray_neighbours(xn, beta, rows, self.cfg.mesh_guide.neighbours,
+                                      GUIDE_CUTOFF * falloff)
+            d2k, idx = nb["d2k"], nb["idx"]
+        else:  # the rays with β = 0 among the shared ones stay put
+            nb = shared
+            moving = nb["beta"].abs().amax(-1) > 0
             if not bool(moving.any()):
                 return xn
-            k = shared["d2k"].shape[-1]
-            d2k = shared["d2k"].view(-1, S, k)[moving].reshape(-1, k)
-            idx = shared["idx"].view(-1, S, k)[moving].reshape(-1, k)
-            rows = shared["rows"][moving]
-            move = displacement_of_neighbours(d2k, idx, shared["meshes"], neutral, falloff)
-            out[rows] = xn[rows] + move.view(len(rows), S, 3)
-            return out
-        beta, inside = self.raw_expression(expr, inside)
-        nonzero = inside & (beta.abs().amax(-1) > 0)
-        if not bool(nonzero.any()):
-            return xn
-        rows = nonzero.nonzero()[:, 0]
-        uniq, inv = distinct_rows(beta[rows])  # one mesh per distinct β, not per ray
-        meshes = self.normalize(self.face_mesh(uniq))  # (U, V, 3)
-        pts = xn[rows].reshape(-1, 3)
-        out[rows] = pts.add(mesh_displacement(pts, meshes, neutral, falloff,
-                                              self.cfg.mesh_guide.neighbours,
-                                              inv.repeat_interleave(S))).view(len(rows), S, 3)
+            rows, k = nb["rows"][moving], nb["d2k"].shape[-1]
+            d2k = nb["d2k"].view(-1, S, k)[moving].reshape(-1, k)
+            idx = nb["idx"].view(-1, S, k)[moving].reshape(-1, k)
+        move = displacement_of_neighbours(d2k, idx, nb["meshes"],
+                                          self.normalize(self.mesh_neutral), falloff)
+        out = xn.clone()
+        out[rows] = xn[rows] + move.view(len(rows), S, 3)
         return out
 
     def region_expression(self, xn: Tensor, expr: Tensor | None,
@@ -266,25 +267,20 @@ class FlameNeRF(nn.Module):
             return out
         r = self._gate_radius()
         S, cut = xn.shape[1], GATE_CUTOFF * r
-        if shared is not None:  # the nearest of the k found for the guide
+        uniq, inv = distinct_rows(beta[rows])
+        if shared is None and (xn.device.type == "cpu" or len(uniq) == 1):
+            # k-d trees on a CPU: an image or a viewer update has one mesh, a training batch
+            # ~100 in one tree (twice as fast as the distance blocks below on the 2-core CPU)
+            shared = self._ray_neighbours(xn, beta, rows, 1, cut)
+        if shared is not None:  # the nearest vertex (of the guide's k, when shared)
             d = shared["d2k"][:, 0].sqrt()
             d = d.masked_fill(d > cut, float("inf"))
             nn_ = shared["idx"][:, 0] % self.mesh_regions.shape[0]
             out[shared["rows"]] = (self.mesh_regions[nn_] * torch.exp(-(d / r).square())[:, None]
                                    ).view(len(shared["rows"]), S, -1)
             return out
-        # one mesh per distinct β (a batch holds a few frames' β; an image or a viewer
-        # update one): the per-ray meshes cost more than the distances
-        uniq, inv = distinct_rows(beta[rows])
+        # off the CPU, many meshes: one mesh per distinct β, bounded distance blocks
         meshes = self.normalize(self.face_mesh(uniq))  # (U, V, 3)
-        if len(uniq) == 1 or xn.device.type == "cpu":  # k-d trees on a CPU
-            # an image or a viewer update has one mesh; a training batch ~100, in one tree
-            # (twice as fast as the batched distances below on the 2-core CPU)
-            d, nn_ = nearest_vertex(xn[rows].reshape(-1, 3), meshes if len(uniq) > 1
-                                    else meshes[0], cut, inv.repeat_interleave(S))
-            out[rows] = (self.mesh_regions[nn_] * torch.exp(-(d / r).square())[:, None]
-                         ).view(len(rows), S, -1)
-            return out
         for s in range(0, len(rows), block):  # bounded (B·S, V) distance blocks
             rb = rows[s:s + block]
             d, nn_ = torch.cdist(xn[rb], meshes[inv[s:s + block]]).min(-1)  # (B, S)
