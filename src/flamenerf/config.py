@@ -346,8 +346,8 @@ def _fast() -> Config:
     # 900 steps with the per-frame deformation codes at a tenth of the learning rate: the
     # extra steps sharpen the face a re-animation shows (built-in margin over the Nerfies
     # variant +0.4 dB on three seeds); at full rate the codes took them instead and a real
-    # clip's driven face fell 0.9 dB. 7.5-9.5 minutes on the 2-core CPU (docs/presets.md
-    # item 3)
+    # clip's driven face fell 0.9 dB. 9-10.5 minutes on the 2-core CPU with the mesh guide
+    # (the built-in scene, 529-619 s; docs/presets.md item 3)
     # the face-depth prior from a fifth of the run on: without it the face trains as a fog
     # centred ~3 cm behind its surface, which new cameras see wrongly (docs/presets.md)
     # rays over a random colour: over black, a half-transparent room with fog in front of it
