@@ -62,7 +62,8 @@ def test_displacement_by_k_d_tree_matches_every_vertex_blended():
     far2, _ = nearest_vertices(x, mesh, 4, bound=0.01)
     assert bool(torch.isinf(far2).any()) and bool(torch.isfinite(far2).any())
     for k in (1, 4):  # the brute-force path (off the CPU) gives the tree's answer
-        bd2, bidx = nearest_vertices_brute(x, mesh, k, bound=0.05)
+        bd2, bidx = nearest_vertices_brute(x, mesh[None], k, 0.05, torch.zeros(len(x)).long(),
+                                           block_elements=300 * 512)  # 8 blocks of points
         td2, tidx = nearest_vertices(x, mesh, k, bound=0.05)
         fin = torch.isfinite(td2)
         assert bool(fin.any()) and bool((~fin).any()) and torch.equal(fin, torch.isfinite(bd2))
@@ -84,14 +85,20 @@ def test_displacement_of_many_meshes_at_once_is_each_mesh_alone():
         sel = which == m
         ref[sel] = mesh_displacement(x[sel], meshes[m], target, 0.03)
     assert (got - ref).abs().max() < 1e-6 and (ref.norm(dim=-1) > 1e-3).sum() > 100
-    # the path off the CPU (brute force over each point's own mesh) agrees with the tree
+    # the path off the CPU (blocks of distances to each point's own mesh) agrees with the
+    # tree, for points and for the samples of rays (a ray's samples share its mesh)
+    rays = x.view(300, 10, 3)
+    ray_mesh = torch.randint(5, (300,), generator=g)
     for k in (1, 4):
-        td2, tidx = nearest_vertices(x, meshes, k, 0.05, which)
-        bd2, bidx = nearest_vertices_brute(x, meshes.reshape(-1, 3), k, 0.05, which, 200)
-        fin = torch.isfinite(td2)
-        assert bool(fin.any()) and torch.equal(fin, torch.isfinite(bd2))
-        assert torch.allclose(bd2[fin], td2[fin], atol=1e-6) and torch.equal(bidx, tidx)
-        assert bool((tidx[fin] // 200 == which[:, None].expand_as(tidx)[fin]).all())
+        for pts, w in ((x, which), (rays, ray_mesh)):
+            td2, tidx = nearest_vertices(pts, meshes, k, 0.05, w)
+            bd2, bidx = nearest_vertices_brute(pts, meshes, k, 0.05, w,
+                                               block_elements=200 * 10 * 7)  # 43 blocks
+            fin = torch.isfinite(td2)
+            assert bool(fin.any()) and torch.equal(fin, torch.isfinite(bd2))
+            assert torch.allclose(bd2[fin], td2[fin], atol=1e-6) and torch.equal(bidx, tidx)
+            own = w if pts.dim() == 2 else w.repeat_interleave(10)
+            assert bool((tidx[fin] // 200 == own[:, None].expand_as(tidx)[fin]).all())
 
 
 def test_surface_points_lie_in_their_triangles():

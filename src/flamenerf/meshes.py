@@ -121,60 +121,85 @@ def nearest_vertices(pts: Tensor, verts: Tensor, k: int, bound: float,
                      which: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """Squared distances to, and indices of, the k nearest of verts (V, 3) for pts (P, 3),
     nearest first; neighbours farther than `bound` get d² = inf and index 0. With several
-    meshes verts (M, V, 3) and `which` (P,) long, each point's neighbours come from its own
-    mesh, indexed into the M·V stacked vertices. A k-d tree on a CPU (brute-force distances
-    to every vertex were over a third of a mesh-guided frame's time), brute force
-    elsewhere. -> (P, k), (P, k) long."""
+    meshes verts (M, V, 3) and `which` saying whose mesh each point is on, indices run into
+    the M·V stacked vertices: pts (P, 3) with which (P,), or the samples of rays pts
+    (R, S, 3) with which (R,) (a ray's samples share its mesh). A k-d tree on a CPU
+    (brute-force distances to every vertex were over a third of a mesh-guided frame's
+    time), distance blocks elsewhere. -> (P, k) or (R·S, k), and the same shape long."""
     if verts.dim() == 3 and which is None:
         raise ValueError("nearest_vertices: several meshes need `which`")
-    if verts.dim() == 3 and pts.device.type != "cpu":
-        d2, i = nearest_vertices_brute(pts, verts.reshape(-1, 3), k, bound, which,
-                                       verts.shape[1])
-        return d2, i
-    if pts.device.type == "cpu":
-        from scipy.spatial import cKDTree
+    if pts.device.type != "cpu":
+        if verts.dim() == 2:
+            verts, which = verts[None], torch.zeros(len(pts), dtype=torch.long,
+                                                    device=pts.device)
+        return nearest_vertices_brute(pts, verts, k, bound, which)
+    if pts.dim() == 3:
+        which = which.repeat_interleave(pts.shape[1])
+        pts = pts.reshape(-1, 3)
+    from scipy.spatial import cKDTree
 
-        v = verts.double().reshape(-1, 3).numpy()
-        p = pts.double().numpy()
-        if verts.dim() == 3:
-            # one tree for all the meshes (a training batch has ~100 distinct β; a tree and
-            # a query each cost more in overhead than in work): a fourth coordinate, far
-            # apart for different meshes, keeps every point's neighbours on its own mesh
-            gap = 2.0 * bound + 1.0
-            m = np.repeat(np.arange(verts.shape[0], dtype=np.float64), verts.shape[1])
-            v = np.concatenate([v, (m * gap)[:, None]], 1)
-            p = np.concatenate([p, which.double().numpy()[:, None] * gap], 1)
-        d, i = cKDTree(v).query(p, k=k, distance_upper_bound=bound,
-                                workers=_tree_workers(len(pts)))
-        d, i = d.reshape(len(pts), k), i.reshape(len(pts), k)
-        far = ~np.isfinite(d)
-        i[far] = 0
-        return torch.from_numpy(np.square(d)).to(pts.dtype), torch.from_numpy(i).long()
-    return nearest_vertices_brute(pts, verts, k, bound)
+    v = verts.double().reshape(-1, 3).numpy()
+    p = pts.double().numpy()
+    if verts.dim() == 3:
+        # one tree for all the meshes (a training batch has ~100 distinct β; a tree and
+        # a query each cost more in overhead than in work): a fourth coordinate, far
+        # apart for different meshes, keeps every point's neighbours on its own mesh
+        gap = 2.0 * bound + 1.0
+        m = np.repeat(np.arange(verts.shape[0], dtype=np.float64), verts.shape[1])
+        v = np.concatenate([v, (m * gap)[:, None]], 1)
+        p = np.concatenate([p, which.double().numpy()[:, None] * gap], 1)
+    d, i = cKDTree(v).query(p, k=k, distance_upper_bound=bound,
+                            workers=_tree_workers(len(pts)))
+    d, i = d.reshape(len(pts), k), i.reshape(len(pts), k)
+    far = ~np.isfinite(d)
+    i[far] = 0
+    return torch.from_numpy(np.square(d)).to(pts.dtype), torch.from_numpy(i).long()
 
 
-def nearest_vertices_brute(pts: Tensor, verts: Tensor, k: int, bound: float,
-                           which: Tensor | None = None, per_mesh: int = 0
-                           ) -> tuple[Tensor, Tensor]:
-    """`nearest_vertices` by distances to every vertex (the path off the CPU); with
-    `which`, verts are M meshes of `per_mesh` vertices stacked (M·V, 3)."""
-    if which is not None:  # per mesh: one (P, V, 3) gather for a GPU batch was gigabytes
-        d2 = pts.new_full((len(pts), k), float("inf"))
-        i = torch.zeros(len(pts), k, dtype=torch.long, device=pts.device)
-        meshes = verts.view(-1, per_mesh, 3)
-        for m in torch.unique(which).tolist():
-            sel = (which == m).nonzero()[:, 0]
-            dm, im = nearest_vertices_brute(pts[sel], meshes[m], k, bound)
-            d2[sel] = dm
-            i[sel] = torch.where(torch.isfinite(dm), im + m * per_mesh, 0)
-        return d2, i
-    d2 = torch.cdist(pts, verts).square()
-    if k == 1:  # a reduction: topk's radix select was 15 % of an H100's 256 px frame
-        d2, i = d2.min(-1, keepdim=True)
-    else:
-        d2, i = torch.topk(d2, k, dim=-1, largest=False)
+def nearest_vertices_brute(pts: Tensor, meshes: Tensor, k: int, bound: float, which: Tensor,
+                           block_elements: int = 1 << 25) -> tuple[Tensor, Tensor]:
+    """`nearest_vertices` of several meshes (M, V, 3) by distances to every vertex of each
+    point's own mesh: the path off the CPU. pts (P, 3) with which (P,), or (R, S, 3) with
+    which (R,). In blocks of rays whose (B, S, V) distances hold at most `block_elements`
+    numbers, every block one batched `cdist` (a loop over the meshes launched ~15 kernels
+    and a synchronisation per mesh, ~100 meshes per training batch: an H200 trained
+    `fast-gpu` at 5 steps/s; one (P, V, 3) gather of each point's mesh was gigabytes).
+    Where Triton runs (GPUs), one kernel instead (gpu_kernels.knn: `topk` over the
+    distances was over a third of a guided 256 px frame on an H200)."""
+    from flamenerf import gpu_kernels
+
+    x = pts if pts.dim() == 3 else pts[:, None]  # (R, S, 3)
+    M, V = meshes.shape[:2]
+    if which.shape != x.shape[:1]:  # the kernel would read past its end
+        raise ValueError(f"nearest_vertices_brute: which {tuple(which.shape)} for points "
+                         f"{tuple(pts.shape)}: one mesh index per point (or per ray)")
+    if k <= 8 and gpu_kernels.available(pts.device):
+        d2, idx = gpu_kernels.knn(x.reshape(-1, 3), meshes,
+                                  which.repeat_interleave(x.shape[1]), min(k, V))
+        far = d2 > bound * bound
+        return d2.masked_fill(far, float("inf")), idx.masked_fill(far, 0)
+    if M == 1:  # one mesh (an image, a viewer update): blocks of points, no gathers
+        x, which = x.reshape(1, -1, 3), which[:1]
+    R, S = x.shape[:2]
+    k = min(k, V)
+    d2 = x.new_empty(R, S, k)
+    idx = torch.empty(R, S, k, dtype=torch.long, device=x.device)
+    step = max(1, block_elements // max(S * V, 1))
+    blocks = ([(slice(lo, lo + step), slice(None)) for lo in range(0, R, step)] if R > 1 else
+              [(slice(None), slice(lo, lo + block_elements // V))
+               for lo in range(0, S, max(1, block_elements // V))])
+    for rs, ss in blocks:
+        w = which[rs]
+        d = torch.cdist(x[rs, ss], meshes[w]).square()  # (B, S', V)
+        if k == 1:  # a reduction: topk's radix select was 15 % of an H100's 256 px frame
+            dk, ik = d.min(-1, keepdim=True)
+        else:
+            dk, ik = torch.topk(d, k, dim=-1, largest=False)
+        d2[rs, ss] = dk
+        idx[rs, ss] = ik + (w * V)[:, None, None]
     far = d2 > bound * bound
-    return d2.masked_fill(far, float("inf")), i.masked_fill(far, 0)
+    return (d2.masked_fill(far, float("inf")).reshape(-1, k),
+            idx.masked_fill(far, 0).reshape(-1, k))
 
 
 def _tree_workers(n: int) -> int:

@@ -154,7 +154,7 @@ def test_expression_regions_gate_each_control_near_what_it_moves():
 
 def test_expression_region_gates_of_many_rays_are_each_rays_own():
     """Rays share meshes where their β agree (one per distinct β, one for a whole image):
-    every ray still gets the gates of its own expression's mesh, in blocks or not."""
+    every ray still gets the gates of its own expression's mesh."""
     m = regions_model()
     g = torch.Generator().manual_seed(3)
     pts = torch.rand(7, 4, 3, generator=g) * 0.6 - 0.1
@@ -162,10 +162,9 @@ def test_expression_region_gates_of_many_rays_are_each_rays_own():
     expr = betas[torch.tensor([0, 1, 0, 2, 2, 0, 1])]
     expr[4] = 0  # a ray outside the silhouette
     one = [m._region_gates(pts[i:i + 1], expr[i:i + 1]) for i in range(7)]
-    for block in (2, 1024):
-        assert torch.allclose(m._region_gates(pts, expr, block=block), torch.cat(one), atol=1e-6)
+    assert torch.allclose(m._region_gates(pts, expr), torch.cat(one), atol=1e-6)
     same = betas[:1].expand(7, E)
-    assert torch.allclose(m._region_gates(pts, same, block=3),
+    assert torch.allclose(m._region_gates(pts, same),
                           torch.cat([m._region_gates(pts[i:i + 1], same[:1]) for i in range(7)]),
                           atol=1e-6)
 

@@ -75,7 +75,8 @@ class HashGrid(nn.Module):
 
     def forward(self, x: Tensor) -> Tensor:
         """x (N, 3) in [0, 1]^3 -> (N, L·F). On a CPU, the compiled kernel when it builds
-        (model/cpu_kernels.py), else `forward_torch`; elsewhere `forward_grouped`."""
+        (model/cpu_kernels.py), else `forward_torch`; on a GPU without autograd the Triton
+        kernel (gpu_kernels.py) where Triton is installed; else `forward_grouped`."""
         if (x.device.type == "cpu" and x.dtype == torch.float32
                 and self.tables[0].dtype == torch.float32):  # the kernel is float32 only
             from flamenerf.model.cpu_kernels import hashgrid_library
@@ -84,6 +85,11 @@ class HashGrid(nn.Module):
             if lib is not None:
                 return _HashGridCPU.apply(x.contiguous(), self, lib, *self.tables)
             return self.forward_torch(x)
+        if not torch.is_grad_enabled():
+            from flamenerf import gpu_kernels
+
+            if gpu_kernels.available(x.device):  # inference on a GPU: one fused kernel
+                return gpu_kernels.hashgrid_forward(self, x)
         return self.forward_grouped(x)
 
     @torch.no_grad()

@@ -183,19 +183,17 @@ class FlameNeRF(nn.Module):
         "idx" (n·S, k) into the U·V stacked vertices}."""
         uniq, inv = distinct_rows(beta[rows])
         meshes = self.normalize(self.face_mesh(uniq))  # (U, V, 3)
-        d2k, idx = nearest_vertices(xn[rows].reshape(-1, 3), meshes, min(k, meshes.shape[1]),
-                                    bound, inv.repeat_interleave(xn.shape[1]))
+        d2k, idx = nearest_vertices(xn[rows], meshes, min(k, meshes.shape[1]), bound, inv)
         return {"rows": rows, "beta": beta[rows], "meshes": meshes, "d2k": d2k, "idx": idx}
 
     @torch.no_grad()
     def shared_neighbours(self, xn: Tensor, expr: Tensor | None,
                           inside: Tensor | None = None) -> dict | None:
-        """On a CPU, with both the per-control prior and the mesh guide: `_ray_neighbours`
-        of the rays `inside`, one k-d tree query that serves both (`_region_gates` takes the
-        nearest, the guide all k; two queries were a sixth of a guided 256 px frame). None
-        where not both, or off the CPU (there the gates take bounded distance blocks)."""
-        if (expr is None or not (self.mesh_guided and self.expression_regions)
-                or xn.device.type != "cpu"):
+        """With both the per-control prior and the mesh guide: `_ray_neighbours` of the rays
+        `inside`, one query that serves both (`_region_gates` takes the nearest, the guide
+        all k; two queries were a sixth of a guided 256 px frame on a CPU). None where not
+        both."""
+        if expr is None or not (self.mesh_guided and self.expression_regions):
             return None
         beta, inside = self.raw_expression(expr.detach(), inside)
         rows = inside.nonzero()[:, 0]
@@ -253,7 +251,7 @@ class FlameNeRF(nn.Module):
 
     @torch.no_grad()
     def _region_gates(self, xn: Tensor, beta: Tensor, inside: Tensor | None = None,
-                      block: int = 1024, shared: dict | None = None) -> Tensor:
+                      shared: dict | None = None) -> Tensor:
         """(R, S, 3), β (R, E), inside (R,) bool -> (R, S, E) in [0, 1]: each point's share
         of each control, the membership of its nearest vertex (on the mesh of the ray's
         own β) in the control's region times exp(-d²/r²) of the distance d to that vertex,
@@ -267,25 +265,14 @@ class FlameNeRF(nn.Module):
             return out
         r = self._gate_radius()
         S, cut = xn.shape[1], GATE_CUTOFF * r
-        uniq, inv = distinct_rows(beta[rows])
-        if shared is None and (xn.device.type == "cpu" or len(uniq) == 1):
-            # k-d trees on a CPU: an image or a viewer update has one mesh, a training batch
-            # ~100 in one tree (twice as fast as the distance blocks below on the 2-core CPU)
+        if shared is None:
             shared = self._ray_neighbours(xn, beta, rows, 1, cut)
-        if shared is not None:  # the nearest vertex (of the guide's k, when shared)
-            d = shared["d2k"][:, 0].sqrt()
-            d = d.masked_fill(d > cut, float("inf"))
-            nn_ = shared["idx"][:, 0] % self.mesh_regions.shape[0]
-            out[shared["rows"]] = (self.mesh_regions[nn_] * torch.exp(-(d / r).square())[:, None]
-                                   ).view(len(shared["rows"]), S, -1)
-            return out
-        # off the CPU, many meshes: one mesh per distinct β, bounded distance blocks
-        meshes = self.normalize(self.face_mesh(uniq))  # (U, V, 3)
-        for s in range(0, len(rows), block):  # bounded (B·S, V) distance blocks
-            rb = rows[s:s + block]
-            d, nn_ = torch.cdist(xn[rb], meshes[inv[s:s + block]]).min(-1)  # (B, S)
-            d = d.masked_fill(d > cut, float("inf"))
-            out[rb] = self.mesh_regions[nn_] * torch.exp(-(d / r).square())[..., None]
+        # the nearest vertex (of the guide's k, when shared)
+        d = shared["d2k"][:, 0].sqrt()
+        d = d.masked_fill(d > cut, float("inf"))
+        nn_ = shared["idx"][:, 0] % self.mesh_regions.shape[0]
+        out[shared["rows"]] = (self.mesh_regions[nn_] * torch.exp(-(d / r).square())[:, None]
+                               ).view(len(shared["rows"]), S, -1)
         return out
 
     # ---------------------------------------------------------------- conditioning

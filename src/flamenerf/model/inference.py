@@ -121,8 +121,7 @@ def march(evaluate: Evaluate, deltas: Tensor, group: int, eps: float,
         sigma, c = evaluate(rows, lo, hi)
         sd = sigma.float() * deltas[rows, lo:hi]
         # the optical depth in front of each sample, summed as render_weights sums it
-        before = depth[rows, None] + torch.cumsum(
-            torch.cat([torch.zeros_like(sd[:, :1]), sd[:, :-1]], 1), 1)
+        before = depth[rows, None] + exclusive_cumsum(sd)
         weights[rows, lo:hi] = (1.0 - torch.exp(-sd)) * torch.exp(-before)
         if colour:
             rgb[rows, lo:hi] = c.float()
@@ -130,6 +129,17 @@ def march(evaluate: Evaluate, deltas: Tensor, group: int, eps: float,
         depth[rows] = d
         rows = rows[d < stop]
     return weights, rgb
+
+
+def exclusive_cumsum(x: Tensor) -> Tensor:
+    """(n, s) -> (n, s): the sum of each row's entries before each entry. On a GPU one
+    float64 product with a triangular matrix (exact to float32, whatever TF32 setting is
+    on): CUDA's scan over many short rows took ~0.4 ms per call on an H200."""
+    if x.is_cuda:
+        s = x.shape[1]
+        tri = torch.ones(s, s, dtype=torch.float64, device=x.device).triu(1)
+        return (x.double() @ tri).float()
+    return torch.cumsum(torch.cat([torch.zeros_like(x[:, :1]), x[:, :-1]], 1), 1)
 
 
 def _autocast(device: torch.device, settings: RenderSettings):

@@ -1,0 +1,184 @@
+"""Triton kernels for GPUs: the hash grid's encoding without autograd (every level in one
+kernel), and the k nearest mesh vertices of many points.
+
+On a GPU, `HashGrid.forward_grouped` builds each corner's index and weight as separate
+PyTorch tensors (G, N) and gathers them with `index_select`: an H100 spent most of a
+256 px frame in those gathers and the elementwise index arithmetic around them
+(docs/bench/gpu_profile.json). Here each program takes a block of points at one level and
+keeps indices and weights in registers, so the only memory traffic is the points, the
+table rows read and the features written. Forward only, without autograd: training keeps
+`forward_grouped`, whose gradients PyTorch derives.
+
+The k nearest vertices: `meshes.nearest_vertices_brute` computes every point's distance to
+every vertex and selects with `topk`; on an H200 that selection was 37 % of a mesh-guided
+256 px frame's GPU time. Here each point keeps its k best in registers while it walks its
+mesh's vertices (V ~ 500-800, k <= 8).
+
+Triton comes with PyTorch's CUDA builds; without it (or with `FLAMENERF_GPU_KERNELS=0`)
+the callers fall back to PyTorch ops. `TRITON_INTERPRET=1` runs the kernels on a CPU
+(how the tests check them against the references).
+"""
+
+from __future__ import annotations
+
+import os
+
+import torch
+from torch import Tensor
+
+_kernel = None
+_tried = False
+
+
+def available(device: torch.device) -> bool:
+    """Whether `hashgrid_forward` can run on tensors of `device`."""
+    if os.environ.get("FLAMENERF_GPU_KERNELS", "1") == "0":
+        return False
+    interpret = os.environ.get("TRITON_INTERPRET") == "1"
+    if device.type != "cuda" and not (interpret and device.type == "cpu"):
+        return False
+    return _load() is not None
+
+
+def _load():
+    global _kernel, _tried
+    if not _tried:
+        _tried = True
+        try:
+            _kernel = _define()
+        except ImportError:
+            _kernel = None
+    return _kernel
+
+
+def _define() -> dict:
+    import triton
+    import triton.language as tl
+
+    @triton.jit
+    def hashgrid_fwd(x_ptr, table_ptr, res_ptr, dense_ptr, offset_ptr, out_ptr, n,
+                     out_stride, hash_mask, col0,
+                     F: tl.constexpr, FP: tl.constexpr, BLOCK: tl.constexpr):
+        lv = tl.program_id(1)
+        rows = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
+        ok = rows < n
+        r = tl.load(res_ptr + lv)  # int64
+        dense = tl.load(dense_ptr + lv) != 0
+        offset = tl.load(offset_ptr + lv)  # int64: first row of this level's table
+        rf = r.to(tl.float32)
+        feats = tl.arange(0, FP)
+        fok = feats < F
+        acc = tl.zeros((BLOCK, FP), dtype=tl.float32)
+        # per axis: the cell's lower corner (as forward_grouped: x·r in float32, its floor
+        # kept inside the grid so that x = 1 lies on the top face) and the fraction
+        px = tl.minimum(tl.maximum(tl.load(x_ptr + rows * 3, mask=ok, other=0.0), 0.0), 1.0) * rf
+        py = tl.minimum(tl.maximum(tl.load(x_ptr + rows * 3 + 1, mask=ok, other=0.0), 0.0),
+                        1.0) * rf
+        pz = tl.minimum(tl.maximum(tl.load(x_ptr + rows * 3 + 2, mask=ok, other=0.0), 0.0),
+                        1.0) * rf
+        bx = tl.minimum(tl.floor(px), rf - 1.0)
+        by = tl.minimum(tl.floor(py), rf - 1.0)
+        bz = tl.minimum(tl.floor(pz), rf - 1.0)
+        fx, fy, fz = px - bx, py - by, pz - bz
+        ix, iy, iz = bx.to(tl.int64), by.to(tl.int64), bz.to(tl.int64)
+        stride = r + 1
+        for c in tl.static_range(8):
+            dx, dy, dz = (c >> 2) & 1, (c >> 1) & 1, c & 1
+            cx, cy, cz = ix + dx, iy + dy, iz + dz
+            # hashed: the low bits of the products, which int64 holds exactly
+            hashed = (cx ^ (cy * 2654435761) ^ (cz * 805459861)) & hash_mask
+            flat = cx + cy * stride + cz * stride * stride
+            idx = tl.where(dense, flat, hashed) + offset
+            w = ((fx if dx else 1.0 - fx) * (fy if dy else 1.0 - fy)
+                 * (fz if dz else 1.0 - fz))
+            f = tl.load(table_ptr + idx[:, None] * F + feats[None, :],
+                        mask=ok[:, None] & fok[None, :], other=0.0)
+            acc += f.to(tl.float32) * w[:, None]
+        dst = out_ptr + rows[:, None] * out_stride + col0 + lv * F + feats[None, :]
+        tl.store(dst, acc.to(out_ptr.dtype.element_ty), mask=ok[:, None] & fok[None, :])
+
+    @triton.jit
+    def knn(p_ptr, v_ptr, which_ptr, d_ptr, i_ptr, n, V: tl.constexpr,
+            K: tl.constexpr, KP: tl.constexpr, BLOCK: tl.constexpr):
+        rows = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
+        ok = rows < n
+        px = tl.load(p_ptr + rows * 3, mask=ok, other=0.0)
+        py = tl.load(p_ptr + rows * 3 + 1, mask=ok, other=0.0)
+        pz = tl.load(p_ptr + rows * 3 + 2, mask=ok, other=0.0)
+        base = tl.load(which_ptr + rows, mask=ok, other=0).to(tl.int64) * V
+        cols = tl.arange(0, KP)
+        # the k best so far, unsorted; padding columns at -inf are never the worst
+        best = tl.where(cols[None, :] < K, float("inf"), float("-inf")) + tl.zeros(
+            (BLOCK, KP), dtype=tl.float32)
+        besti = tl.zeros((BLOCK, KP), dtype=tl.int64)
+        for j in range(V):
+            v = (base + j) * 3
+            dx = px - tl.load(v_ptr + v, mask=ok, other=0.0)
+            dy = py - tl.load(v_ptr + v + 1, mask=ok, other=0.0)
+            dz = pz - tl.load(v_ptr + v + 2, mask=ok, other=0.0)
+            d = dx * dx + dy * dy + dz * dz
+            worst = tl.max(best, 1)
+            # the first column holding the worst: replaced where this vertex is nearer
+            at = tl.min(tl.where(best == worst[:, None], cols[None, :], KP), 1)
+            put = (cols[None, :] == at[:, None]) & (d < worst)[:, None]
+            best = tl.where(put, d[:, None], best)
+            besti = tl.where(put, base[:, None] + j, besti)
+        keep = ok[:, None] & (cols[None, :] < K)
+        tl.store(d_ptr + rows[:, None] * K + cols[None, :], best, mask=keep)
+        tl.store(i_ptr + rows[:, None] * K + cols[None, :], besti, mask=keep)
+
+    return {"hashgrid": hashgrid_fwd, "knn": knn}
+
+
+def knn(pts: Tensor, meshes: Tensor, which: Tensor, k: int) -> tuple[Tensor, Tensor]:
+    """The k nearest vertices of each point's own mesh, nearest first: pts (P, 3), meshes
+    (M, V, 3), which (P,) long -> squared distances (P, k) float32 and indices (P, k) long
+    into the M·V stacked vertices (k <= V). Distances are summed as (x - v)² per axis, not
+    through `cdist`'s |x|² + |v|² - 2x·v."""
+    kernels = _load()
+    P, V = len(pts), meshes.shape[1]
+    d2 = torch.empty(P, k, dtype=torch.float32, device=pts.device)
+    idx = torch.empty(P, k, dtype=torch.long, device=pts.device)
+    if P:
+        block = 128
+        kernels["knn"][(triton_cdiv(P, block),)](
+            pts.detach().float().contiguous(), meshes.detach().float().contiguous(),
+            which.contiguous(), d2, idx, P, V, K=k, KP=max(2, 1 << (k - 1).bit_length()),
+            BLOCK=block)
+    d2, order = torch.sort(d2, -1)
+    return d2, idx.gather(-1, order)
+
+
+def hashgrid_forward(grid, x: Tensor, out: Tensor | None = None, col0: int = 0) -> Tensor:
+    """HashGrid `grid`'s encoding of x (N, 3) in [0, 1]^3 without autograd -> (N, L·F)
+    float32; or written into columns col0.. of `out` (N, C) (unit column stride)."""
+    kernel = _load()["hashgrid"]
+    n, L, F = x.shape[0], grid.levels, grid.features
+    if out is None:
+        out = torch.empty(n, L * F, dtype=torch.float32, device=x.device)
+        col0 = 0
+    if n == 0:
+        return out
+    table, res, dense, offsets = _flat_layout(grid)
+    block = 128 if F <= 4 else 32
+    fp = 1 << (F - 1).bit_length()
+    kernel[(triton_cdiv(n, block), L)](
+        x.detach().float().contiguous(), table, res, dense, offsets, out, n, out.stride(0),
+        grid.size - 1, col0, F=F, FP=fp, BLOCK=block)
+    return out
+
+
+def triton_cdiv(a: int, b: int) -> int:
+    return (a + b - 1) // b
+
+
+def _flat_layout(grid):
+    """The grid's tables as one (ΣT_l, F) tensor and its per-level resolution, dense flag
+    and first row. Made at every call: a cache keyed on the tables' versions would miss
+    writes through `.data`, and the copy costs ~30 µs of a GPU's time."""
+    tables = [t.detach() for t in grid.tables]
+    dev = tables[0].device
+    sizes = [len(t) for t in tables]
+    offsets = torch.tensor([0, *sizes[:-1]], dtype=torch.int64).cumsum(0).to(dev)
+    return (torch.cat(tables).contiguous(), grid.res.to(dev, torch.int64).contiguous(),
+            grid.dense.to(dev, torch.int8).contiguous(), offsets)

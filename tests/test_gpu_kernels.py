@@ -1,0 +1,80 @@
+"""The Triton kernels (gpu_kernels.py) against their PyTorch references, run by Triton's
+interpreter on the CPU: the same kernel code a GPU compiles, without a GPU. The interpreter
+is chosen when Triton is imported, so the checks run in a fresh process."""
+
+import importlib.util
+import os
+import subprocess
+import sys
+import textwrap
+
+import pytest
+
+pytestmark = pytest.mark.skipif(importlib.util.find_spec("triton") is None,
+                                reason="Triton is not installed (the test extra installs it)")
+
+CHECK = textwrap.dedent("""
+    import torch
+    from flamenerf import gpu_kernels as gk
+    from flamenerf.meshes import nearest_vertices, nearest_vertices_brute
+    from flamenerf.model.encodings import HashGrid
+
+    assert gk.available(torch.device("cpu"))
+    torch.manual_seed(0)
+    # every level kind (dense, hashed), feature widths that are and are not powers of two,
+    # points on the grid's faces and outside it (clamped)
+    for L, F, log2, base, top in ((6, 2, 12, 4, 64), (4, 8, 10, 4, 32), (3, 3, 10, 8, 40)):
+        grid = HashGrid(L, F, log2, base, top)
+        for t in grid.tables:
+            t.data.uniform_(-1, 1)
+        x = torch.rand(700, 3)
+        x[0], x[1], x[2, 0], x[3, 1] = 1.0, 0.0, 1.2, -0.3
+        ref = grid.forward_grouped(x)
+        assert (gk.hashgrid_forward(grid, x) - ref).abs().max() < 1e-6
+        # into columns of a wider buffer, the others untouched
+        buf = torch.full((700, L * F + 7), 5.0)
+        gk.hashgrid_forward(grid, x, buf[:, 3:3 + L * F])
+        assert (buf[:, 3:3 + L * F] - ref).abs().max() < 1e-6
+        assert bool((buf[:, :3] == 5).all() and (buf[:, 3 + L * F:] == 5).all())
+        grid.tables[0].data.add_(0.5)  # a table changed between calls (a training step)
+        assert (gk.hashgrid_forward(grid, x) - grid.forward_grouped(x)).abs().max() < 1e-6
+
+    # k nearest vertices of each point's own mesh: the k-d tree's answer
+    g = torch.Generator().manual_seed(1)
+    meshes = torch.rand(3, 50, 3, generator=g)
+    pts = torch.rand(300, 3, generator=g)
+    which = torch.randint(3, (300,), generator=g)
+    for k in (1, 3, 4, 8):
+        d, i = gk.knn(pts, meshes, which, k)
+        td, ti = nearest_vertices(pts, meshes, k, 10.0, which)
+        assert (d - td).abs().max() < 1e-6 and torch.equal(i, ti), k
+        assert bool((i // 50 == which[:, None]).all())
+    # the brute-force path off the CPU takes the kernel where it runs: the rays form and
+    # the bound as the tree has them
+    rays, ray_mesh = pts.view(30, 10, 3), torch.randint(3, (30,), generator=g)
+    for k in (1, 4):
+        bd, bi = nearest_vertices_brute(rays, meshes, k, 0.2, ray_mesh)
+        td, ti = nearest_vertices(rays, meshes, k, 0.2, ray_mesh)
+        fin = torch.isfinite(td)
+        assert bool(fin.any() and (~fin).any()) and torch.equal(fin, torch.isfinite(bd))
+        assert (bd[fin] - td[fin]).abs().max() < 1e-6 and torch.equal(bi, ti)
+    print("kernels agree")
+""")
+
+
+def test_triton_kernels_match_their_references_under_the_interpreter():
+    env = {**os.environ, "TRITON_INTERPRET": "1", "FLAMENERF_GPU_KERNELS": "1"}
+    out = subprocess.run([sys.executable, "-c", CHECK], env=env, capture_output=True,
+                         text=True, timeout=600)
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert "kernels agree" in out.stdout
+
+
+def test_without_a_gpu_or_the_interpreter_the_kernels_stand_aside():
+    import torch
+
+    from flamenerf import gpu_kernels
+
+    if os.environ.get("TRITON_INTERPRET") == "1":
+        pytest.skip("this process runs Triton's interpreter")
+    assert not gpu_kernels.available(torch.device("cpu"))
