@@ -369,8 +369,10 @@ def _fast_gpu() -> Config:
     cfg.preset = "fast-gpu"
     # on a GPU a `fast` step is bound by kernel launches, not by the rays: on an H100 a
     # step of 16384 rays took 75 ms against 83 ms for 4096. 800 such steps: 31.7 / 32.0 dB
-    # held-out at 256 px (seeds 0 / 1, all 30 val frames) in 43 / 46 s; 500 steps gave
-    # 30.8 / 29.8 dB, `fast` (680 x 4096) 29.7 dB in 36 s (docs/bench/gpu_train_fast_gpu.json)
+    # held-out at 256 px (seeds 0 / 1, all 30 val frames) in 43 / 46 s before `fast`'s
+    # changes of 2026-11-25/26 (docs/bench/gpu_train_fast_gpu.json); with them (mesh guide,
+    # slower per-frame codes), on an H200: 30.3 / 29.2 dB in 51 s
+    # (docs/bench/gpu_h200_20261126.json)
     cfg.train.steps, cfg.train.batch_rays = 800, 16384
     return cfg
 
@@ -390,7 +392,7 @@ PRESETS: dict[str, tuple[str, Any]] = {
     "nerfies": ("Nerfies baseline: as flame-in-nerf without the expression input", _nerfies),
     "no-prior": ("ablation: as flame-in-nerf with β reaching every sample point", _no_prior),
     "fast": ("CPU-friendly: hash-grid field, proposal sampler, small warp", _fast),
-    "fast-gpu": ("fast for a GPU: 800 steps of 16384 rays (~45 s on an H100)", _fast_gpu),
+    "fast-gpu": ("fast for a GPU: 800 steps of 16384 rays (~51 s on an H200)", _fast_gpu),
     "demo": ("`flamenerf demo`'s: fast, 300 steps of 2048 rays", _demo),
 }
 
