@@ -78,3 +78,38 @@ def test_without_a_gpu_or_the_interpreter_the_kernels_stand_aside():
     if os.environ.get("TRITON_INTERPRET") == "1":
         pytest.skip("this process runs Triton's interpreter")
     assert not gpu_kernels.available(torch.device("cpu"))
+
+
+def test_a_kernel_that_cannot_be_built_gives_way_to_pytorch(monkeypatch):
+    """A GPU or driver Triton cannot compile for: one warning, the PyTorch path's answer,
+    and the kernels off from then on (never a crash in a render)."""
+    import torch
+
+    from flamenerf import gpu_kernels
+    from flamenerf.meshes import nearest_vertices, nearest_vertices_brute
+    from flamenerf.model.encodings import HashGrid
+
+    class Unbuildable:
+        def __getitem__(self, grid):
+            def launch(*args, **meta):
+                raise RuntimeError("no compiler for this device")
+            return launch
+
+    monkeypatch.setenv("TRITON_INTERPRET", "1")  # lets the CPU stand in for the GPU
+    monkeypatch.setattr(gpu_kernels, "_tried", True)
+    monkeypatch.setattr(gpu_kernels, "_kernels", {"knn": Unbuildable(),
+                                                  "hashgrid": Unbuildable()})
+    g = torch.Generator().manual_seed(0)
+    meshes, pts = torch.rand(2, 30, 3, generator=g), torch.rand(50, 3, generator=g)
+    which = torch.randint(2, (50,), generator=g)
+    with pytest.warns(UserWarning, match="knn failed"):
+        d, i = nearest_vertices_brute(pts, meshes, 4, 10.0, which)
+    td, ti = nearest_vertices(pts, meshes, 4, 10.0, which)
+    assert torch.allclose(d, td, atol=1e-6) and torch.equal(i, ti)
+    assert not gpu_kernels.available(torch.device("cpu"))
+    monkeypatch.setattr(gpu_kernels, "_kernels", {"hashgrid": Unbuildable()})
+    grid = HashGrid(3, 2, 10, 4, 32)
+    x = torch.rand(40, 3, generator=g)
+    with pytest.warns(UserWarning, match="hashgrid failed"):
+        assert gpu_kernels.hashgrid_forward(grid, x) is None
+

@@ -22,16 +22,17 @@ the callers fall back to PyTorch ops. `TRITON_INTERPRET=1` runs the kernels on a
 from __future__ import annotations
 
 import os
+import warnings
 
 import torch
 from torch import Tensor
 
-_kernel = None
+_kernels: dict | None = None
 _tried = False
 
 
 def available(device: torch.device) -> bool:
-    """Whether `hashgrid_forward` can run on tensors of `device`."""
+    """Whether the kernels can run on tensors of `device`."""
     if os.environ.get("FLAMENERF_GPU_KERNELS", "1") == "0":
         return False
     interpret = os.environ.get("TRITON_INTERPRET") == "1"
@@ -40,15 +41,32 @@ def available(device: torch.device) -> bool:
     return _load() is not None
 
 
-def _load():
-    global _kernel, _tried
+def _load() -> dict | None:
+    global _kernels, _tried
     if not _tried:
         _tried = True
         try:
-            _kernel = _define()
+            _kernels = _define()
         except ImportError:
-            _kernel = None
-    return _kernel
+            _kernels = None
+    return _kernels
+
+
+def _launch(name: str, grid: tuple, *args, **meta) -> bool:
+    """Run kernel `name`; False (with one warning, and the kernels off from then on) where
+    Triton cannot build it for this GPU or driver: the callers then take PyTorch ops."""
+    global _kernels
+    kernels = _load()
+    if kernels is None:
+        return False
+    try:
+        kernels[name][grid](*args, **meta)
+        return True
+    except Exception as e:  # noqa: BLE001 - any build or launch failure means: do without
+        _kernels = None
+        warnings.warn(f"flamenerf: the Triton kernel {name} failed ({type(e).__name__}: "
+                      f"{str(e)[:200]}); using PyTorch ops instead", stacklevel=3)
+        return False
 
 
 def _define() -> dict:
@@ -130,29 +148,27 @@ def _define() -> dict:
     return {"hashgrid": hashgrid_fwd, "knn": knn}
 
 
-def knn(pts: Tensor, meshes: Tensor, which: Tensor, k: int) -> tuple[Tensor, Tensor]:
+def knn(pts: Tensor, meshes: Tensor, which: Tensor, k: int) -> tuple[Tensor, Tensor] | None:
     """The k nearest vertices of each point's own mesh, nearest first: pts (P, 3), meshes
     (M, V, 3), which (P,) long -> squared distances (P, k) float32 and indices (P, k) long
-    into the M·V stacked vertices (k <= V). Distances are summed as (x - v)² per axis, not
-    through `cdist`'s |x|² + |v|² - 2x·v."""
-    kernels = _load()
+    into the M·V stacked vertices (k <= V); None where the kernel failed (`_launch`).
+    Distances are summed as (x - v)² per axis, not through `cdist`'s |x|² + |v|² - 2x·v."""
     P, V = len(pts), meshes.shape[1]
     d2 = torch.empty(P, k, dtype=torch.float32, device=pts.device)
     idx = torch.empty(P, k, dtype=torch.long, device=pts.device)
-    if P:
-        block = 128
-        kernels["knn"][(triton_cdiv(P, block),)](
-            pts.detach().float().contiguous(), meshes.detach().float().contiguous(),
-            which.contiguous(), d2, idx, P, V, K=k, KP=max(2, 1 << (k - 1).bit_length()),
-            BLOCK=block)
+    if P and not _launch("knn", (triton_cdiv(P, 128),), pts.detach().float().contiguous(),
+                         meshes.detach().float().contiguous(), which.contiguous(), d2, idx,
+                         P, V, K=k, KP=max(2, 1 << (k - 1).bit_length()), BLOCK=128):
+        return None
     d2, order = torch.sort(d2, -1)
     return d2, idx.gather(-1, order)
 
 
-def hashgrid_forward(grid, x: Tensor, out: Tensor | None = None, col0: int = 0) -> Tensor:
+def hashgrid_forward(grid, x: Tensor, out: Tensor | None = None, col0: int = 0
+                     ) -> Tensor | None:
     """HashGrid `grid`'s encoding of x (N, 3) in [0, 1]^3 without autograd -> (N, L·F)
-    float32; or written into columns col0.. of `out` (N, C) (unit column stride)."""
-    kernel = _load()["hashgrid"]
+    float32; or written into columns col0.. of `out` (N, C) (unit column stride); None
+    where the kernel failed (`_launch`)."""
     n, L, F = x.shape[0], grid.levels, grid.features
     if out is None:
         out = torch.empty(n, L * F, dtype=torch.float32, device=x.device)
@@ -162,9 +178,10 @@ def hashgrid_forward(grid, x: Tensor, out: Tensor | None = None, col0: int = 0) 
     table, res, dense, offsets = _flat_layout(grid)
     block = 128 if F <= 4 else 32
     fp = 1 << (F - 1).bit_length()
-    kernel[(triton_cdiv(n, block), L)](
-        x.detach().float().contiguous(), table, res, dense, offsets, out, n, out.stride(0),
-        grid.size - 1, col0, F=F, FP=fp, BLOCK=block)
+    if not _launch("hashgrid", (triton_cdiv(n, block), L), x.detach().float().contiguous(),
+                   table, res, dense, offsets, out, n, out.stride(0), grid.size - 1, col0,
+                   F=F, FP=fp, BLOCK=block):
+        return None
     return out
 
 

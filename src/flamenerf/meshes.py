@@ -173,9 +173,11 @@ def nearest_vertices_brute(pts: Tensor, meshes: Tensor, k: int, bound: float, wh
     if which.shape != x.shape[:1]:  # the kernel would read past its end
         raise ValueError(f"nearest_vertices_brute: which {tuple(which.shape)} for points "
                          f"{tuple(pts.shape)}: one mesh index per point (or per ray)")
-    if k <= 8 and gpu_kernels.available(pts.device):
-        d2, idx = gpu_kernels.knn(x.reshape(-1, 3), meshes,
-                                  which.repeat_interleave(x.shape[1]), min(k, V))
+    found = (gpu_kernels.knn(x.reshape(-1, 3), meshes, which.repeat_interleave(x.shape[1]),
+                             min(k, V))
+             if k <= 8 and gpu_kernels.available(pts.device) else None)
+    if found is not None:
+        d2, idx = found
         far = d2 > bound * bound
         return d2.masked_fill(far, float("inf")), idx.masked_fill(far, 0)
     if M == 1:  # one mesh (an image, a viewer update): blocks of points, no gathers

@@ -89,7 +89,9 @@ class HashGrid(nn.Module):
             from flamenerf import gpu_kernels
 
             if gpu_kernels.available(x.device):  # inference on a GPU: one fused kernel
-                return gpu_kernels.hashgrid_forward(self, x)
+                out = gpu_kernels.hashgrid_forward(self, x)
+                if out is not None:
+                    return out
         return self.forward_grouped(x)
 
     @torch.no_grad()
