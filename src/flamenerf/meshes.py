@@ -173,35 +173,33 @@ def nearest_vertices_brute(pts: Tensor, meshes: Tensor, k: int, bound: float, wh
     if which.shape != x.shape[:1]:  # the kernel would read past its end
         raise ValueError(f"nearest_vertices_brute: which {tuple(which.shape)} for points "
                          f"{tuple(pts.shape)}: one mesh index per point (or per ray)")
-    found = (gpu_kernels.knn(x.reshape(-1, 3), meshes, which.repeat_interleave(x.shape[1]),
-                             min(k, V))
+    k = min(k, V)
+
+    def nearest(d: Tensor) -> tuple[Tensor, Tensor]:
+        if k == 1:  # a reduction: topk's radix select was 15 % of an H100's 256 px frame
+            return d.min(-1, keepdim=True)
+        return torch.topk(d, k, dim=-1, largest=False)
+
+    found = (gpu_kernels.knn(x.reshape(-1, 3), meshes, which.repeat_interleave(x.shape[1]), k)
              if k <= 8 and gpu_kernels.available(pts.device) else None)
     if found is not None:
         d2, idx = found
-        far = d2 > bound * bound
-        return d2.masked_fill(far, float("inf")), idx.masked_fill(far, 0)
-    if M == 1:  # one mesh (an image, a viewer update): blocks of points, no gathers
-        x, which = x.reshape(1, -1, 3), which[:1]
-    R, S = x.shape[:2]
-    k = min(k, V)
-    d2 = x.new_empty(R, S, k)
-    idx = torch.empty(R, S, k, dtype=torch.long, device=x.device)
-    step = max(1, block_elements // max(S * V, 1))
-    blocks = ([(slice(lo, lo + step), slice(None)) for lo in range(0, R, step)] if R > 1 else
-              [(slice(None), slice(lo, lo + block_elements // V))
-               for lo in range(0, S, max(1, block_elements // V))])
-    for rs, ss in blocks:
-        w = which[rs]
-        d = torch.cdist(x[rs, ss], meshes[w]).square()  # (B, S', V)
-        if k == 1:  # a reduction: topk's radix select was 15 % of an H100's 256 px frame
-            dk, ik = d.min(-1, keepdim=True)
-        else:
-            dk, ik = torch.topk(d, k, dim=-1, largest=False)
-        d2[rs, ss] = dk
-        idx[rs, ss] = ik + (w * V)[:, None, None]
+    elif M == 1:  # one mesh (an image, a viewer update): blocks of points, no gathers
+        flat = x.reshape(-1, 3)
+        step = max(1, block_elements // V)
+        parts = [nearest(torch.cdist(flat[lo:lo + step], meshes[0]).square())
+                 for lo in range(0, len(flat), step)]
+        d2, idx = torch.cat([p[0] for p in parts]), torch.cat([p[1] for p in parts])
+    else:  # blocks of rays, each against its own ray's mesh: (B, S, V) distances
+        step = max(1, block_elements // (x.shape[1] * V))
+        parts = []
+        for lo in range(0, len(x), step):
+            w = which[lo:lo + step]
+            dk, ik = nearest(torch.cdist(x[lo:lo + step], meshes[w]).square())
+            parts.append((dk.reshape(-1, k), (ik + (w * V)[:, None, None]).reshape(-1, k)))
+        d2, idx = torch.cat([p[0] for p in parts]), torch.cat([p[1] for p in parts])
     far = d2 > bound * bound
-    return (d2.masked_fill(far, float("inf")).reshape(-1, k),
-            idx.masked_fill(far, 0).reshape(-1, k))
+    return d2.masked_fill(far, float("inf")), idx.masked_fill(far, 0)
 
 
 def _tree_workers(n: int) -> int:
@@ -209,14 +207,3 @@ def _tree_workers(n: int) -> int:
     # took 49 ms with 2 threads against 87 ms with one; small queries (a viewer's few rays)
     # stay on one
     return max(1, torch.get_num_threads()) if n >= 8192 else 1
-
-
-def nearest_vertex(pts: Tensor, verts: Tensor, bound: float) -> tuple[Tensor, Tensor]:
-    """Distance to, and index of, the nearest of verts (V, 3) for pts (P, 3); points farther
-    than `bound` get d = inf and index 0 (`nearest_vertices` with k = 1: a k-d tree on a CPU,
-    where the brute-force distances were a third of a 256 px frame's time). -> (P,), (P,)
-    long."""
-    if len(pts) == 0:
-        return pts.new_zeros(0), torch.zeros(0, dtype=torch.long, device=pts.device)
-    d2, i = nearest_vertices(pts, verts, 1, bound)
-    return d2[:, 0].sqrt(), i[:, 0]

@@ -209,11 +209,12 @@ def test_expression_regions_keep_the_silhouette_prior():
 
 
 def test_nearest_vertex_matches_brute_force_within_the_bound():
-    from flamenerf.meshes import nearest_vertex
+    from flamenerf.meshes import nearest_vertices
 
     g = torch.Generator().manual_seed(4)
     verts, pts = torch.rand(50, 3, generator=g), torch.rand(300, 3, generator=g) * 1.6 - 0.3
-    d, i = nearest_vertex(pts, verts, 0.2)
+    d2, i = nearest_vertices(pts, verts, 1, 0.2)  # the gates' query: the nearest alone
+    d, i = d2[:, 0].sqrt(), i[:, 0]
     bd, bi = torch.cdist(pts.double(), verts.double()).min(-1)
     bd = bd.float()
     near = bd <= 0.2
