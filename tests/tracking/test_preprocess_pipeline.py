@@ -34,7 +34,13 @@ def test_dataset_is_valid_and_complete(dataset):
     assert ds.splits["val"] == [3, 7] and len(ds.splits["train"]) == 8
     assert [f.extra["source_frame"] for f in ds.frames] == [0, 1, 2, 4, 5, 6, 8, 9, 10, 11]
     assert 0 < ds.near < ds.far
-    assert ds.faces.shape == (898, 3) and ds.face_vertices.shape == (n, 468, 3)
+    # MediaPipe's 468 mesh vertices and its ten iris points, each iris in its eye
+    assert ds.faces.shape == (898, 3) and ds.face_vertices.shape == (n, 478, 3)
+    v = ds.face_vertices.astype(np.float64)
+    for iris, corners in ((468, (33, 133)), (473, (263, 362))):
+        centre = v[:, list(corners)].mean(1)
+        eye_width = np.linalg.norm(v[:, corners[0]] - v[:, corners[1]], axis=-1)
+        assert np.all(np.linalg.norm(v[:, iris] - centre, axis=-1) < 0.6 * eye_width)
     expr = ds.expression_matrix(ds.frames)
     assert np.all((expr >= 0) & (expr <= 1))
 

@@ -178,7 +178,11 @@ def fit_face(clip, sol, mesh, flame, flame_expr_dim: int) -> FaceFit:
         return FaceFit(fit.expressions, fit.names, "flame", fit.vertices, flame.faces,
                        {"source": "FLAME fit to MediaPipe landmarks", "model": fit.model_info,
                         "shape": fit.shape.tolist(), "fit_error_px": fit.median_error_px})
-    return FaceFit(clip.blendshapes, clip.names, "arkit", sol.vertices, mesh.faces,
+    from flamenerf.tracking.irises import with_irises
+
+    # the irises as vertices too (478), so that a gaze moves the mesh
+    return FaceFit(clip.blendshapes, clip.names, "arkit",
+                   with_irises(sol.vertices, clip.landmarks, mesh.faces), mesh.faces,
                    {"source": "MediaPipe FaceLandmarker blendshape scores (ARKit names)",
                     "range": [0.0, 1.0], "model_sha256": SHA256})
 
