@@ -154,6 +154,14 @@ class MeshGuideConfig:
     """Distance (fraction of the neutral mesh's bounding-box diagonal) over which the motion
     fades out away from the mesh."""
     neighbours: int = 4
+    max_residual: float | None = None
+    """Vertices that the β -> mesh model misses by more than this (RMS over the training
+    frames' tracked meshes, world units: metres on tracked clips and the built-in scene) do
+    not guide; None: all do. On the built-in scene three lip-line vertices are missed by
+    4.5 mm (its lips slide into the open mouth, not linear in β) and carried the canonical
+    mouth to the wrong place: 0.0015 there (one training, seed 2) took re-animation face
+    29.98 -> 30.51 dB with the jaw's response kept (sweep gain 0.27 -> 0.31); not yet
+    measured on more seeds or on real clips, so off (docs/bench/control_exploration.md)."""
     ridge: float = 1e-3
     """Ridge of the β -> mesh least-squares fit (relative to the mean squared control)."""
     face_parts: bool = True

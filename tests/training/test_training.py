@@ -7,12 +7,12 @@ import torch
 
 from flamenerf.config import PRESETS, preset
 from flamenerf.data.dataset import load_dataset
-from flamenerf.data.scene import FrameSet
+from flamenerf.data.scene import FrameSet, expression_model_residual
 from flamenerf.evaluation.metrics import psnr
 from flamenerf.model.render_image import render_image
 from flamenerf.training.checkpoint import latest_checkpoint
 from flamenerf.training.run import load_run
-from flamenerf.training.trainer import Trainer, learning_rate
+from flamenerf.training.trainer import Trainer, build_for_dataset, learning_rate
 
 
 def small(cfg, steps):
@@ -229,6 +229,31 @@ def test_mesh_guided_training_carries_the_expression_model(synth_scene, tmp_path
     # and with β masked to zero (a ray outside the prior's silhouette) nothing moves
     e = m.masked_expression(jaw.expand(len(x), -1), outside)
     assert torch.equal(m.guide_points(x, e, m.expression_inside(outside)), x)
+
+
+def test_vertices_the_mesh_model_misses_do_not_guide(synth_scene, tmp_path):
+    """`mesh_guide.max_residual`: the vertices whose β -> mesh fit misses the training
+    meshes by more than it are left out of the guide, and a loaded run keeps them out."""
+    ds = load_dataset(synth_scene)
+    cfg = small(preset("fast"), 2)
+    cfg.model.mesh_guide.enabled = True
+    m0 = build_for_dataset(cfg, ds)
+    assert not m0.guide_skip.any()
+    miss = expression_model_residual(ds, m0.mesh_neutral, m0.mesh_basis)
+    limit = float(miss.quantile(0.9))
+    cfg.model.mesh_guide.max_residual = limit
+    Trainer(cfg, synth_scene, tmp_path / "run", quiet=True).fit()
+    m = load_run(tmp_path / "run").model
+    assert torch.equal(m.guide_skip, miss > limit) and 0 < int(m.guide_skip.sum()) < len(miss)
+    jaw = torch.zeros(ds.expression_dim)
+    jaw[ds.expression_names.index("jawOpen")] = 1.0
+    x = m.normalize(m.face_mesh(jaw))[:, None]  # (V, 1, 3)
+    inside = torch.ones(len(x), dtype=torch.bool)
+    e = m.masked_expression(jaw.expand(len(x), -1), inside)
+    moved = (m.guide_points(x, e, inside) - x).norm(dim=-1)[:, 0]
+    assert moved.max() > 0.01
+    m.set_guide_skip(torch.arange(len(miss)))  # none guides: nothing moves
+    assert torch.equal(m.guide_points(x, e, inside), x)
 
 
 def test_face_ray_fraction_draws_that_share_from_the_silhouettes(tiny_scene):

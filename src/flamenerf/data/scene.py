@@ -11,7 +11,7 @@ from flamenerf.data.rays import RayBatch, pixel_directions
 from flamenerf.data.prior import training_mask
 from flamenerf.images import resize_image
 from flamenerf.data.face_parts import control_weights
-from flamenerf.meshes import fit_expression_model, surface_points
+from flamenerf.meshes import expression_mesh, fit_expression_model, surface_points
 from flamenerf.geometry import project_points
 
 
@@ -77,6 +77,18 @@ def fit_dataset_expression_model(ds: Dataset, ridge: float = 1e-3, face_parts: b
     return fit_expression_model(torch.from_numpy(ds.expression_matrix(train)),
                                 torch.from_numpy(verts), ridge,
                                 None if weights is None else torch.from_numpy(weights))
+
+
+def expression_model_residual(ds: Dataset, neutral: torch.Tensor, basis: torch.Tensor
+                              ) -> torch.Tensor:
+    """How far the β -> mesh model (`fit_dataset_expression_model`'s neutral (V, 3), basis
+    (E, V, 3)) misses each vertex of the training frames' meshes: RMS over the frames, world
+    units. -> (V,)"""
+    train = ds.training_frames()
+    verts = torch.from_numpy(canonical_vertices(ds, train)).double()
+    fit = expression_mesh(neutral.double(), basis.double(),
+                          torch.from_numpy(ds.expression_matrix(train)).double())
+    return (fit - verts).norm(dim=-1).pow(2).mean(0).sqrt().float()
 
 
 class FrameSet:

@@ -54,7 +54,8 @@ class FlameNeRF(nn.Module):
                  far: float, box_min: list[float], box_max: list[float],
                  mesh_vertices: int = 0, mesh_faces: int = 0, head_region: dict | None = None,
                  detail_region: dict | None = None,
-                 expression_mean: list[float] | None = None):
+                 expression_mean: list[float] | None = None,
+                 guide_skip: list[int] | None = None):
         super().__init__()
         self.cfg = cfg
         self.captured: tuple[Tensor, Tensor | None, Tensor] | None = None
@@ -78,6 +79,11 @@ class FlameNeRF(nn.Module):
             self.register_buffer("mesh_faces", torch.zeros(mesh_faces, 3, dtype=torch.long))
             # (V, E): how much of control k's β each vertex's neighbourhood receives
             self.register_buffer("mesh_regions", torch.zeros(mesh_vertices, expr_dim))
+            # (V,): vertices that do not guide (`set_guide_skip`; kept in init_args)
+            self.register_buffer("guide_skip", torch.zeros(mesh_vertices, dtype=torch.bool),
+                                 persistent=False)
+            if guide_skip:
+                self.set_guide_skip(torch.tensor(guide_skip, dtype=torch.long))
         # the head's ellipsoid (data/head_pose.HeadRegion.to_dict, world units), kept in
         # init_args so that a loaded run rebuilds it; buffers for the device only
         self.follows_head = head_region is not None and cfg.head.follow
@@ -135,6 +141,13 @@ class FlameNeRF(nn.Module):
         # or more, fading to 0 with the motion, so that gates vary smoothly across the face
         soft = (motion / (thr * top).clamp_min(1e-12)).clamp(max=1.0) * (top > 0)
         self.mesh_regions.copy_(soft.T)
+
+    def set_guide_skip(self, vertices: Tensor) -> None:
+        """Vertex indices (K,) that the mesh guide ignores (`mesh_guide.max_residual`); kept
+        in init_args so that a loaded run rebuilds them."""
+        self.guide_skip.zero_()
+        self.guide_skip[vertices.to(self.guide_skip.device)] = True
+        self.init_args["guide_skip"] = [int(v) for v in vertices]
 
     def set_expression_mean(self, mean: Tensor) -> None:
         """β̄ (E,): the networks see 𝕀·(β − β̄) (`masked_expression`); kept in init_args so
@@ -228,6 +241,10 @@ class FlameNeRF(nn.Module):
             rows, k = nb["rows"][moving], nb["d2k"].shape[-1]
             d2k = nb["d2k"].view(-1, S, k)[moving].reshape(-1, k)
             idx = nb["idx"].view(-1, S, k)[moving].reshape(-1, k)
+        if bool(self.guide_skip.any()):  # those vertices neither move points nor fade them
+            d2k = d2k.masked_fill(self.guide_skip[idx % self.guide_skip.shape[0]], float("inf"))
+            d2k, order = d2k.sort(1)
+            idx = idx.gather(1, order)
         move = displacement_of_neighbours(d2k, idx, nb["meshes"],
                                           self.normalize(self.mesh_neutral), falloff)
         out = xn.clone()

@@ -15,7 +15,8 @@ import torch
 from flamenerf import __version__
 from flamenerf.config import Config, from_dict
 from flamenerf.data.dataset import Dataset, load_dataset
-from flamenerf.data.scene import (FrameSet, face_pixel_resolution, fit_dataset_expression_model,
+from flamenerf.data.scene import (FrameSet, expression_model_residual, face_pixel_resolution,
+                                  fit_dataset_expression_model,
                                   model_detail_region, model_head_region, scene_box)
 from flamenerf.errors import Interrupted, UserError, warn
 from flamenerf.io import atomic_write_text, read_json
@@ -125,6 +126,10 @@ def build_for_dataset(cfg: Config, ds: Dataset) -> FlameNeRF:
         neutral, basis = fit_dataset_expression_model(ds, cfg.model.mesh_guide.ridge,
                                                      cfg.model.mesh_guide.face_parts)
         model.set_expression_model(neutral, basis, torch.from_numpy(ds.faces).long())
+        limit = cfg.model.mesh_guide.max_residual
+        if model.mesh_guided and limit is not None:
+            miss = expression_model_residual(ds, neutral, basis)
+            model.set_guide_skip((miss > limit).nonzero()[:, 0])
     return model
 
 
