@@ -159,9 +159,10 @@ class MeshGuideConfig:
     frames' tracked meshes, world units: metres on tracked clips and the built-in scene) do
     not guide; None: all do. On the built-in scene three lip-line vertices are missed by
     4.5 mm (its lips slide into the open mouth, not linear in β) and carried the canonical
-    mouth to the wrong place: 0.0015 there (one training, seed 2) took re-animation face
-    29.98 -> 30.51 dB with the jaw's response kept (sweep gain 0.27 -> 0.31); not yet
-    measured on more seeds or on real clips, so off (docs/bench/control_exploration.md)."""
+    mouth to the wrong place: 0.0015 there took re-animation face 29.58 / 29.98 -> 30.27 /
+    30.51 dB (seeds 0 / 2) with the jaw still following a real driver (jawOpen correlation
+    0.87 / 0.87); not yet trained on seeds 1 / 3 or on real clips, so off
+    (docs/bench/control_exploration.md)."""
     ridge: float = 1e-3
     """Ridge of the β -> mesh least-squares fit (relative to the mean squared control)."""
     face_parts: bool = True

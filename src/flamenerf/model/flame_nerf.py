@@ -82,6 +82,7 @@ class FlameNeRF(nn.Module):
             # (V,): vertices that do not guide (`set_guide_skip`; kept in init_args)
             self.register_buffer("guide_skip", torch.zeros(mesh_vertices, dtype=torch.bool),
                                  persistent=False)
+            self._any_guide_skip = False  # on the host: no device sync per guided batch
             if guide_skip:
                 self.set_guide_skip(torch.tensor(guide_skip, dtype=torch.long))
         # the head's ellipsoid (data/head_pose.HeadRegion.to_dict, world units), kept in
@@ -147,6 +148,7 @@ class FlameNeRF(nn.Module):
         in init_args so that a loaded run rebuilds them."""
         self.guide_skip.zero_()
         self.guide_skip[vertices.to(self.guide_skip.device)] = True
+        self._any_guide_skip = len(vertices) > 0
         self.init_args["guide_skip"] = [int(v) for v in vertices]
 
     def set_expression_mean(self, mean: Tensor) -> None:
@@ -241,7 +243,7 @@ class FlameNeRF(nn.Module):
             rows, k = nb["rows"][moving], nb["d2k"].shape[-1]
             d2k = nb["d2k"].view(-1, S, k)[moving].reshape(-1, k)
             idx = nb["idx"].view(-1, S, k)[moving].reshape(-1, k)
-        if bool(self.guide_skip.any()):  # those vertices neither move points nor fade them
+        if self._any_guide_skip:  # those vertices neither move points nor fade them
             d2k = d2k.masked_fill(self.guide_skip[idx % self.guide_skip.shape[0]], float("inf"))
             d2k, order = d2k.sort(1)
             idx = idx.gather(1, order)

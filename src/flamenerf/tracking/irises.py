@@ -4,17 +4,19 @@ MediaPipe's 478 landmarks end with ten iris points (468-477: each iris's centre 
 points on its rim) that its 898 triangles leave out, and the mesh solve (tracking/cameras)
 fits the 468 that the triangles hold. Without the irises a gaze moves no vertex: the
 β -> mesh model gives the eyeLook controls no place on the face, the per-control prior no
-region and the mesh guide nothing to carry, so a driven gaze was not reproduced. Each iris
-point is put on the solved mesh where the landmarker sees it: inside the triangles that
-close its own eye's opening (their vertices are the eye's contour, 14 per eye), at the
-same barycentric coordinates as in the image; a rim point hidden under a lid goes to the
-nearest point of the opening (with any triangle allowed, one went to the other eye). No triangle holds them, so silhouettes and depth
-are as before; the vertex count becomes 478, MediaPipe's full topology.
+region and the mesh guide nothing to carry. Each iris point is put on the solved mesh
+where the landmarker sees it: inside the triangles that close its own eye's opening (their
+vertices are the eye's contour, 14 per eye), at the same barycentric coordinates as in the
+image; a rim point hidden under a lid goes to the nearest point of the opening (with any
+triangle allowed, one went to the other eye). No triangle holds them, so silhouettes and
+depth are as before; the vertex count becomes 478, MediaPipe's full topology.
 """
 
 from __future__ import annotations
 
 import numpy as np
+
+from flamenerf.tracking.landmarker import NUM_LANDMARKS, NUM_MESH_VERTICES
 
 # MediaPipe's eye contours (upper and lower lid, corner to corner), the subject's left and
 # right eye: the vertices of the triangles that close each eye. Its iris points 468-472
@@ -23,7 +25,7 @@ EYE_CONTOURS = (
     (263, 249, 390, 373, 374, 380, 381, 382, 362, 398, 384, 385, 386, 387, 388, 466),
     (33, 7, 163, 144, 145, 153, 154, 155, 133, 173, 157, 158, 159, 160, 161, 246),
 )
-IRIS_FIRST, IRIS_COUNT = 468, 10
+IRIS_FIRST, IRIS_COUNT = NUM_MESH_VERTICES, NUM_LANDMARKS - NUM_MESH_VERTICES
 
 
 def eye_triangles(faces: np.ndarray, eye: int | None = None) -> np.ndarray:
