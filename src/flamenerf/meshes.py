@@ -41,6 +41,31 @@ def surface_points(vertices: Tensor, faces: Tensor, tri: Tensor, uv: Tensor,
     return v[:, 0] + u[:, :1] * (v[:, 1] - v[:, 0]) + u[:, 1:] * (v[:, 2] - v[:, 0])
 
 
+def expression_model_system(expressions: Tensor, vertices: Tensor, ridge: float = 1e-3,
+                            weights: Tensor | None = None
+                            ) -> tuple[Tensor, Tensor, Tensor]:
+    """The normal equations of `fit_expression_model`, one small system per vertex, float64.
+
+    Vertex v's coefficients c_v (1+E, 3) (its neutral position, then one offset per control)
+    solve gram[v] c_v = rhs[v]; the model's row e of vertex v is c_v[e] * scale[v, e].
+    -> gram (V, 1+E, 1+E), rhs (V, 1+E, 3), scale (V, 1+E) (ones without `weights`)."""
+    n, e = expressions.shape
+    v = vertices.shape[1]
+    x = torch.cat([torch.ones(n, 1, dtype=torch.float64),
+                   expressions.to(torch.float64)], 1)  # (N, 1+E)
+    y = vertices.to(torch.float64)  # (N, V, 3)
+    reg = torch.eye(e + 1, dtype=torch.float64) * ridge * max(float((x[:, 1:] ** 2).mean()), 1e-12) * n
+    reg[0, 0] = 0.0  # the neutral mesh is not shrunk
+    wt = torch.ones(v, e + 1, dtype=torch.float64)
+    if weights is not None:
+        wt[:, 1:] = weights.to(torch.float64)
+    # per vertex, the design x·diag(w̃_v) with w̃_v = (1, weights[v]): its normal equations
+    # are the shared ones scaled by w̃_v w̃_vᵀ
+    gram = (x.T @ x)[None] * (wt[:, :, None] * wt[:, None, :]) + reg  # (V, 1+E, 1+E)
+    rhs = torch.einsum("ne,nvc->vec", x, y) * wt[:, :, None]  # (V, 1+E, 3)
+    return gram, rhs, wt
+
+
 def fit_expression_model(expressions: Tensor, vertices: Tensor, ridge: float = 1e-3,
                          weights: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """Least-squares linear model mesh(β) = neutral + Σ_k β_k basis_k over frames.
@@ -52,25 +77,15 @@ def fit_expression_model(expressions: Tensor, vertices: Tensor, ridge: float = 1
     control with weight 0 there leaves it still and the others explain its motion.
     -> neutral (V, 3), basis (E, V, 3).
     """
-    n, e = expressions.shape
-    x = torch.cat([torch.ones(n, 1, dtype=torch.float64),
-                   expressions.to(torch.float64)], 1)  # (N, 1+E)
-    y = vertices.reshape(n, -1).to(torch.float64)  # (N, 3V)
-    reg = torch.eye(e + 1, dtype=torch.float64) * ridge * max(float((x[:, 1:] ** 2).mean()), 1e-12) * n
-    reg[0, 0] = 0.0  # the neutral mesh is not shrunk
-    if weights is None:
-        coef = torch.linalg.solve(x.T @ x + reg, x.T @ y)  # (1+E, 3V)
-        coef = coef.to(torch.float32).view(e + 1, -1, 3)
-        return coef[0], coef[1:]
-    # per vertex, the design x·diag(w̃_v) with w̃_v = (1, weights[v]): its normal equations
-    # are the shared ones scaled by w̃_v w̃_vᵀ, so one batched (V, 1+E, 1+E) solve
-    v = vertices.shape[1]
-    wt = torch.cat([torch.ones(v, 1, dtype=torch.float64), weights.to(torch.float64)], 1)
-    gram = (x.T @ x)[None] * (wt[:, :, None] * wt[:, None, :]) + reg  # (V, 1+E, 1+E)
-    rhs = (x.T @ y).view(e + 1, v, 3).permute(1, 0, 2) * wt[:, :, None]  # (V, 1+E, 3)
-    coef = torch.linalg.solve(gram, rhs) * wt[:, :, None]  # (V, 1+E, 3)
-    coef = coef.permute(1, 0, 2).to(torch.float32)
-    return coef[0], coef[1:]
+    gram, rhs, scale = expression_model_system(expressions, vertices, ridge, weights)
+    return model_from_coefficients(torch.linalg.solve(gram, rhs), scale)
+
+
+def model_from_coefficients(coef: Tensor, scale: Tensor) -> tuple[Tensor, Tensor]:
+    """`expression_model_system`'s unknowns coef (V, 1+E, 3) and scale (V, 1+E) -> neutral
+    (V, 3), basis (E, V, 3) float32."""
+    c = (coef * scale[:, :, None]).permute(1, 0, 2).to(torch.float32)
+    return c[0].contiguous(), c[1:].contiguous()
 
 
 def expression_mesh(neutral: Tensor, basis: Tensor, expression: Tensor) -> Tensor:

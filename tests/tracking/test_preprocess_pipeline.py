@@ -43,6 +43,9 @@ def test_dataset_is_valid_and_complete(dataset):
         assert np.all(np.linalg.norm(v[:, iris] - centre, axis=-1) < 0.6 * eye_width)
     expr = ds.expression_matrix(ds.frames)
     assert np.all((expr >= 0) & (expr <= 1))
+    # the β -> mesh model fitted to the tracker's reading is kept with the dataset
+    assert ds.mesh_model is not None and ds.mesh_model.method.startswith("tracker-consistent")
+    assert ds.mesh_model.basis.shape == (52, 478, 3)
 
 
 def test_masks_cover_the_projected_face(dataset):

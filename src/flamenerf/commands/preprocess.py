@@ -64,6 +64,11 @@ def preprocess(
             for n, rs in cov["follow_the_view"].items())
         print(f"  these move with the view in the training frames, so a model cannot tell them "
               f"from it (moved alone, they may change the shading nearby): {confounds}")
+    mm = rep.get("mesh_model")
+    if mm:
+        print(f"expression model: fitted so that each of the {mm['controls']} varying controls "
+              f"commanded alone reads back through the tracker as itself "
+              f"({mm['seconds']:.0f} s; {out}/expression_model.npz)")
     for d in rep["dropped"][:10]:
         print(f"  dropped frame {d['source_frame']} ({d['time']:.2f}s): {d['reason']}")
     if len(rep["dropped"]) > 10:

@@ -8,6 +8,8 @@ Layout (see docs/dataset_format.md)::
       masks/000000.png         face-model silhouette = the spatial prior (255 = face)
       depth/000000.npy         optional ground-truth z-depth (float32, metres), synthetic only
       face_mesh.npz            faces (F, 3) int32; vertices (num_frames, V, 3) float32, world
+      expression_model.npz     optional: the β -> mesh model preprocess fitted to mean what the
+                               tracker means by each control (tracking/expression_model.py)
 
 Conventions: `transform_matrix` is camera-to-world with OpenGL camera axes (x right, y up,
 camera looks down -z). Depth is z-depth (distance along the camera's viewing axis), which is
@@ -94,6 +96,7 @@ class Dataset:
     source: dict[str, Any]
     meta: dict[str, Any]  # the whole transforms.json, for fields not modelled above
     face_landmarks: dict[str, list[int]] | None = None
+    mesh_model: "StoredMeshModel | None" = None
     """Vertex indices of the eyes and the mouth on the face mesh (`eye_left`, `eye_right`,
     `mouth`) where the mesh is not MediaPipe's (data/face_parts.py)."""
 
@@ -161,6 +164,51 @@ class Dataset:
     def expression_matrix(self, frames: list[Frame]) -> np.ndarray:
         """(len(frames), dim_expr) float32."""
         return np.stack([f.expression for f in frames]).astype(np.float32)
+
+
+@dataclass
+class StoredMeshModel:
+    """A β -> mesh model kept with the dataset (`expression_model.npz`): neutral (V, 3) and
+    basis (E, V, 3) float32 in the canonical frame, fitted with `ridge` and each control on
+    its part of the face; `method` says how (tracking/expression_model.py)."""
+
+    neutral: np.ndarray
+    basis: np.ndarray
+    ridge: float
+    method: str
+
+
+MESH_MODEL_FILE = "expression_model.npz"
+
+
+def write_mesh_model(root: str | os.PathLike, model: StoredMeshModel) -> Path:
+    """Store a β -> mesh model in a dataset (atomically; read back by `load_dataset`)."""
+    from flamenerf.io import atomic_write_bytes
+
+    path = Path(root) / MESH_MODEL_FILE
+    atomic_write_bytes(path, lambda f: np.savez(
+        f, neutral=model.neutral.astype(np.float32), basis=model.basis.astype(np.float32),
+        ridge=np.float64(model.ridge), method=np.str_(model.method)))
+    return path
+
+
+def _read_mesh_model(path: Path, num_vertices: int, dim: int) -> StoredMeshModel | None:
+    if not path.exists():
+        return None
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            m = StoredMeshModel(z["neutral"].astype(np.float32), z["basis"].astype(np.float32),
+                                float(z["ridge"]), str(z["method"]))
+    except KeyError as e:
+        raise DatasetError(f"{path}: missing array {e}") from None
+    except Exception as e:  # noqa: BLE001
+        raise DatasetError(f"{path}: not a readable .npz ({type(e).__name__})") from None
+    if m.neutral.shape != (num_vertices, 3) or m.basis.shape != (dim, num_vertices, 3):
+        raise DatasetError(f"{path}: expected neutral ({num_vertices}, 3) and basis ({dim}, "
+                           f"{num_vertices}, 3), got {m.neutral.shape} and {m.basis.shape}")
+    if not (np.isfinite(m.neutral).all() and np.isfinite(m.basis).all()):
+        raise DatasetError(f"{path}: holds non-finite values")
+    return m
 
 
 def reference_position(ds: Dataset) -> int:
@@ -393,6 +441,7 @@ def load_dataset(root: str | os.PathLike, check_files: bool = True) -> Dataset:
         source=meta.get("source", {}),
         meta=meta,
         face_landmarks=landmarks,
+        mesh_model=_read_mesh_model(root / MESH_MODEL_FILE, verts.shape[1], len(names)),
     )
     if check_files:
         for fr in frames:

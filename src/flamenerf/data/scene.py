@@ -63,13 +63,17 @@ def model_detail_region(cfg, ds: Dataset) -> dict | None:
     return head_region(ds).to_dict()
 
 
-def fit_dataset_expression_model(ds: Dataset, ridge: float = 1e-3, face_parts: bool = True
-                                 ) -> tuple[torch.Tensor, torch.Tensor]:
+def fit_dataset_expression_model(ds: Dataset, ridge: float = 1e-3, face_parts: bool = True,
+                                 stored: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
     """The subject's linear β -> mesh model fitted on the training frames' face meshes, in
     the canonical frame (the head at frame 0's pose; the world without head poses); with
     `face_parts`, each named control moves only its part of the face where the dataset's
-    controls and mesh say which (data/face_parts.py).
+    controls and mesh say which (data/face_parts.py). With `stored`, the model the dataset
+    carries (`Dataset.mesh_model`) where it was fitted with the same ridge and face parts.
     -> neutral (V, 3), basis (E, V, 3) in world units."""
+    kept = ds.mesh_model
+    if stored and face_parts and kept is not None and np.isclose(kept.ridge, ridge):
+        return torch.from_numpy(kept.neutral.copy()), torch.from_numpy(kept.basis.copy())
     train = ds.training_frames()
     verts = canonical_vertices(ds, train)
     weights = (control_weights(ds.expression_kind, ds.expression_names, verts.mean(0),

@@ -63,6 +63,9 @@ class PreprocessOptions:
         max_error: Drop frames whose median reprojection error exceeds this fraction of
             the face size (and 3x the clip's median).
         qa: Write OUT/qa (overlay video, contact sheet, camera plot, report).
+        consistent_expressions: Fit the β -> mesh model so that each control commanded
+            alone reads back through the tracker as that control, and store it with the
+            dataset (expression_model.npz; MediaPipe meshes only; ~2 min on 2 CPU cores).
         overwrite: Replace OUT if it exists.
         progress: Show progress bars (not a flag: the command always does).
     """
@@ -85,6 +88,7 @@ class PreprocessOptions:
     min_tracked: float = 0.5
     max_error: float = MAX_ERROR
     qa: bool = True
+    consistent_expressions: bool = True
     overwrite: bool = False
     progress: Annotated[bool, tyro.conf.Suppress] = True
 
@@ -145,8 +149,13 @@ def preprocess_video(video: str | os.PathLike, out: str | os.PathLike,
     near, far, cam_dist = scene_bounds(sol, face.vertices, opts, scene.world.head_pose)
     splits = assign_splits(len(clip.frames), opts.val_every)
     t = {"start": t_start, "track": t_track, "solve": t_solve, "fit": t_fit}
-    return write_dataset(video, out, opts, clip, sol, scene, face, crop, crop_facts, intr,
-                         near, far, cam_dist, splits, n_tracked, t)
+    report = write_dataset(video, out, opts, clip, sol, scene, face, crop, crop_facts, intr,
+                           near, far, cam_dist, splits, n_tracked, t)
+    if opts.consistent_expressions:
+        from flamenerf.tracking.expression_model import add_to_dataset
+
+        report["mesh_model"] = add_to_dataset(out, opts.progress)
+    return report
 
 
 def check_options(o: PreprocessOptions) -> None:

@@ -123,8 +123,8 @@ def build_for_dataset(cfg: Config, ds: Dataset) -> FlameNeRF:
         model.set_expression_mean(torch.from_numpy(
             ds.expression_matrix(ds.training_frames()).mean(0)))
     if model.uses_mesh_model:
-        neutral, basis = fit_dataset_expression_model(ds, cfg.model.mesh_guide.ridge,
-                                                     cfg.model.mesh_guide.face_parts)
+        mg = cfg.model.mesh_guide
+        neutral, basis = fit_dataset_expression_model(ds, mg.ridge, mg.face_parts, mg.stored)
         model.set_expression_model(neutral, basis, torch.from_numpy(ds.faces).long())
         limit = cfg.model.mesh_guide.max_residual
         if model.mesh_guided and limit is not None:
