@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 import torch
 
-from flamenerf.data.dataset import DatasetError, StoredMeshModel, load_dataset, write_mesh_model
+from flamenerf.data.dataset import (DatasetError, Intrinsics, StoredMeshModel, load_dataset,
+                                    write_mesh_model)
 from flamenerf.data.scene import fit_dataset_expression_model
-from flamenerf.data.dataset import Intrinsics
 from flamenerf.geometry import look_at
 from flamenerf.meshes import expression_model_system, fit_expression_model, model_from_coefficients
 from flamenerf.tracking.expression_model import Sweep, consistent_coefficients, pinhole_projection
@@ -82,7 +82,9 @@ def test_collinear_controls_each_get_their_own_motion():
         want = np.eye(2)[k]
         np.testing.assert_allclose(got, want, atol=0.05)
     # the training frames, which cannot tell the two apart, are fitted as well as before
-    fit = lambda n, b: (n[None] + torch.einsum("ne,evc->nvc", x.float(), b) - y).norm(dim=-1)
+    def fit(n, b):
+        return (n[None] + torch.einsum("ne,evc->nvc", x.float(), b) - y).norm(dim=-1)
+
     assert fit(neutral2, basis2).max() < fit(neutral, basis).max() + 1e-4
 
 
