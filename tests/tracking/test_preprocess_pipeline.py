@@ -18,7 +18,7 @@ from flamenerf.tracking.pipeline import PreprocessOptions, preprocess_video
 def dataset(tmp_path_factory, gappy_video, landmarker_path):
     out = tmp_path_factory.mktemp("pre") / "ds"
     rc = main(["preprocess", str(gappy_video), str(out), "--size", "128", "--val-every", "4",
-               "--dilate", "2"])
+               "--dilate", "2", "--consistent-expressions"])
     assert rc == 0
     return out
 

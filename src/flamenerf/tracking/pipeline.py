@@ -63,9 +63,11 @@ class PreprocessOptions:
         max_error: Drop frames whose median reprojection error exceeds this fraction of
             the face size (and 3x the clip's median).
         qa: Write OUT/qa (overlay video, contact sheet, camera plot, report).
-        consistent_expressions: Fit the β -> mesh model so that each control commanded
+        consistent_expressions: Also fit the β -> mesh model so that each control commanded
             alone reads back through the tracker as that control, and store it with the
-            dataset (expression_model.npz; MediaPipe meshes only; ~2 min on 2 CPU cores).
+            dataset (expression_model.npz, which training then uses; MediaPipe meshes only;
+            1-3 min on 2 CPU cores). It raises what the mesh itself can show, not yet what
+            a trained model shows (docs/bench/control_exploration.md), so it is off.
         overwrite: Replace OUT if it exists.
         progress: Show progress bars (not a flag: the command always does).
     """
@@ -88,7 +90,7 @@ class PreprocessOptions:
     min_tracked: float = 0.5
     max_error: float = MAX_ERROR
     qa: bool = True
-    consistent_expressions: bool = True
+    consistent_expressions: bool = False
     overwrite: bool = False
     progress: Annotated[bool, tyro.conf.Suppress] = True
 
