@@ -225,6 +225,7 @@ def add_to_dataset(root, progress: bool = True) -> dict | None:
     import time
 
     from flamenerf.data.dataset import StoredMeshModel, load_dataset, write_mesh_model
+    from flamenerf.tracking.landmarker import blendshape_names
 
     ds = load_dataset(root)
     if not applies(ds):
@@ -251,11 +252,6 @@ def add_to_dataset(root, progress: bool = True) -> dict | None:
             bar.close()
     write_mesh_model(root, StoredMeshModel(neutral.numpy(), basis.numpy(), ridge,
                                            f"tracker-consistent (strength {STRENGTH:g})"))
-    return {"method": "tracker-consistent", "controls": len(dataset_sweeps(ds, _names())[0]),
+    return {"method": "tracker-consistent",
+            "controls": len(dataset_sweeps(ds, blendshape_names())[0]),
             "seconds": time.perf_counter() - t0}
-
-
-def _names() -> list[str]:
-    from flamenerf.tracking.landmarker import blendshape_names
-
-    return blendshape_names()
