@@ -162,8 +162,9 @@ class MeshGuideConfig:
     carried the canonical mouth to the wrong place; leaving them out raised re-animation face
     PSNR on all four seeds (+0.26 to +0.69 dB) with the jaw still following a real driver
     (jawOpen correlation 0.83-0.89). On the expressions clip it leaves out 29 outline and
-    forehead vertices that the tracker places unsteadily (1.5-2.3 mm; controls and PSNR
-    within noise, one training), on the orbit clip none (docs/bench/control_exploration.md)."""
+    forehead vertices that the tracker places unsteadily (1.5-2.3 mm; controls passing
+    11 / 12 -> 12 / 13 of 27, PSNR within noise, seeds 0 / 1), on the orbit clip none
+    (docs/bench/control_exploration.md)."""
     ridge: float = 1e-3
     """Ridge of the β -> mesh least-squares fit (relative to the mean squared control)."""
     face_parts: bool = True
