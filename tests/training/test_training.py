@@ -237,6 +237,8 @@ def test_vertices_the_mesh_model_misses_do_not_guide(synth_scene, tmp_path):
     ds = load_dataset(synth_scene)
     cfg = small(preset("fast"), 2)
     cfg.model.mesh_guide.enabled = True
+    assert cfg.model.mesh_guide.max_residual == 0.0015  # `fast`'s
+    cfg.model.mesh_guide.max_residual = None
     m0 = build_for_dataset(cfg, ds)
     assert not m0.guide_skip.any()
     miss = expression_model_residual(ds, m0.mesh_neutral, m0.mesh_basis)
