@@ -130,6 +130,12 @@ def test_control_response_reads_sweeps_as_geometry_where_given():
     assert res["mean_landmark_gain"] == pytest.approx(1.0)
     assert "landmark_gain" not in C.control_response(render, names, np.zeros(2), train, track,
                                                      steps=4)["controls"]["jawOpen"]
+    # the mesh's own scores: a mesh model whose brow motion the tracker reads at half gain
+    motion.mesh_scores = lambda beta: {"browInnerUp": 0.5 * beta[0], "jawOpen": beta[1]}
+    res = C.control_response(render, names, np.zeros(2), train, track, steps=4, motion=motion)
+    assert res["controls"]["browInnerUp"]["mesh_gain"] == pytest.approx(0.5)
+    assert res["controls"]["jawOpen"]["mesh_gain"] == pytest.approx(1.0)
+    assert res["mean_mesh_gain"] == pytest.approx(0.75)
 
 
 def _face(mouth: float, eye_l: float, eye_r: float, scale: float = 1.0) -> np.ndarray:

@@ -202,6 +202,10 @@ class LandmarkMotion:
 
     expected: Callable[[np.ndarray], np.ndarray]
     read: Callable[[np.ndarray], tuple[dict[str, float], np.ndarray] | None]
+    mesh_scores: Callable[[np.ndarray], dict[str, float]] | None = None
+    """β -> the tracker's scores of that expression's mesh itself (its blendshape stage on
+    the projected mesh, irises included): what a render that followed the mesh exactly
+    would score; None where the mesh lacks the irises the stage reads."""
 
 
 def landmark_motion(ds: Dataset, mesh_of: Callable[[np.ndarray], np.ndarray],
@@ -211,13 +215,23 @@ def landmark_motion(ds: Dataset, mesh_of: Callable[[np.ndarray], np.ndarray],
     landmarker's own (MediaPipe's topology); None elsewhere (FLAME, the built-in head)."""
     from flamenerf.data.face_parts import MEDIAPIPE_VERTEX_COUNTS
     from flamenerf.geometry import project_points
-    from flamenerf.tracking.landmarker import NUM_MESH_VERTICES
+    from flamenerf.tracking.landmarker import NUM_LANDMARKS, NUM_MESH_VERTICES
 
     if ds.face_vertices.shape[1] not in MEDIAPIPE_VERTEX_COUNTS:
         return None
+    scores = None
+    if ds.face_vertices.shape[1] == NUM_LANDMARKS:
+        from flamenerf.tracking.blendshapes import BlendshapeStage
+
+        stage = BlendshapeStage()
+
+        def scores(b: np.ndarray) -> dict[str, float]:
+            pts = project_points(np.asarray(mesh_of(b), np.float64), intr, c2w)[0]
+            return dict(zip(stage.names, map(float, stage.scores(pts))))
+
     return LandmarkMotion(
         expected=lambda b: project_points(mesh_of(b)[:NUM_MESH_VERTICES], intr, c2w)[0],
-        read=read)
+        read=read, mesh_scores=scores)
 
 
 def landmark_gain(retracked: list[np.ndarray | None], expected: list[np.ndarray],
@@ -262,17 +276,19 @@ def control_response(render: RenderFn, names: list[str], base: np.ndarray,
     Renders are made in order: each control's sweep alone, then with its companions.
     With `motion`, each sweep is also read as geometry (`landmark_gain`):
     `landmark_gain`, `landmark_correlation`, `landmark_motion_px` (and `..._with_companions`);
-    its `read` then re-tracks each render once for the scores and the mesh (`track` unused).
+    its `read` then re-tracks each render once for the scores and the mesh (`track` unused);
+    with its `mesh_scores`, also `mesh_gain`, `mesh_correlation`: the swept meshes' own
+    scores, a render that followed the mesh exactly.
     -> {"controls": {name: {commanded, retracked, gain, correlation, detected, ...}},
     "mean_gain", "mean_correlation", "mean_gain_with_companions" (each control's gain with
-    its companions where it has some, else alone), "mean_landmark_gain" (likewise, with
-    `motion`), "skipped": {name: why}}.
+    its companions where it has some, else alone), "mean_landmark_gain" and
+    "mean_mesh_gain" (likewise, with `motion`), "skipped": {name: why}}.
     """
     out: dict[str, Any] = {"controls": {}, "skipped": {}}
     want = controls if controls is not None else trackable_controls(names)
 
     def sweep(vals: np.ndarray, name: str, make: Callable[[float], np.ndarray]):
-        got, meshes, expected = [], [], []
+        got, meshes, expected, own = [], [], [], []
         for v in vals:
             beta = make(v)
             img = render(beta)
@@ -283,11 +299,17 @@ def control_response(render: RenderFn, names: list[str], base: np.ndarray,
                 scores, mesh = (None, None) if reading is None else reading
                 meshes.append(mesh)
                 expected.append(motion.expected(beta))
+                if motion.mesh_scores is not None:
+                    own.append(motion.mesh_scores(beta).get(name, math.nan))
             got.append(float("nan") if scores is None else scores.get(name, float("nan")))
         got_a = np.array(got)
         ok = np.isfinite(got_a)
         fit = fit_line(vals[ok], got_a[ok]) if ok.sum() >= 2 else (math.nan, math.nan)
-        geo = landmark_gain(meshes, expected) if motion is not None else None
+        geo = None
+        if motion is not None:
+            geo = landmark_gain(meshes, expected)
+            if own:
+                geo = (*geo, *fit_line(vals, np.array(own)))
         return got, fit, int(ok.sum()), geo
 
     for name in names:
@@ -308,14 +330,15 @@ def control_response(render: RenderFn, names: list[str], base: np.ndarray,
         row = {"commanded": vals.tolist(), "retracked": got, "gain": gain,
                "correlation": corr, "detected": n}
         if geo is not None:
-            row.update(zip(_GEO_KEYS, geo))
+            row.update(zip(_GEO_KEYS + _MESH_KEYS, geo))
         if companions is not None and companions.of(name):
             got_c, (gain_c, corr_c), _, geo_c = sweep(
                 vals, name, lambda v, k=k: companions.complete(base, {k: float(v)}))
             row.update(companions=companions.of(name), retracked_with_companions=got_c,
                        gain_with_companions=gain_c, correlation_with_companions=corr_c)
             if geo_c is not None:
-                row.update(zip((key + "_with_companions" for key in _GEO_KEYS), geo_c))
+                row.update(zip((key + "_with_companions" for key in _GEO_KEYS + _MESH_KEYS),
+                               geo_c))
         out["controls"][name] = row
     rows = out["controls"].values()
     out["mean_gain"] = finite_mean(c["gain"] for c in rows)
@@ -326,10 +349,15 @@ def control_response(render: RenderFn, names: list[str], base: np.ndarray,
     if motion is not None:
         out["mean_landmark_gain"] = finite_mean(
             c.get("landmark_gain_with_companions", c["landmark_gain"]) for c in rows)
+        if motion.mesh_scores is not None:
+            out["mean_mesh_gain"] = finite_mean(
+                c.get("mesh_gain_with_companions", c.get("mesh_gain", math.nan)) for c in rows)
     return out
 
 
 _GEO_KEYS = ("landmark_gain", "landmark_correlation", "landmark_motion_px")
+_MESH_KEYS = ("mesh_gain", "mesh_correlation")
+"""The tracker's reading of the swept meshes themselves (`LandmarkMotion.mesh_scores`)."""
 
 
 def finite_mean(values) -> float:

@@ -191,6 +191,7 @@ def eval_markdown(res: dict[str, Any]) -> str:
         gt = any("gt_gain" in c for c in ct["controls"].values())
         comp = "mean_gain_with_companions" in ct
         geo = "mean_landmark_gain" in ct
+        own = "mean_mesh_gain" in ct
         L += ["", f"**Control response** ({ct.get('source')}): renders re-tracked with "
               "MediaPipe's landmarker; gain = slope of re-tracked on commanded"
               + (", gt = the same for the ground-truth images" if gt else "")
@@ -200,26 +201,33 @@ def eval_markdown(res: dict[str, Any]) -> str:
               + ("; *landmark gain*: how far the re-tracked face mesh moves along the motion "
                  "the clip's own β → mesh model gives the command (1: as the clip's meshes "
                  "say; the largest such motion in pixels beside it), with companions where "
-                 "the control has some" if geo else ""), "",
+                 "the control has some" if geo else "")
+              + ("; *mesh gain*: the landmarker's scores of the swept meshes themselves (its "
+                 "blendshape stage on the projected β → mesh model): what a render that "
+                 "followed the mesh exactly would score" if own else ""), "",
               "| control | gain | correlation |" + (" gt gain | gt correlation |" if gt else "")
               + (" gain with companions | correlation with companions |" if comp else "")
-              + (" landmark gain | motion px |" if geo else ""),
+              + (" landmark gain | motion px |" if geo else "")
+              + (" mesh gain |" if own else ""),
               "|---|--:|--:|" + ("--:|--:|" if gt else "") + ("--:|--:|" if comp else "")
-              + ("--:|--:|" if geo else "")]
+              + ("--:|--:|" if geo else "") + ("--:|" if own else "")]
         for n, c in ct["controls"].items():
             lg = c.get("landmark_gain_with_companions", c.get("landmark_gain"))
             lm = c.get("landmark_motion_px_with_companions", c.get("landmark_motion_px"))
+            mg = c.get("mesh_gain_with_companions", c.get("mesh_gain"))
             L.append(f"| {n} | {fmt(c['gain'])} | {fmt(c['correlation'])} |"
                      + (f" {fmt(c.get('gt_gain'))} | {fmt(c.get('gt_correlation'))} |"
                         if gt else "")
                      + (f" {fmt(c.get('gain_with_companions'))} | "
                         f"{fmt(c.get('correlation_with_companions'))} |" if comp else "")
-                     + (f" {fmt(lg)} | {fmt(lm)} |" if geo else ""))
+                     + (f" {fmt(lg)} | {fmt(lm)} |" if geo else "")
+                     + (f" {fmt(mg)} |" if own else ""))
         L.append(f"| **mean** | **{fmt(ct.get('mean_gain'))}** | "
                  f"{fmt(ct.get('mean_correlation'))} |"
                  + (f" {fmt(ct.get('mean_gt_gain'))} | |" if gt else "")
                  + (f" **{fmt(ct.get('mean_gain_with_companions'))}** | |" if comp else "")
-                 + (f" **{fmt(ct.get('mean_landmark_gain'))}** | |" if geo else ""))
+                 + (f" **{fmt(ct.get('mean_landmark_gain'))}** | |" if geo else "")
+                 + (f" **{fmt(ct.get('mean_mesh_gain'))}** |" if own else ""))
         if ct.get("figure_rows"):
             L.append(f"\n`images/control.png`: the sweep's renders, one row per control "
                      f"(low to high): {', '.join(ct['figure_rows'])}.")
