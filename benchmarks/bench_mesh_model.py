@@ -34,9 +34,8 @@ def main() -> None:
 
     from flamenerf.data.companions import dataset_companions
     from flamenerf.data.dataset import load_dataset, reference_position
-    from flamenerf.data.head_pose import canonical_vertices
-    from flamenerf.data.scene import fit_dataset_expression_model
-    from flamenerf.evaluation.control import fit_line, sweep_values
+    from flamenerf.data.scene import expression_model_residual, fit_dataset_expression_model
+    from flamenerf.evaluation.control import control_response
     from flamenerf.meshes import expression_mesh
     from flamenerf.tracking.blendshapes import BlendshapeStage
     from flamenerf.tracking.expression_model import (applies, fit_for_dataset,
@@ -56,40 +55,26 @@ def main() -> None:
 
     ref = ds.frames[reference_position(ds)]
     project = pinhole_projection(ds.intrinsics, ref.c2w)
-    base = ref.expression.astype(np.float64)
     train = ds.expression_matrix(ds.training_frames())
     comp = dataset_companions(ds)
-    names = ds.expression_names
     out = {"machine": platform.node(), "dataset": str(a.dataset), "fit_seconds": fit_s,
            "models": {}}
     for label, (neutral, basis) in models.items():
-        def read(beta, k, neutral=neutral, basis=basis):
-            mesh = expression_mesh(neutral.double(), basis.double(), torch.as_tensor(beta)).numpy()
-            return stage.scores(project(mesh)[0])[stage.names.index(names[k])]
+        def read(beta, neutral=neutral, basis=basis):
+            """The mesh of β scored by the tracker: `eval`'s sweep with a perfect render."""
+            mesh = expression_mesh(neutral.double(), basis.double(), torch.as_tensor(beta))
+            return dict(zip(stage.names, map(float, stage.scores(project(mesh.numpy())[0]))))
 
-        res = {}
-        for k, n in enumerate(names):
-            vals = sweep_values(train[:, k], 5) if n in stage.names else None
-            if vals is None:
-                continue
-            alone = [read(np.where(np.arange(len(base)) == k, v, base), k) for v in vals]
-            row = dict(zip(("gain", "correlation"), fit_line(vals, alone)))
-            if comp is not None and comp.of(n):
-                withc = [read(comp.complete(base, {k: float(v)}), k) for v in vals]
-                row.update(zip(("gain_with_companions", "correlation_with_companions"),
-                               fit_line(vals, withc)))
-            res[n] = row
+        res = control_response(lambda beta: beta, ds.expression_names,
+                               ref.expression.astype(np.float64), train, read,
+                               companions=comp)["controls"]
         ok = lambda g, c: g >= 0.5 and c >= 0.9  # noqa: E731  the issue's bar
-        misses = {}
-        for split in ("train", "val"):
-            frames = ds.split(split)
-            if frames:
-                fit = expression_mesh(neutral.double(), basis.double(),
-                                      torch.from_numpy(ds.expression_matrix(frames)).double())
-                true = torch.from_numpy(canonical_vertices(ds, frames)).double()
-                misses[split] = float((fit - true).norm(dim=-1).pow(2).mean().sqrt()) * 1e3
+        misses = {split: float(expression_model_residual(ds, neutral, basis, ds.split(split))
+                               .pow(2).mean().sqrt()) * 1e3
+                  for split in ("train", "val") if ds.split(split)}
         out["models"][label] = {
-            "controls": res,
+            "controls": {n: {k: v for k, v in r.items() if "gain" in k or "correlation" in k}
+                         for n, r in res.items()},
             "passing_alone": sum(ok(r["gain"], r["correlation"]) for r in res.values()),
             "passing_with_companions": sum(
                 ok(r.get("gain_with_companions", r["gain"]),

@@ -176,10 +176,10 @@ class MeshGuideConfig:
     every preset that fits the model (per-control prior, mesh guide, driven silhouettes)."""
 
     stored: bool = True
-    """Use the β -> mesh model a dataset carries (`preprocess` fits one that reads back
-    through the tracker as each control commanded alone: tracking/expression_model.py) where
-    it was fitted with this `ridge` and the face parts; False, or a dataset without one:
-    the least-squares fit, made when the run is built."""
+    """Use the β -> mesh model a dataset carries (`preprocess --consistent-expressions` fits
+    one that reads back through the tracker as each control commanded alone:
+    tracking/expression_model.py) where it was fitted with this `ridge` and the face parts;
+    False, or a dataset without one: the least-squares fit, made when the run is built."""
 
     def resolved_enabled(self, face_parts: bool) -> bool:
         return face_parts if self.enabled is None else bool(self.enabled)

@@ -8,8 +8,9 @@ Layout (see docs/dataset_format.md)::
       masks/000000.png         face-model silhouette = the spatial prior (255 = face)
       depth/000000.npy         optional ground-truth z-depth (float32, metres), synthetic only
       face_mesh.npz            faces (F, 3) int32; vertices (num_frames, V, 3) float32, world
-      expression_model.npz     optional: the β -> mesh model preprocess fitted to mean what the
-                               tracker means by each control (tracking/expression_model.py)
+      expression_model.npz     optional (`preprocess --consistent-expressions`): the β -> mesh
+                               model fitted to mean what the tracker means by each control
+                               (tracking/expression_model.py)
 
 Conventions: `transform_matrix` is camera-to-world with OpenGL camera axes (x right, y up,
 camera looks down -z). Depth is z-depth (distance along the camera's viewing axis), which is
@@ -96,9 +97,10 @@ class Dataset:
     source: dict[str, Any]
     meta: dict[str, Any]  # the whole transforms.json, for fields not modelled above
     face_landmarks: dict[str, list[int]] | None = None
-    mesh_model: "StoredMeshModel | None" = None
     """Vertex indices of the eyes and the mouth on the face mesh (`eye_left`, `eye_right`,
     `mouth`) where the mesh is not MediaPipe's (data/face_parts.py)."""
+    mesh_model: "StoredMeshModel | None" = None
+    """The β -> mesh model stored with the dataset (`expression_model.npz`), or None."""
 
     @property
     def expression_dim(self) -> int:

@@ -83,15 +83,15 @@ def fit_dataset_expression_model(ds: Dataset, ridge: float = 1e-3, face_parts: b
                                 None if weights is None else torch.from_numpy(weights))
 
 
-def expression_model_residual(ds: Dataset, neutral: torch.Tensor, basis: torch.Tensor
-                              ) -> torch.Tensor:
+def expression_model_residual(ds: Dataset, neutral: torch.Tensor, basis: torch.Tensor,
+                              frames: list[Frame] | None = None) -> torch.Tensor:
     """How far the β -> mesh model (`fit_dataset_expression_model`'s neutral (V, 3), basis
-    (E, V, 3)) misses each vertex of the training frames' meshes: RMS over the frames, world
-    units. -> (V,)"""
-    train = ds.training_frames()
-    verts = torch.from_numpy(canonical_vertices(ds, train)).double()
+    (E, V, 3)) misses each vertex of the frames' meshes (default: the training frames): RMS
+    over the frames, world units. -> (V,)"""
+    frames = ds.training_frames() if frames is None else frames
+    verts = torch.from_numpy(canonical_vertices(ds, frames)).double()
     fit = expression_mesh(neutral.double(), basis.double(),
-                          torch.from_numpy(ds.expression_matrix(train)).double())
+                          torch.from_numpy(ds.expression_matrix(frames)).double())
     return (fit - verts).norm(dim=-1).pow(2).mean(0).sqrt().float()
 
 

@@ -22,9 +22,8 @@ training meshes per frame; each control keeps moving only its part of the face.
 
 It raises what the mesh can show (19 -> 23 of 27 there), not yet what a trained model
 shows (11 -> 12 at 128 px, 13 -> 14 at 256 px, one training each): the renders' landmarks
-follow the mesh's main
-motion but not the small components the scores weigh. So `preprocess` fits it only when
-asked (`--consistent-expressions`).
+follow the mesh's main motion but not the small components the scores weigh. So
+`preprocess` fits it only when asked (`--consistent-expressions`).
 """
 
 from __future__ import annotations
