@@ -48,7 +48,9 @@ def expression_model_system(expressions: Tensor, vertices: Tensor, ridge: float 
 
     Vertex v's coefficients c_v (1+E, 3) (its neutral position, then one offset per control)
     solve gram[v] c_v = rhs[v]; the model's row e of vertex v is c_v[e] * scale[v, e].
-    -> gram (V, 1+E, 1+E), rhs (V, 1+E, 3), scale (V, 1+E) (ones without `weights`)."""
+    -> gram (V, 1+E, 1+E), or (1, 1+E, 1+E) shared by every vertex without `weights` (a
+    FLAME mesh's 5023 copies would take ~120 MB); rhs (V, 1+E, 3); scale (V, 1+E) (ones
+    without `weights`)."""
     n, e = expressions.shape
     v = vertices.shape[1]
     x = torch.cat([torch.ones(n, 1, dtype=torch.float64),
@@ -61,7 +63,9 @@ def expression_model_system(expressions: Tensor, vertices: Tensor, ridge: float 
         wt[:, 1:] = weights.to(torch.float64)
     # per vertex, the design x·diag(w̃_v) with w̃_v = (1, weights[v]): its normal equations
     # are the shared ones scaled by w̃_v w̃_vᵀ
-    gram = (x.T @ x)[None] * (wt[:, :, None] * wt[:, None, :]) + reg  # (V, 1+E, 1+E)
+    gram = (x.T @ x)[None] + reg
+    if weights is not None:
+        gram = (x.T @ x)[None] * (wt[:, :, None] * wt[:, None, :]) + reg  # (V, 1+E, 1+E)
     rhs = torch.einsum("ne,nvc->vec", x, y) * wt[:, :, None]  # (V, 1+E, 3)
     return gram, rhs, wt
 

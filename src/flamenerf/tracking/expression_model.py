@@ -57,12 +57,13 @@ def consistent_coefficients(gram: np.ndarray, rhs: np.ndarray, scale: np.ndarray
                             ) -> np.ndarray:
     """The mesh model's coefficients with the tracker's reading added (module doc).
 
-    gram (V, 1+E, 1+E), rhs (V, 1+E, 3), scale (V, 1+E): meshes.expression_model_system.
+    gram (V or 1, 1+E, 1+E), rhs (V, 1+E, 3), scale (V, 1+E): meshes.expression_model_system.
     score: landmarks (L, 2) -> the scored rows (R,); jacobian: landmarks -> (R, L, 2);
     project: mesh (V, 3) -> its first L vertices in the camera's pixels (L, 2) and their
     derivatives (L, 2, 3). -> coefficients (V, 1+E, 3) float64 (meshes.model_from_coefficients).
     """
     n = float(num_frames) * MM ** 2
+    gram = np.broadcast_to(gram, (len(rhs),) + gram.shape[1:])
     coef = np.linalg.solve(gram, rhs)
     if not sweeps:
         return coef
