@@ -97,11 +97,12 @@ def main() -> None:
                   for split in ("train", "val") if ds.split(split)}
         out["models"][label] = {**summary(res), "rms_miss_mm": misses}
         m = out["models"][label]
-        readings = {"warp": a.warp, "appearance": change is not None}
-        for key in (k for k, on in readings.items() if on):
-            render = warp_renderer(ds, ref, projected, base,
-                                   change if key == "appearance" else None)
-            m[key] = image_sweeps(render, ds, base, train, comp)
+        if a.warp:
+            m["warp"] = image_sweeps(warp_renderer(ds, ref, projected, base),
+                                     ds, base, train, comp)
+        if change is not None:
+            m["appearance"] = image_sweeps(warp_renderer(ds, ref, projected, base, change),
+                                           ds, base, train, comp)
         print(f"{label:20s} sweeps read as commanded (gain >= 0.5, corr >= 0.9): "
               f"{m['passing_alone']} alone, {m['passing_with_companions']} with companions, "
               f"of {m['swept']}; mesh miss train {misses.get('train', float('nan')):.3f} mm, "
@@ -113,11 +114,6 @@ def main() -> None:
                       f"{m[key]['passing_with_companions']} with companions")
     if a.json:
         a.json.write_text(json.dumps(out, indent=1))
-
-
-def _image(ds, frame) -> np.ndarray:
-    image = np.asarray(ds.load_image(frame), np.float32)
-    return image / 255.0 if image.max() > 1.5 else image
 
 
 def _pixel_centres(h: int, w: int) -> np.ndarray:
@@ -139,7 +135,7 @@ def warp_renderer(ds, ref, projected, base, change=None):
     colour) warped piecewise linearly by the projected mesh's motion from the base β."""
     from scipy.interpolate import LinearNDInterpolator
 
-    image = _image(ds, ref)
+    image = ds.load_image(ref)
     start = projected(base)
     h, w = image.shape[:2]
     pixels = _pixel_centres(h, w)
@@ -169,7 +165,7 @@ def appearance_change(ds, ref, ridges=(1e-3, 1e-2, 1e-1, 1.0)):
         return project_points(ds.face_vertices[frame.position].astype(np.float64),
                               ds.intrinsics, frame.c2w)[0]
 
-    h, w = _image(ds, ref).shape[:2]
+    h, w = ds.load_image(ref).shape[:2]
     pixels = _pixel_centres(h, w)
     target = projected(ref)
     tri = Delaunay(target)
@@ -177,7 +173,7 @@ def appearance_change(ds, ref, ridges=(1e-3, 1e-2, 1e-1, 1.0)):
 
     def normalised(frames):
         return np.stack([
-            _warp(_image(ds, f), pixels, LinearNDInterpolator(
+            _warp(ds.load_image(f), pixels, LinearNDInterpolator(
                 tri, projected(f) - target, fill_value=0.0)(pixels)).reshape(-1, 3)[inside]
             .ravel() for f in frames])
 
