@@ -121,13 +121,14 @@ def _pixel_centres(h: int, w: int) -> np.ndarray:
 
 
 def _warp(image: np.ndarray, pixels: np.ndarray, offsets: np.ndarray) -> np.ndarray:
-    """Backward warp: output pixel p takes image at p + offsets[p]. (H, W, 3) -> (H, W, 3)"""
-    import cv2
+    """Backward warp: output pixel p takes image at p + offsets[p], bilinearly.
+    (H, W, 3) -> (H, W, 3)"""
+    from scipy.ndimage import map_coordinates
 
     h, w = image.shape[:2]
-    src = (pixels + offsets - 0.5).reshape(h, w, 2).astype(np.float32)
-    return cv2.remap(image, src[..., 0], src[..., 1], cv2.INTER_LINEAR,
-                     borderMode=cv2.BORDER_REFLECT)
+    x, y = (pixels + offsets - 0.5).T  # pixel centres -> array indices
+    return np.stack([map_coordinates(image[..., c], [y, x], order=1, mode="reflect")
+                     .reshape(h, w) for c in range(image.shape[2])], -1)
 
 
 def warp_renderer(ds, ref, projected, base, change=None):
