@@ -93,12 +93,6 @@ class FieldConfig:
     """hash only: β also enters the density head directly (the paper's conditioning). With
     `expr_rank` > 0, False leaves only the spatially local pathway Σ_r (Aβ)_r G_r(x'), so β
     cannot act as one face-wide code."""
-    expr_adds_density: bool = True
-    """hash only, with `expr_rank` > 0: False lets β only *lower* the density, σ = min(σ(x, β),
-    σ(x, 0)), and change colour: a control cannot raise a fog where the face at β = 0 has
-    none (on the built-in scene a blink trained as a half-opaque veil a centimetre in front
-    of the eye; docs/bench/control_exploration.md). Opening the mouth only removes density
-    (the lips' gap); the mesh guide moves the geometry."""
     expr_levels: int = 8
     expr_base_res: int = 16
     """Coarsest resolution of the expression grid: a coarse level is one feature for the
@@ -290,10 +284,6 @@ class TrainConfig:
     face_ray_fraction: float = 0.0
     """Share of each batch's rays drawn from pixels inside the face silhouettes (0: all
     uniform over the image)."""
-    error_ray_fraction: float = 0.0
-    """Share of each batch's rays drawn where the model's recent photometric error is
-    largest (training/error_map.py: 4 x 4 pixel cells of every training frame, drawn in
-    proportion to their running error), taken from the uniform share (0: off)."""
     interlevel_weight: float = 1.0
     """Weight of the proposal sampler's interlevel loss."""
     random_background: bool = False

@@ -354,30 +354,3 @@ def test_random_background_shows_through_transparent_rays_only(tiny_scene, tmp_p
     cfg.train.random_background = True
     res = Trainer(cfg, tiny_scene, tmp_path / "run", quiet=True).fit()
     assert res.step == 2 and np.isfinite(res.last_psnr)
-
-
-def test_error_map_draws_where_the_error_is():
-    from flamenerf.training.error_map import ErrorMap
-
-    m = ErrorMap(3, 20, 18, cell=4)
-    g = torch.Generator().manual_seed(0)
-    fi, ys, xs = m.sample(3000, g)  # before any error: uniform over every pixel
-    assert fi.max() == 2 and ys.max() == 19 and xs.max() == 17 and min(fi.min(), ys.min()) == 0
-    hard = (fi == 2) & (ys < 4) & (xs < 4)  # one cell of 5 x 5 x 3
-    for _ in range(5):
-        m.update(fi, ys, xs, hard.float() + 0.01)
-    fi, ys, xs = m.sample(3000, g)
-    share = ((fi == 2) & (ys < 4) & (xs < 4)).float().mean()
-    assert share > 0.4  # against a 75th when uniform: the cell has 100 times the error
-    assert ys.max() <= 19 and xs.max() <= 17
-
-
-def test_error_rays_keep_the_batch_and_the_face_share(tiny_scene, tmp_path):
-    cfg = small(preset("fast"), 3)
-    cfg.train.error_ray_fraction = 0.25
-    t = Trainer(cfg, tiny_scene, tmp_path / "run", quiet=True)
-    res = t.fit()
-    assert res.step == 3 and np.isfinite(res.last_psnr)
-    m = t.error_map
-    assert m is not None and m.err is not None and torch.isfinite(m.err).all()
-    assert (m.err != m.err[0]).any()  # cells the rays visited moved off the first mean

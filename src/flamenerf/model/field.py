@@ -121,15 +121,7 @@ class HashField(nn.Module):
                 h = torch.cat([h, self._detail_features(x)], -1)
             if self.expr_grid is not None:
                 h = torch.cat([h, self._expression_features(x, expr)], -1)
-        g = self.density_head(h, expr if self.direct else None)
-        if self.expr_grid is None or self.cfg.expr_adds_density:
-            return g
-        # the density at β = 0: the same head with the expression columns zeroed (rows whose
-        # columns are 0 already get the same value, so the min leaves them as they are)
-        k = h.shape[-1] - self.expr_grid_width
-        h0 = torch.cat([h[..., :k], h.new_zeros(*h.shape[:-1], self.expr_grid_width)], -1)
-        s0 = self.density_head(h0, torch.zeros_like(expr) if self.direct else None)[..., :1]
-        return torch.cat([torch.minimum(g[..., :1], s0), g[..., 1:]], -1)
+        return self.density_head(h, expr if self.direct else None)
 
     @torch.no_grad()
     def _features_in_place(self, x: Tensor, expr: Tensor | None) -> Tensor:

@@ -27,7 +27,6 @@ from flamenerf.training.checkpoint import (LEGACY_TEMP, latest_checkpoint, load_
                                            set_rng_states)
 from flamenerf.training.distributed import (Ranks, launched_ranks, process_device,
                                             process_group, shard_seed, split)
-from flamenerf.training.error_map import ErrorMap
 from flamenerf.training.interrupt import StopRequest
 from flamenerf.training.losses import face_depth_loss, face_region_loss, psnr_from_mse
 
@@ -222,10 +221,6 @@ class Trainer:
         torch.manual_seed(cfg.train.seed)
         self.model = build_for_dataset(cfg, self.ds).to(self.device)
         self.train_set = FrameSet(self.ds, self.ds.split("train"), self.intr)
-        # per process (each rank draws its own rays); not in checkpoints: a resumed run
-        # starts it afresh
-        self.error_map = (ErrorMap(self.train_set.n, self.intr.h, self.intr.w)
-                          if cfg.train.error_ray_fraction > 0 else None)
         if cfg.train.face_depth_weight > 0:  # before the progress bar starts
             self.train_set.mesh_depths()
         fused = self.device.type in ("cpu", "cuda")
@@ -388,12 +383,7 @@ class Trainer:
         logged terms weighted by its share of the batch."""
         cfg, model, ts, gen = self.cfg.train, self.model, self.train_set, sh.gen
         share = sh.rays / cfg.batch_rays
-        k = int(round(sh.rays * cfg.error_ray_fraction)) if self.error_map is not None else 0
-        # the face's share of the whole batch, as without error rays
-        face = min(cfg.face_ray_fraction * sh.rays / max(sh.rays - k, 1), 1.0)
-        fi, ys, xs = ts.sample_pixels(sh.rays - k, gen, face)
-        if k:
-            fi, ys, xs = (torch.cat(p) for p in zip((fi, ys, xs), self.error_map.sample(k, gen)))
+        fi, ys, xs = ts.sample_pixels(sh.rays, gen, cfg.face_ray_fraction)
         omega, phi = model.codes(ts.frame_index[fi].to(self.device))
         rays, target = ts.ray_batch(fi, ys, xs, omega, phi, self.device)
         out = model(rays, jitter=True, generator=gen if self.device.type == "cpu" else None)
@@ -401,8 +391,6 @@ class Trainer:
             out = over_random_background(out, torch.rand(len(target), 3, generator=gen)
                                          .to(self.device))
         losses = model.loss_dict(out, target, cfg.interlevel_weight)
-        if self.error_map is not None:
-            self.error_map.update(fi, ys, xs, ((out["rgb"] - target) ** 2).mean(-1))
         terms = [(losses["total"], share)]
         logs = {f"loss/{k}": v.item() * share for k, v in losses.items() if k != "total"}
         if cfg.face_depth_weight > 0 and self.step >= cfg.face_depth_start * cfg.steps:
