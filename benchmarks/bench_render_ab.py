@@ -39,7 +39,9 @@ from flamenerf.model.render_image import render_image
 from flamenerf.model import inference
 SETTINGS = getattr(inference, sys.argv[6])
 from flamenerf.data.prior import dataset_dilation, mesh_function, prior_mask
-run = load_run(sys.argv[1], "cpu")
+dev = sys.argv[7]
+sync = torch.cuda.synchronize if dev.startswith("cuda") else (lambda: None)
+run = load_run(sys.argv[1], dev)
 ds = run.dataset(sys.argv[2] or None)
 fr = [f for f in ds.frames if f.frame_index == 0][0]
 omega, phi = run.frame_codes(0)
@@ -52,8 +54,10 @@ for size in json.loads(sys.argv[4]):
     render_image(*args, settings=SETTINGS)
     ts = []
     for _ in range(int(sys.argv[5])):
+        sync()
         t = time.perf_counter()
         render_image(*args, settings=SETTINGS)
+        sync()
         ts.append(time.perf_counter() - t)
     out[str(size)] = ts
 print(json.dumps(out))
@@ -103,6 +107,7 @@ def main() -> int:
     ap.add_argument("--untuned", action="store_true",
                     help="glibc as a library user's process has it (not tuned as the "
                          "`flamenerf` command tunes it)")
+    ap.add_argument("--device", default="cpu", help="where the run renders (e.g. cuda)")
     ap.add_argument("--json", type=Path, default=None)
     a = ap.parse_args()
     if (a.run is None) == (a.train is None) or (a.train and a.dataset is None):
@@ -120,25 +125,25 @@ def main() -> int:
                 env.update(TUNED_ALLOCATOR)
             proc = subprocess.run(
                 [sys.executable, "-c", child, str(a.run), str(a.dataset or ""),
-                 str(a.threads), json.dumps(a.sizes), str(a.repeats), what],
+                 str(a.threads), json.dumps(a.sizes), str(a.repeats), what, a.device],
                 env=env, capture_output=True, text=True, check=True)
             got = json.loads(proc.stdout.strip().splitlines()[-1])
             for size, ts in got.items():
                 times[src].setdefault(size, []).extend(ts)
             print(f"round {r + 1} {src}: " + ", ".join(
-                f"{_label(s)} {min(ts):.3f} s" for s, ts in got.items()), flush=True)
+                f"{_label(s)} {min(ts):.4f} s" for s, ts in got.items()), flush=True)
     res = {"benchmark": "train_ab" if a.train else "render_ab",
            "settings": a.train or a.settings,
            "allocator": "glibc default" if a.untuned else "tuned (runtime.TUNED_ALLOCATOR)",
            "command": "python benchmarks/bench_render_ab.py "
            + " ".join(sys.argv[1:]), "machine": f"{platform.processor() or platform.machine()}, "
-           f"{os.cpu_count()} cores, {a.threads} threads", "results": {}}
+           f"{os.cpu_count()} cores, {a.threads} threads, device {a.device}", "results": {}}
     for src, per in times.items():
-        res["results"][src] = {s: {"best_s": round(min(ts), 3), "median_s":
-                                   round(float(np.median(ts)), 3), "n": len(ts)}
+        res["results"][src] = {s: {"best_s": round(min(ts), 4), "median_s":
+                                   round(float(np.median(ts)), 4), "n": len(ts)}
                                for s, ts in per.items()}
         for s, v in res["results"][src].items():
-            print(f"{src}: {_label(s)} best {v['best_s']:.3f} s, median {v['median_s']:.3f} s "
+            print(f"{src}: {_label(s)} best {v['best_s']:.4f} s, median {v['median_s']:.4f} s "
                   f"({v['n']})")
     if a.json is not None:
         a.json.parent.mkdir(parents=True, exist_ok=True)

@@ -391,7 +391,9 @@ def _fast_gpu() -> Config:
     # held-out at 256 px (seeds 0 / 1, all 30 val frames) in 43 / 46 s before `fast`'s
     # changes of 2026-11-25/26 (docs/bench/gpu_train_fast_gpu.json); with them (mesh guide,
     # slower per-frame codes), on an H200: 30.3 / 29.2 dB in 51 s
-    # (docs/bench/gpu_h200_20261126.json)
+    # (docs/bench/gpu_h200_20261126.json); with the guide's vertex cut too, on an H100:
+    # 29.5 / 30.5 dB in 60 / 58 s. 32768 rays per step: 1.7x the step time, worse within
+    # the minute (docs/bench/gpu_h100_20261126.json)
     cfg.train.steps, cfg.train.batch_rays = 800, 16384
     return cfg
 

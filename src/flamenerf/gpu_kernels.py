@@ -191,11 +191,17 @@ def triton_cdiv(a: int, b: int) -> int:
 
 def _flat_layout(grid):
     """The grid's tables as one (ΣT_l, F) tensor and its per-level resolution, dense flag
-    and first row. Made at every call: a cache keyed on the tables' versions would miss
-    writes through `.data`, and the copy costs ~30 µs of a GPU's time."""
+    and first row. The tables are joined at every call: a cache keyed on their versions
+    would miss writes through `.data`, and the copy costs ~30 µs of a GPU's time. The
+    first rows depend on the tables' sizes alone and are kept: copying them to the device
+    made every call wait for it."""
     tables = [t.detach() for t in grid.tables]
     dev = tables[0].device
-    sizes = [len(t) for t in tables]
-    offsets = torch.tensor([0, *sizes[:-1]], dtype=torch.int64).cumsum(0).to(dev)
-    return (torch.cat(tables).contiguous(), grid.res.to(dev, torch.int64).contiguous(),
-            grid.dense.to(dev, torch.int8).contiguous(), offsets)
+    key = (dev, tuple(len(t) for t in tables))
+    kept = getattr(grid, "_flat_layout_rows", None)
+    if kept is None or kept[0] != key:
+        offsets = torch.tensor([0, *key[1][:-1]], dtype=torch.int64).cumsum(0).to(dev)
+        kept = (key, grid.res.to(dev, torch.int64).contiguous(),
+                grid.dense.to(dev, torch.int8).contiguous(), offsets)
+        grid._flat_layout_rows = kept
+    return (torch.cat(tables).contiguous(), *kept[1:])

@@ -283,6 +283,29 @@ def test_settings_chunk_changes_nothing_but_speed():
     assert torch.allclose(a["rgb"], b["rgb"], atol=1e-5)
 
 
+def test_proposal_group_changes_nothing_but_speed():
+    """One termination check for the whole proposal ray (the GPU's default) and a check
+    every few samples render the same image: a ray stops only once its remaining samples
+    weigh less than ε."""
+    m = toy_model()
+    P = m.cfg.sampler.num_proposal
+    whole = render(m, dataclasses.replace(FAST, proposal_group=P))
+    few = render(m, dataclasses.replace(FAST, proposal_group=4))
+    assert float((whole["rgb"] - few["rgb"]).abs().max()) < 1e-3
+    assert FAST.proposal_samples_per_check(torch.device("cpu"), P) == FAST.group
+    assert FAST.proposal_samples_per_check(torch.device("cuda"), P) == P
+
+
+def test_gpu_chunk_follows_the_field():
+    """On a GPU a hash-grid model renders a 512 px frame in one pass; the paper's MLP
+    fields keep passes of 65536 rays (their activations at 262144 rays: tens of GB)."""
+    cuda, cpu = torch.device("cuda"), torch.device("cpu")
+    assert FAST.rays_per_chunk(cuda, toy_model()) >= 512 * 512
+    assert FAST.rays_per_chunk(cuda, toy_model("hierarchical")) == 1 << 16
+    assert FAST.rays_per_chunk(cpu, toy_model()) == 2048
+    assert dataclasses.replace(FAST, chunk=99).rays_per_chunk(cuda, toy_model()) == 99
+
+
 def test_threads_render_the_same_image_and_restore_the_thread_count():
     """Chunks rendered side by side in Python threads (each with one torch thread) give the
     image one thread gives, and the process keeps its thread count."""

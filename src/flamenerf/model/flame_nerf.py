@@ -179,8 +179,17 @@ class FlameNeRF(nn.Module):
         return self.normalize(surface_points(self.mesh_neutral, self.mesh_faces, tri, uv))
 
     def _neutral_diagonal(self) -> float:
-        neutral = self.normalize(self.mesh_neutral)
-        return float((neutral.amax(0) - neutral.amin(0)).norm())
+        # kept while the mesh and the box are: reading it from a GPU waits for the device,
+        # three times per guided batch
+        key = tuple((t.data_ptr(), t._version) for t in (self.mesh_neutral, self.center,
+                                                         self.half_extent)
+                    if isinstance(t, Tensor))
+        kept = getattr(self, "_neutral_diagonal_kept", None)
+        if kept is None or kept[0] != key:
+            neutral = self.normalize(self.mesh_neutral)
+            kept = (key, float((neutral.amax(0) - neutral.amin(0)).norm()))
+            self._neutral_diagonal_kept = kept
+        return kept[1]
 
     def _guide_falloff(self) -> float:
         return self.cfg.mesh_guide.falloff * self._neutral_diagonal()

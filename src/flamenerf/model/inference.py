@@ -44,7 +44,10 @@ class RenderSettings:
     fast: bool = True
     """The inference path (this module); False: the training forward, exactly."""
     chunk: int = 0
-    """Rays per batch; 0: 2048 on a CPU, 65536 on a GPU (fills it). On a CPU 4096 was as
+    """Rays per batch; 0: 2048 on a CPU; on a GPU 262144 for a hash-grid field (a 512 px
+    frame in one pass: each pass has a fixed cost of launches and synchronisations) and
+    65536 for the paper's MLP fields (at 128 samples of 256-wide layers a larger pass
+    would need tens of GB). On a CPU 4096 was as
     fast under the allocator `flamenerf` tunes (runtime.py), but at `fast`'s 32 samples a
     layer's 64-wide activations for 4096 rays are 32 MiB, the size from which glibc's
     default allocator maps and unmaps every such buffer: a library user's 256 px frame took
@@ -55,6 +58,9 @@ class RenderSettings:
     """Samples per ray evaluated between two termination checks (the proposal's, and both
     levels of the coarse/fine sampler's; the proposal sampler's main samples go in one
     group: see `_render_rays`)."""
+    proposal_group: int = 0
+    """The proposal's group; 0: `group` on a CPU, the whole ray on a GPU, where each check
+    waits for the device, longer than the proposal's few skipped samples would take."""
     warp_grid: int = 128
     """Vertices per axis of the baked warp for a fixed ω; 0: the exact warp MLP."""
     proposal_grid: int = 192
@@ -80,10 +86,18 @@ class RenderSettings:
             return 1
         return self.threads if self.threads > 0 else torch.get_num_threads()
 
-    def rays_per_chunk(self, device: torch.device) -> int:
+    def rays_per_chunk(self, device: torch.device, model=None) -> int:
         if self.chunk > 0:
             return self.chunk
-        return 2048 if device.type == "cpu" else 1 << 16
+        if device.type == "cpu":
+            return 2048
+        mlp = model is not None and model.cfg.field.kind == "mlp"
+        return 1 << 16 if mlp else 1 << 18
+
+    def proposal_samples_per_check(self, device: torch.device, samples: int) -> int:
+        if self.proposal_group > 0:
+            return self.proposal_group
+        return self.group if device.type == "cpu" else samples
 
 
 FAST = RenderSettings()
@@ -128,6 +142,8 @@ def march(evaluate: Evaluate, deltas: Tensor, group: int, eps: float,
         weights[rows, lo:hi] = (1.0 - torch.exp(-sd)) * torch.exp(-before)
         if colour:
             rgb[rows, lo:hi] = c.float()
+        if hi == S:  # no samples left: filtering would only wait for the device
+            break
         d = before[:, -1] + sd[:, -1]
         depth[rows] = d
         rows = rows[d < stop]
@@ -172,7 +188,10 @@ def _warp_fn(model, rays: RayBatch, settings: RenderSettings):
     if model.warp is None:
         return lambda xn, rows, e: xn
     codes = rays.deform_code
-    if _bakes_warp(model, settings) and bool((codes == codes[:1]).all()):
+    # an expanded code (render_image's) is one code by construction: comparing its rows
+    # would wait for the device
+    same = codes.stride(0) == 0 or bool((codes == codes[:1]).all())
+    if _bakes_warp(model, settings) and same:
         baked = baked_warp(model, codes[0], settings.warp_grid)
         return lambda xn, rows, e: baked(xn)
     return lambda xn, rows, e: model.warp_points(xn, codes[rows, None], e)
@@ -234,17 +253,22 @@ def _render_rays(model, rays: RayBatch, settings: RenderSettings) -> dict[str, T
             if baked is None:
                 with _autocast(dev, settings):
                     return model.proposal.density(xn, sub(expr, rows)), None
+            # rays with β = 0 first: one wait for the device (the count) splits them
             z = zero[rows]
+            order = torch.argsort((~z).to(torch.uint8), stable=True)
+            k = int(z.sum())
+            flat, full = order[:k], order[k:]
             sigma = xn.new_empty(xn.shape[:2])
-            if bool(z.any()):
-                sigma[z] = trunc_exp(baked(xn[z].reshape(-1, 3)).view(-1, hi - lo))
-            if not bool(z.all()):
+            if k:
+                sigma[flat] = trunc_exp(baked(xn[flat].reshape(-1, 3)).view(-1, hi - lo))
+            if k < len(rows):
                 with _autocast(dev, settings):
-                    sigma[~z] = model.proposal.density(xn[~z], expr[rows[~z], None]).float()
+                    sigma[full] = model.proposal.density(xn[full],
+                                                         expr[rows[full], None]).float()
             return sigma, None
 
-        w_p, _ = march(proposal, (edges_p[1:] - edges_p[:-1]) * scale, group, eps,
-                       colour=False)
+        w_p, _ = march(proposal, (edges_p[1:] - edges_p[:-1]) * scale,
+                       settings.proposal_samples_per_check(dev, P), eps, colour=False)
         edges_p = edges_p.expand(R, P + 1)
         num_main = max(1, round(settings.main_fraction * s.num_main))
         edges_m, _ = torch.sort(sample_pdf(edges_p, w_p, num_main + 1, False,

@@ -31,7 +31,7 @@ def render_image(model: FlameNeRF, intr: Intrinsics, c2w: np.ndarray | torch.Ten
     per forward pass) overrides the settings' chunk.
     """
     dev = next(model.parameters()).device
-    chunk = chunk or settings.rays_per_chunk(dev)
+    chunk = chunk or settings.rays_per_chunk(dev, model)
     origins, dirs = camera_rays(intr, c2w, dev)
     o, d = origins.reshape(-1, 3), dirs.reshape(-1, 3)
     mask = torch.as_tensor(np.asarray(face_mask), device=dev).reshape(-1).bool()
@@ -43,7 +43,10 @@ def render_image(model: FlameNeRF, intr: Intrinsics, c2w: np.ndarray | torch.Ten
                         appearance_code.to(dev).expand(m, -1), expression.to(dev).expand(m, -1),
                         mask[s:s + m], None if head is None else head.to(dev).expand(m, -1))
         out = render_rays(model, rays, settings) if settings.fast else model(rays)
-        return {k: out[k].cpu() for k in ("rgb", "depth", "acc")}
+        # one copy to the host (each waits for the device)
+        host = torch.cat([out["rgb"].float(), out["depth"].float()[:, None],
+                          out["acc"].float()[:, None]], 1).cpu()
+        return {"rgb": host[:, :3], "depth": host[:, 3], "acc": host[:, 4]}
 
     threads = settings.render_threads(dev)
     if threads > 1:  # pieces enough for every thread to stay busy to the end
