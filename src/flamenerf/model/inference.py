@@ -190,8 +190,8 @@ def _warp_fn(model, rays: RayBatch, settings: RenderSettings):
     codes = rays.deform_code
     # an expanded code (render_image's) is one code by construction: comparing its rows
     # would wait for the device
-    same = codes.stride(0) == 0 or bool((codes == codes[:1]).all())
-    if _bakes_warp(model, settings) and same:
+    if _bakes_warp(model, settings) and (codes.stride(0) == 0
+                                         or bool((codes == codes[:1]).all())):
         baked = baked_warp(model, codes[0], settings.warp_grid)
         return lambda xn, rows, e: baked(xn)
     return lambda xn, rows, e: model.warp_points(xn, codes[rows, None], e)
