@@ -261,7 +261,11 @@ def main() -> int:
     def cap(mlp: bool) -> int:
         if args.max_rays:
             return args.max_rays
-        return 4096 if (mlp and dev.type == "cpu") else 1 << 16
+        if dev.type == "cpu":
+            return 4096 if mlp else 1 << 16
+        # a GPU renders a hash-grid model's 512 px frame in one pass (model/inference.py):
+        # a band of 65536 rays, scaled, would pay the per-pass cost four times
+        return 1 << 16 if mlp else 1 << 18
 
     for name in args.presets:
         m = untrained(name, dev)

@@ -107,7 +107,7 @@ def main() -> int:
     ap.add_argument("--untuned", action="store_true",
                     help="glibc as a library user's process has it (not tuned as the "
                          "`flamenerf` command tunes it)")
-    ap.add_argument("--device", default="cpu", help="where the run renders (e.g. cuda)")
+    ap.add_argument("--device", default="cpu", help="where the run renders (e.g. cuda); render timing only")
     ap.add_argument("--json", type=Path, default=None)
     a = ap.parse_args()
     if (a.run is None) == (a.train is None) or (a.train and a.dataset is None):

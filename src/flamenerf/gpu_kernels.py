@@ -193,8 +193,9 @@ def _flat_layout(grid):
     """The grid's tables as one (ΣT_l, F) tensor and its per-level resolution, dense flag
     and first row. The tables are joined at every call: a cache keyed on their versions
     would miss writes through `.data`, and the copy costs ~30 µs of a GPU's time. The
-    first rows depend on the tables' sizes alone and are kept: copying them to the device
-    made every call wait for it."""
+    first rows depend on the tables' sizes alone and are kept (copying them to the device
+    made every call wait for it), with the levels' resolutions and dense flags, fixed when
+    the grid is made."""
     tables = [t.detach() for t in grid.tables]
     dev = tables[0].device
     key = (dev, tuple(len(t) for t in tables))

@@ -179,15 +179,17 @@ class FlameNeRF(nn.Module):
         return self.normalize(surface_points(self.mesh_neutral, self.mesh_faces, tri, uv))
 
     def _neutral_diagonal(self) -> float:
-        # kept while the mesh and the box are: reading it from a GPU waits for the device,
-        # three times per guided batch
-        key = tuple((t.data_ptr(), t._version) for t in (self.mesh_neutral, self.center,
-                                                         self.half_extent)
-                    if isinstance(t, Tensor))
+        # kept while the mesh and the box are the same tensors, unchanged in place (writes
+        # through `.data` excepted, as for the bakes): reading it from a GPU waits for the
+        # device, three times per guided batch
+        ts = [t for t in (self.mesh_neutral, self.center, self.half_extent)
+              if isinstance(t, Tensor)]
         kept = getattr(self, "_neutral_diagonal_kept", None)
-        if kept is None or kept[0] != key:
+        if kept is None or len(kept[0]) != len(ts) or not all(
+                a is t and v == t._version for (a, v), t in zip(kept[0], ts)):
             neutral = self.normalize(self.mesh_neutral)
-            kept = (key, float((neutral.amax(0) - neutral.amin(0)).norm()))
+            kept = (tuple((t, t._version) for t in ts),
+                    float((neutral.amax(0) - neutral.amin(0)).norm()))
             self._neutral_diagonal_kept = kept
         return kept[1]
 

@@ -55,9 +55,9 @@ class RenderSettings:
     min_transmittance: float = 1e-4
     """ε: a ray stops once less than this much light can still reach its samples."""
     group: int = 16
-    """Samples per ray evaluated between two termination checks (the proposal's, and both
-    levels of the coarse/fine sampler's; the proposal sampler's main samples go in one
-    group: see `_render_rays`)."""
+    """Samples per ray evaluated between two termination checks (both levels of the
+    coarse/fine sampler's, and the proposal's where `proposal_group` says so; the proposal
+    sampler's main samples go in one group: see `_render_rays`)."""
     proposal_group: int = 0
     """The proposal's group; 0: `group` on a CPU, the whole ray on a GPU, where each check
     waits for the device, longer than the proposal's few skipped samples would take."""

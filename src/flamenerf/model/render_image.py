@@ -43,9 +43,10 @@ def render_image(model: FlameNeRF, intr: Intrinsics, c2w: np.ndarray | torch.Ten
                         appearance_code.to(dev).expand(m, -1), expression.to(dev).expand(m, -1),
                         mask[s:s + m], None if head is None else head.to(dev).expand(m, -1))
         out = render_rays(model, rays, settings) if settings.fast else model(rays)
+        if dev.type == "cpu":
+            return {k: out[k] for k in ("rgb", "depth", "acc")}
         # one copy to the host (each waits for the device)
-        host = torch.cat([out["rgb"].float(), out["depth"].float()[:, None],
-                          out["acc"].float()[:, None]], 1).cpu()
+        host = torch.cat([out["rgb"], out["depth"][:, None], out["acc"][:, None]], 1).cpu()
         return {"rgb": host[:, :3], "depth": host[:, 3], "acc": host[:, 4]}
 
     threads = settings.render_threads(dev)
