@@ -258,14 +258,14 @@ def main() -> int:
                  "settings": {k: dataclasses.asdict(s) for k, s in PATHS.items()},
                  "speed": []}
 
-    def cap(mlp: bool) -> int:
+    def cap(model) -> int:
         if args.max_rays:
             return args.max_rays
         if dev.type == "cpu":
-            return 4096 if mlp else 1 << 16
-        # a GPU renders a hash-grid model's 512 px frame in one pass (model/inference.py):
-        # a band of 65536 rays, scaled, would pay the per-pass cost four times
-        return 1 << 16 if mlp else 1 << 18
+            return 4096 if model.cfg.field.kind == "mlp" else 1 << 16
+        # one pass of the renderer's own size: a smaller band, scaled, would pay the
+        # per-pass cost several times (a 512 px frame is one pass of a hash-grid model)
+        return FAST.rays_per_chunk(dev, model)
 
     for name in args.presets:
         m = untrained(name, dev)
@@ -278,7 +278,7 @@ def main() -> int:
 
         res["speed"] += speed_rows(f"{name} (untrained)", m, camera, w[0].detach(),
                                    a[0].detach(), torch.full((m.expr_dim,), 0.3), masks,
-                                   args.sizes, args.repeats, cap(m.cfg.field.kind == "mlp"))
+                                   args.sizes, args.repeats, cap(m))
     if args.run is not None:
         from flamenerf.data.prior import prior_mask
         from flamenerf.training.run import load_run
@@ -296,7 +296,7 @@ def main() -> int:
 
         res["speed"] += speed_rows(f"{run.config.preset} (trained)", run.model, cams, omega,
                                    phi, torch.as_tensor(fr.expression), run_masks, args.sizes,
-                                   args.repeats, cap(run.config.model.field.kind == "mlp"))
+                                   args.repeats, cap(run.model))
         res["run"] = str(args.run)
         res["quality"] = quality(run, ds, args.frames)
         q = res["quality"]

@@ -86,13 +86,12 @@ class RenderSettings:
             return 1
         return self.threads if self.threads > 0 else torch.get_num_threads()
 
-    def rays_per_chunk(self, device: torch.device, model=None) -> int:
+    def rays_per_chunk(self, device: torch.device, model) -> int:
         if self.chunk > 0:
             return self.chunk
         if device.type == "cpu":
             return 2048
-        mlp = model is not None and model.cfg.field.kind == "mlp"
-        return 1 << 16 if mlp else 1 << 18
+        return 1 << 16 if model.cfg.field.kind == "mlp" else 1 << 18
 
     def proposal_samples_per_check(self, device: torch.device, samples: int) -> int:
         if self.proposal_group > 0:

@@ -68,8 +68,8 @@ class RenderOptions:
             it the model has learnt nothing, and a control pushed far beyond (a smile at 1
             on a clip whose largest is 0.3) breaks the face into patches.
         landmarker: face_landmarker.task for --drive (default: as for preprocess).
-        chunk: Rays per forward pass (0: the renderer's choice, 4096 on a CPU and 65536
-            on a GPU; lower it if memory runs out).
+        chunk: Rays per forward pass (0: the renderer's choice, `RenderSettings.chunk`;
+            lower it if memory runs out).
         captured_directions: Colour at cameras beyond the capture as the nearest captured
             view saw it (a ray more than 2 degrees from every captured view is turned back
             to 2 degrees; data/captured_views.py): outside the captured range the view
