@@ -44,6 +44,11 @@ class WarpConfig:
     everywhere, as without head poses (the per-frame codes then also move the room, and
     a re-animation with frame 0's code sees it moved as in frame 0). None: settled to True
     when a run starts; runs from before this option load as they trained (everywhere)."""
+    still_head_only: bool = False
+    """Datasets whose head the model does not follow (no head poses: the built-in scene, a
+    still head): the deformation acts only in the head's region too (the ellipsoid of
+    `head_only`, fading out over `band`), so the room's samples skip it. Off: everywhere,
+    as in the paper."""
     band: float | None = None
     """With `head_only`: the width of the deformation's fade beyond the head's ellipsoid, as
     a fraction of its radius. Narrower than the head's band, it keeps per-frame codes off

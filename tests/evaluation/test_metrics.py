@@ -118,3 +118,47 @@ def test_face_interior_leaves_out_the_outline():
     pred[45, 60] = 1 - pred[45, 60]  # and an error inside counts in both
     assert image_metrics(pred, gt, face)["psnr_face_interior"] < 60
 
+
+
+def test_beyond_head_is_the_face_mask_past_the_silhouette():
+    """Face-mask pixels more than 8 cm behind the face interior's median depth are the room
+    seen past the head; pixels on the head (a few cm of relief) are not."""
+    from flamenerf.evaluation.protocol import beyond_head
+
+    face = np.zeros((64, 64), bool)
+    face[10:50, 10:40] = True
+    depth = np.full((64, 64), 1.5)  # the room
+    depth[10:50, 10:38] = 0.6  # the head, relief included
+    depth[20:30, 20:25] = 0.66
+    far = beyond_head(face, depth)
+    assert far.sum() == 40 * 2 and far[10:50, 38:40].all()
+    assert not beyond_head(np.zeros_like(face), depth).any()
+
+
+def test_reanimation_rows_split_the_face_at_the_head(tiny_scene):
+    """With ground-truth depth (the built-in scene), errors placed only past the head's
+    silhouette leave the face on the head exact and hold all of the face's error; the
+    depth follows a FrameSet at another resolution."""
+    from flamenerf.data.dataset import load_dataset
+    from flamenerf.data.scene import FrameSet
+    from flamenerf.evaluation.protocol import _compare, beyond_head, truth_depths
+
+    ds = load_dataset(tiny_scene)
+    frames = ds.split("reanimate")
+    fs = FrameSet(ds, frames, ds.intrinsics)
+    depths = truth_depths(fs)
+    assert depths.shape == (len(frames), 32, 32)
+    assert np.array_equal(depths[0], ds.load_depth(frames[0]))
+    half = FrameSet(ds, frames, ds.intrinsics.scaled(0.5))  # the nearest pixel's depth
+    assert np.array_equal(truth_depths(half)[0], depths[0][1::2, 1::2])
+    preds = []
+    for i in range(fs.n):
+        gt = fs.images[i].numpy().copy()
+        far = beyond_head(fs.masks[i].numpy(), depths[i])
+        gt[far] = 1 - gt[far]
+        preds.append(gt)
+    rows = _compare(fs, preds, split_head=True)
+    assert any(r["face_error_beyond_head"] == pytest.approx(1.0) for r in rows)
+    for r in rows:
+        assert r["psnr_face_on_head"] > 90 or r["psnr_face_on_head"] == float("inf")
+    assert "psnr_face_on_head" not in _compare(fs, preds)[0]

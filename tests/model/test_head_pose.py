@@ -199,3 +199,46 @@ def test_still_head_poses_train_exactly_as_no_head_poses(toy_dataset, tmp_path):
         om, ph = run.model.codes(fs.frame_index)
         imgs.append(render_frames(run.model, fs, om.detach(), ph.detach()))
     assert all(np.array_equal(x, y) for x, y in zip(*imgs))
+
+
+def test_a_still_head_deforms_only_in_its_region(toy_dataset, tmp_path):
+    """`warp.still_head_only`: without head poses the deformation acts in the head's region
+    alone (the room's samples skip it), the model does not follow a head, and a loaded run
+    rebuilds the region; off, a still head deforms everywhere as before."""
+    from toy import toy_config
+
+    from flamenerf.data.dataset import load_dataset
+    from flamenerf.data.scene import model_warp_region
+    from flamenerf.model.flame_nerf import FlameNeRF
+    from flamenerf.training.run import load_run
+    from flamenerf.training.trainer import train
+
+    m = _model(None)
+    assert not m.warp_in_head
+    h = FlameNeRF(m.cfg, num_codes=3, expr_dim=5, near=0.5, far=1.5, box_min=[-1] * 3,
+                  box_max=[1] * 3, warp_region=REGION)
+    h.load_state_dict(m.state_dict())
+    assert h.warp_in_head and not h.follows_head
+    g = torch.Generator().manual_seed(1)
+    with torch.no_grad():
+        for p in h.warp.parameters():
+            p.add_(0.3 * torch.randn(p.shape, generator=g))
+        code = h.deform_codes.weight[:1].detach()
+        x = torch.rand(1, 300, 3, generator=g) * 1.2 - 0.6
+        out, full = h.warp_points(x, code[:, None]), h.warp(x, code[:, None])
+    w = h.head_weight(x, h.cfg.warp.band)
+    assert bool((w == 0).any() and (w >= 1).any())
+    assert (full[w == 0] - x[w == 0]).abs().max() > 1e-2
+    assert torch.equal(out[w == 0], x[w == 0])
+    assert torch.allclose(out[w >= 1], full[w >= 1], atol=1e-6)
+
+    cfg = toy_config("masked", 3)
+    ds = load_dataset(toy_dataset)
+    assert model_warp_region(cfg, ds) is None  # off: the paper's warp everywhere
+    cfg.model.warp.still_head_only = True
+    cfg.model.warp.settle()
+    assert model_warp_region(cfg, ds) is not None
+    train(toy_dataset, tmp_path / "still", cfg, device="cpu", quiet=True)
+    run = load_run(tmp_path / "still", "cpu")
+    assert run.model.warp_in_head and not run.model.follows_head
+    assert run.model.init_args["warp_region"] == model_warp_region(cfg, ds)

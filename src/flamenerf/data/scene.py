@@ -54,6 +54,17 @@ def model_head_region(cfg, ds: Dataset) -> dict | None:
     return head_region(ds, cfg.model.head.region_scale).to_dict()
 
 
+def model_warp_region(cfg, ds: Dataset) -> dict | None:
+    """Where a model built for `ds` with `cfg` deforms a still head (its init argument
+    `warp_region`): the head's region with `model.warp.still_head_only` on a dataset whose
+    head the model does not follow, else None (the warp acts everywhere, or in the
+    followed head's region)."""
+    w = cfg.model.warp
+    if not (w.enabled and w.still_head_only) or model_head_region(cfg, ds) is not None:
+        return None
+    return head_region(ds).to_dict()
+
+
 def model_detail_region(cfg, ds: Dataset) -> dict | None:
     """Where a model built for `ds` with `cfg` evaluates its hash field's detail levels (its
     init argument `detail_region`): the head's region in the canonical frame, or None

@@ -107,6 +107,36 @@ def face_interior(face: np.ndarray) -> np.ndarray:
     return ndimage.binary_erosion(face, iterations=max(1, round(face.shape[0] / 64)))
 
 
+BEYOND_HEAD = 0.08
+"""Scene units (metres) behind the face interior's median true depth from which a face-mask
+pixel shows what lies beyond the head (`beyond_head`)."""
+
+
+def beyond_head(face: np.ndarray, depth: np.ndarray) -> np.ndarray:
+    """Pixels of the face mask (H, W) bool whose ground-truth z-depth (H, W) lies more than
+    `BEYOND_HEAD` behind the median depth of the face's interior: the room seen past the
+    head's silhouette through the mask's dilation. At a new camera they measure how the
+    background registers there, alike with and without β. -> (H, W) bool."""
+    inner = face_interior(face)
+    if not inner.any():
+        return np.zeros_like(face)
+    return face & (depth > np.median(depth[inner]) + BEYOND_HEAD)
+
+
+def truth_depths(fs: FrameSet) -> np.ndarray | None:
+    """Ground-truth z-depth of every frame of `fs` at its resolution (nearest pixel), or None
+    where a frame has none (captured clips). -> (N, H, W)."""
+    out = []
+    for fr in fs.frames:
+        d = fs.ds.load_depth(fr)
+        if d is None:
+            return None
+        ys = ((np.arange(fs.intr.h) + 0.5) * d.shape[0] / fs.intr.h).astype(int)
+        xs = ((np.arange(fs.intr.w) + 0.5) * d.shape[1] / fs.intr.w).astype(int)
+        out.append(d[ys[:, None], xs[None, :]])
+    return np.stack(out)
+
+
 def image_metrics(pred: np.ndarray, gt: np.ndarray, face: np.ndarray,
                   scene: np.ndarray | None = None) -> dict[str, float]:
     """pred, gt (H, W, 3) in [0, 1]; face (H, W) bool; scene (H, W) bool (`scene_masks`;
@@ -124,10 +154,11 @@ def image_metrics(pred: np.ndarray, gt: np.ndarray, face: np.ndarray,
     return out
 
 
-def summarize(per_frame: list[dict[str, Any]], keys=("mse", "psnr", "ssim", "psnr_face",
-                                                     "psnr_face_interior", "psnr_face_outline",
-                                                     "psnr_background", "psnr_scene")
-              ) -> dict[str, Any]:
+SUMMARY_KEYS = ("mse", "psnr", "ssim", "psnr_face", "psnr_face_interior", "psnr_face_outline",
+                "psnr_background", "psnr_scene")
+
+
+def summarize(per_frame: list[dict[str, Any]], keys=SUMMARY_KEYS) -> dict[str, Any]:
     """Means over frames (frames where a value is NaN, e.g. no face pixels, are skipped)."""
     out: dict[str, Any] = {"num_frames": len(per_frame)}
     for k in keys:
@@ -149,13 +180,29 @@ def render_frames(model: FlameNeRF, fs: FrameSet, omega: torch.Tensor, phi: torc
     return out
 
 
-def _compare(fs: FrameSet, preds: list[np.ndarray]) -> list[dict[str, Any]]:
+HEAD_KEYS = ("psnr_face_on_head", "psnr_face_beyond_head", "face_error_beyond_head")
+
+
+def _compare(fs: FrameSet, preds: list[np.ndarray], split_head: bool = False
+             ) -> list[dict[str, Any]]:
+    """Per-frame `image_metrics`; with `split_head` and ground-truth depth, also the face
+    split at the head's silhouette (`HEAD_KEYS`: PSNR of the face's pixels on the head and
+    beyond it, and the share of the face's squared error beyond it)."""
     rows = []
     scenes = scene_masks(fs)
+    depths = truth_depths(fs) if split_head else None
     for i, pred in enumerate(preds):
         fr = fs.frames[i]
+        gt, face = fs.images[i].numpy(), fs.masks[i].numpy()
         row = {"position": fr.position, "frame_index": fr.frame_index}
-        row.update(image_metrics(pred, fs.images[i].numpy(), fs.masks[i].numpy(), scenes[i]))
+        row.update(image_metrics(pred, gt, face, scenes[i]))
+        if depths is not None:
+            far = beyond_head(face, depths[i])
+            err = ((pred - gt) ** 2).mean(-1)
+            row.update(psnr_face_on_head=M.psnr(pred, gt, face & ~far),
+                       psnr_face_beyond_head=M.psnr(pred, gt, far),
+                       face_error_beyond_head=float(err[far].sum() / max(err[face].sum(),
+                                                                        1e-12)))
         rows.append(row)
     return rows
 
@@ -185,8 +232,9 @@ def reanimation(model: FlameNeRF, fs: FrameSet, omega0: torch.Tensor, phi0: torc
     """Frame 0's codes with each frame's expression, camera and mask, against ground truth."""
     t0 = time.perf_counter()
     preds = render_frames(model, fs, omega0.expand(fs.n, -1), phi0.expand(fs.n, -1), chunk)
-    rows = _compare(fs, preds)
-    res = summarize(rows)
+    rows = _compare(fs, preds, split_head=True)
+    keys = SUMMARY_KEYS + (HEAD_KEYS if "psnr_face_on_head" in rows[0] else ())
+    res = summarize(rows, keys)
     res.update(render_seconds=time.perf_counter() - t0, frames=rows)
     return res, preds
 

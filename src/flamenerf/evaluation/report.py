@@ -169,6 +169,16 @@ def eval_markdown(res: dict[str, Any]) -> str:
                      f"{fmt(s.get('psnr_face'))} | {fmt(s.get('psnr_face_interior'))} | "
                      f"{fmt(s.get('psnr_background'))} | "
                      f"{fmt(s.get('psnr_scene'))} |")
+    ra = res.get("reanimate") or {}
+    if "psnr_face_on_head" in ra:
+        from flamenerf.evaluation.protocol import BEYOND_HEAD
+
+        L += ["", f"Re-animation face at the head's silhouette (ground-truth depth): "
+              f"{fmt(ra['psnr_face_on_head'])} dB on the head, "
+              f"{fmt(ra['psnr_face_beyond_head'])} dB beyond it (the face mask's pixels more "
+              f"than {100 * BEYOND_HEAD:g} cm behind the face: the room past the silhouette), "
+              f"which hold "
+              f"{100 * ra['face_error_beyond_head']:.0f} % of the face's squared error."]
     dr = res.get("driven")
     if dr:
         L += ["", f"**Driven** ({dr['num_frames']} `{dr.get('split')}` frames, their own camera "

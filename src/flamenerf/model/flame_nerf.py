@@ -53,7 +53,7 @@ class FlameNeRF(nn.Module):
     def __init__(self, cfg: ModelConfig, num_codes: int, expr_dim: int, near: float,
                  far: float, box_min: list[float], box_max: list[float],
                  mesh_vertices: int = 0, mesh_faces: int = 0, head_region: dict | None = None,
-                 detail_region: dict | None = None,
+                 detail_region: dict | None = None, warp_region: dict | None = None,
                  expression_mean: list[float] | None = None,
                  guide_skip: list[int] | None = None):
         super().__init__()
@@ -110,6 +110,13 @@ class FlameNeRF(nn.Module):
         self.warp = (SE3Field(cfg.warp, field_expr if self.warp_expression else 0)
                      if cfg.warp.enabled else None)
         self.warp_in_head = self.follows_head and bool(cfg.warp.head_only)
+        if warp_region is not None and not self.follows_head and self.warp is not None:
+            # a still head (`warp.still_head_only`): the deformation acts in its ellipsoid
+            self.init_args["warp_region"] = _plain_region(warp_region)
+            for k in ("centre", "axes", "radii"):
+                self.register_buffer(f"head_{k}", torch.tensor(warp_region[k]).float(),
+                                     persistent=False)
+            self.warp_in_head = True
         # the hash field's detail levels act in the head's region (data/head_pose.head_region,
         # world units; kept in init_args for a loaded run), normalised for the field
         region = None

@@ -17,7 +17,8 @@ from flamenerf.config import Config, from_dict
 from flamenerf.data.dataset import Dataset, load_dataset
 from flamenerf.data.scene import (FrameSet, expression_model_residual, face_pixel_resolution,
                                   fit_dataset_expression_model,
-                                  model_detail_region, model_head_region, scene_box)
+                                  model_detail_region, model_head_region,
+                                  model_warp_region, scene_box)
 from flamenerf.errors import Interrupted, UserError, warn
 from flamenerf.io import atomic_write_text, read_json
 from flamenerf.model.flame_nerf import FlameNeRF
@@ -118,7 +119,8 @@ def build_for_dataset(cfg: Config, ds: Dataset) -> FlameNeRF:
     model = FlameNeRF(cfg.model, num_codes=ds.num_codes, expr_dim=ds.expression_dim,
                       near=ds.near, far=ds.far, box_min=lo, box_max=hi,
                       mesh_vertices=V, mesh_faces=nf, head_region=model_head_region(cfg, ds),
-                      detail_region=model_detail_region(cfg, ds))
+                      detail_region=model_detail_region(cfg, ds),
+                      warp_region=model_warp_region(cfg, ds))
     if cfg.model.expression_centre and cfg.model.expression_mode != "none" and ds.expression_dim:
         model.set_expression_mean(torch.from_numpy(
             ds.expression_matrix(ds.training_frames()).mean(0)))
