@@ -199,10 +199,11 @@ def _compare(fs: FrameSet, preds: list[np.ndarray], split_head: bool = False
         if depths is not None:
             far = beyond_head(face, depths[i])
             err = ((pred - gt) ** 2).mean(-1)
+            share = (float(err[far].sum() / max(err[face].sum(), 1e-12)) if face.any()
+                     else float("nan"))  # NaN: the frame is left out of the mean
             row.update(psnr_face_on_head=M.psnr(pred, gt, face & ~far),
                        psnr_face_beyond_head=M.psnr(pred, gt, far),
-                       face_error_beyond_head=float(err[far].sum() / max(err[face].sum(),
-                                                                        1e-12)))
+                       face_error_beyond_head=share)
         rows.append(row)
     return rows
 
