@@ -45,8 +45,8 @@ class WarpConfig:
     a re-animation with frame 0's code sees it moved as in frame 0). None: settled to True
     when a run starts; runs from before this option load as they trained (everywhere)."""
     still_head_only: bool = False
-    """Datasets whose head the model does not follow (no head poses: the built-in scene, a
-    still head): the deformation acts only in the head's region too (the ellipsoid of
+    """Datasets whose head the model does not follow (no head poses: the built-in scene
+    without --head-motion): the deformation acts only in the head's region too (the ellipsoid of
     `head_only`, fading out over `band`), so the room's samples skip it. Off: everywhere,
     as in the paper."""
     band: float | None = None
