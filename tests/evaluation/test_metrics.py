@@ -141,16 +141,16 @@ def test_reanimation_rows_split_the_face_at_the_head(tiny_scene):
     depth follows a FrameSet at another resolution."""
     from flamenerf.data.dataset import load_dataset
     from flamenerf.data.scene import FrameSet
-    from flamenerf.evaluation.protocol import _compare, beyond_head, truth_depths
+    from flamenerf.evaluation.protocol import _compare, beyond_head
 
     ds = load_dataset(tiny_scene)
     frames = ds.split("reanimate")
     fs = FrameSet(ds, frames, ds.intrinsics)
-    depths = truth_depths(fs)
+    depths = fs.true_depths()
     assert depths.shape == (len(frames), 32, 32)
     assert np.array_equal(depths[0], ds.load_depth(frames[0]))
     half = FrameSet(ds, frames, ds.intrinsics.scaled(0.5))  # the nearest pixel's depth
-    assert np.array_equal(truth_depths(half)[0], depths[0][1::2, 1::2])
+    assert np.array_equal(half.true_depths()[0], depths[0][1::2, 1::2])
     preds = []
     for i in range(fs.n):
         gt = fs.images[i].numpy().copy()

@@ -62,7 +62,7 @@ def model_warp_region(cfg, ds: Dataset) -> dict | None:
     w = cfg.model.warp
     if not (w.enabled and w.still_head_only) or model_head_region(cfg, ds) is not None:
         return None
-    return head_region(ds).to_dict()
+    return head_region(ds, cfg.model.head.region_scale).to_dict()  # as a followed head's
 
 
 def model_detail_region(cfg, ds: Dataset) -> dict | None:
@@ -195,6 +195,20 @@ class FrameSet:
                 out.append(d)
             self._mesh_depths = torch.from_numpy(np.stack(out))
         return self._mesh_depths
+
+    def true_depths(self) -> np.ndarray | None:
+        """Every frame's ground-truth z-depth (the built-in scene's) at this resolution, each
+        pixel the nearest of the dataset's; None where a frame has none (captured clips).
+        -> (N, H, W) float32."""
+        out = []
+        for fr in self.frames:
+            d = self.ds.load_depth(fr)
+            if d is None:
+                return None
+            t = torch.from_numpy(np.ascontiguousarray(d, np.float32))[None, None]
+            out.append(torch.nn.functional.interpolate(
+                t, size=(self.intr.h, self.intr.w), mode="nearest-exact")[0, 0].numpy())
+        return np.stack(out)
 
     def face_points(self, fi: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
         """One uniformly random point on the face mesh of each frame in fi, in the canonical

@@ -123,20 +123,6 @@ def beyond_head(face: np.ndarray, depth: np.ndarray) -> np.ndarray:
     return face & (depth > np.median(depth[inner]) + BEYOND_HEAD)
 
 
-def truth_depths(fs: FrameSet) -> np.ndarray | None:
-    """Ground-truth z-depth of every frame of `fs` at its resolution (nearest pixel), or None
-    where a frame has none (captured clips). -> (N, H, W)."""
-    out = []
-    for fr in fs.frames:
-        d = fs.ds.load_depth(fr)
-        if d is None:
-            return None
-        ys = ((np.arange(fs.intr.h) + 0.5) * d.shape[0] / fs.intr.h).astype(int)
-        xs = ((np.arange(fs.intr.w) + 0.5) * d.shape[1] / fs.intr.w).astype(int)
-        out.append(d[ys[:, None], xs[None, :]])
-    return np.stack(out)
-
-
 def image_metrics(pred: np.ndarray, gt: np.ndarray, face: np.ndarray,
                   scene: np.ndarray | None = None) -> dict[str, float]:
     """pred, gt (H, W, 3) in [0, 1]; face (H, W) bool; scene (H, W) bool (`scene_masks`;
@@ -190,7 +176,7 @@ def _compare(fs: FrameSet, preds: list[np.ndarray], split_head: bool = False
     beyond it, and the share of the face's squared error beyond it)."""
     rows = []
     scenes = scene_masks(fs)
-    depths = truth_depths(fs) if split_head else None
+    depths = fs.true_depths() if split_head else None
     for i, pred in enumerate(preds):
         fr = fs.frames[i]
         gt, face = fs.images[i].numpy(), fs.masks[i].numpy()

@@ -86,12 +86,17 @@ class FlameNeRF(nn.Module):
             if guide_skip:
                 self.set_guide_skip(torch.tensor(guide_skip, dtype=torch.long))
         # the head's ellipsoid (data/head_pose.HeadRegion.to_dict, world units), kept in
-        # init_args so that a loaded run rebuilds it; buffers for the device only
+        # init_args so that a loaded run rebuilds it; buffers for the device only. The model
+        # follows the head in it (`head_region`), or a still head's deformation stays in it
+        # (`warp_region`: `warp.still_head_only` where no head is followed)
         self.follows_head = head_region is not None and cfg.head.follow
-        if self.follows_head:
-            self.init_args["head_region"] = _plain_region(head_region)
+        still_head = warp_region is not None and not self.follows_head and cfg.warp.enabled
+        name = "head_region" if self.follows_head else "warp_region" if still_head else None
+        if name is not None:
+            region = head_region if self.follows_head else warp_region
+            self.init_args[name] = _plain_region(region)
             for k in ("centre", "axes", "radii"):
-                self.register_buffer(f"head_{k}", torch.tensor(head_region[k]).float(),
+                self.register_buffer(f"head_{k}", torch.tensor(region[k]).float(),
                                      persistent=False)
         bmin, bmax = torch.tensor(box_min), torch.tensor(box_max)
         self.register_buffer("center", (bmin + bmax) / 2)
@@ -109,14 +114,7 @@ class FlameNeRF(nn.Module):
         self.warp_expression = cfg.warp.enabled and cfg.warp.expression_input and field_expr > 0
         self.warp = (SE3Field(cfg.warp, field_expr if self.warp_expression else 0)
                      if cfg.warp.enabled else None)
-        self.warp_in_head = self.follows_head and bool(cfg.warp.head_only)
-        if warp_region is not None and not self.follows_head and self.warp is not None:
-            # a still head (`warp.still_head_only`): the deformation acts in its ellipsoid
-            self.init_args["warp_region"] = _plain_region(warp_region)
-            for k in ("centre", "axes", "radii"):
-                self.register_buffer(f"head_{k}", torch.tensor(warp_region[k]).float(),
-                                     persistent=False)
-            self.warp_in_head = True
+        self.warp_in_head = (self.follows_head and bool(cfg.warp.head_only)) or still_head
         # the hash field's detail levels act in the head's region (data/head_pose.head_region,
         # world units; kept in init_args for a loaded run), normalised for the field
         region = None
