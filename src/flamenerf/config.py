@@ -346,8 +346,11 @@ def _no_prior() -> Config:
 
 def _fast() -> Config:
     cfg = Config(preset="fast")
+    # without head poses (the built-in scene) the warp too acts in the head's region only:
+    # the room's samples skip it, a step is ~28 % shorter on the CPU, and four seeds score
+    # as with the warp everywhere (docs/presets.md)
     cfg.model.warp = WarpConfig(code_dim=16, width=64, depth=4, skips=(), num_freqs=6,
-                                anneal_fraction=0.5)
+                                anneal_fraction=0.5, still_head_only=True)
     # finer cells at the head only: four levels above 512, to two cells per training pixel
     # at the face (settled per dataset, ~1900 at 128 px), evaluated in the head's region
     # (docs/presets.md item 7)
@@ -370,8 +373,9 @@ def _fast() -> Config:
     # 900 steps with the per-frame deformation codes at a tenth of the learning rate: the
     # extra steps sharpen the face a re-animation shows (built-in margin over the Nerfies
     # variant +0.4 dB on three seeds); at full rate the codes took them instead and a real
-    # clip's driven face fell 0.9 dB. 9-10.5 minutes on the 2-core CPU with the mesh guide
-    # (the built-in scene, 529-619 s; docs/presets.md item 3)
+    # clip's driven face fell 0.9 dB. ~9 minutes on the 2-core CPU with the mesh guide
+    # (the built-in scene, 527-534 s with the warp in the head's region; docs/presets.md
+    # item 3)
     # the face-depth prior from a fifth of the run on: without it the face trains as a fog
     # centred ~3 cm behind its surface, which new cameras see wrongly (docs/presets.md)
     # rays over a random colour: over black, a half-transparent room with fog in front of it
@@ -400,6 +404,9 @@ def _fast_gpu() -> Config:
     # 29.5 / 30.5 dB in 60 / 58 s. 32768 rays per step: 1.7x the step time, worse within
     # the minute (docs/bench/gpu_h100_20261126.json)
     cfg.train.steps, cfg.train.batch_rays = 800, 16384
+    # measured on GPUs with the warp everywhere (its figures above); selecting the head's
+    # samples pays on a CPU and was not timed on a GPU, whose step is launch-bound
+    cfg.model.warp.still_head_only = False
     return cfg
 
 

@@ -12,6 +12,7 @@ import torch
 
 from flamenerf.data.head_pose import (HeadPoseKey, HeadRegion, control_transform,
                                       head_pose_items)
+from flamenerf.config import preset
 from flamenerf.errors import UserError
 from flamenerf.geometry import euler_head, se3_log
 from flamenerf.model.se3 import apply_se3
@@ -162,6 +163,33 @@ def test_zero_head_twists_render_exactly_as_no_head_poses():
         assert torch.equal(plain[k], posed[k]), k
 
 
+def test_confined_warp_trains_alike_with_and_without_still_head_poses(toy_dataset, tmp_path):
+    """`fast`'s defaults confine the deformation to the head's region both where the head
+    is followed (`warp.head_only`) and where it is not (`warp.still_head_only`): the same
+    capture with an identity head_pose on every frame trains to the same weights."""
+    from toy import toy_config
+
+    from flamenerf.training.run import load_run
+    from flamenerf.training.trainer import train
+
+    posed = tmp_path / "posed"
+    shutil.copytree(toy_dataset, posed)
+    meta = json.loads((posed / "transforms.json").read_text())
+    for fr in meta["frames"]:
+        fr["head_pose"] = np.eye(4).tolist()
+    (posed / "transforms.json").write_text(json.dumps(meta))
+    runs = []
+    for name, data in (("plain", toy_dataset), ("posed", posed)):
+        cfg = toy_config("masked", 3)
+        assert cfg.model.warp.still_head_only
+        train(data, tmp_path / name, cfg, device="cpu", quiet=True)
+        runs.append(load_run(tmp_path / name, "cpu"))
+    a, b = runs
+    assert not a.model.follows_head and b.model.follows_head and a.model.warp_in_head
+    for (k, va), vb in zip(a.model.state_dict().items(), b.model.state_dict().values()):
+        assert torch.allclose(va, vb, atol=1e-6), k
+
+
 def test_still_head_poses_train_exactly_as_no_head_poses(toy_dataset, tmp_path):
     """The same capture with an identity head_pose on every frame: same weights after
     training, same renders (a dataset without head poses behaves as it always did), when
@@ -181,7 +209,7 @@ def test_still_head_poses_train_exactly_as_no_head_poses(toy_dataset, tmp_path):
     runs = []
     for name, data in (("plain", toy_dataset), ("posed", posed)):
         cfg = toy_config("masked", 3)
-        cfg.model.warp.head_only = False
+        cfg.model.warp.head_only = cfg.model.warp.still_head_only = False
         train(data, tmp_path / name, cfg, device="cpu", quiet=True)
         runs.append(load_run(tmp_path / name, "cpu"))
     a, b = runs
@@ -232,10 +260,11 @@ def test_a_still_head_deforms_only_in_its_region(toy_dataset, tmp_path):
     assert torch.equal(out[w == 0], x[w == 0])
     assert torch.allclose(out[w >= 1], full[w >= 1], atol=1e-6)
 
-    cfg = toy_config("masked", 3)
     ds = load_dataset(toy_dataset)
-    assert model_warp_region(cfg, ds) is None  # off: the paper's warp everywhere
-    cfg.model.warp.still_head_only = True
+    paper = preset("flame-in-nerf")
+    paper.model.warp.settle()
+    assert model_warp_region(paper, ds) is None  # the paper's warp acts everywhere
+    cfg = toy_config("masked", 3)  # `fast`'s: in the head's region
     cfg.model.warp.settle()
     assert model_warp_region(cfg, ds) is not None
     train(toy_dataset, tmp_path / "still", cfg, device="cpu", quiet=True)

@@ -159,6 +159,7 @@ def test_ddp_searches_for_unused_parameters_exactly_when_a_step_can_skip_some(
     for warp, rank, detail in ((True, 0, 0), (False, 0, 0), (True, 8, 0), (True, 0, 4)):
         c = cfg()
         c.model.warp.enabled = warp
+        c.model.warp.still_head_only = False  # the warp everywhere: it sees every batch
         c.model.field.expr_rank, c.model.field.detail_levels = rank, detail
         t = Trainer(c, toy_dataset, tmp_path / f"w{warp}{rank}{detail}", device="cpu",
                     quiet=True)
@@ -169,6 +170,11 @@ def test_ddp_searches_for_unused_parameters_exactly_when_a_step_can_skip_some(
                   and not (detail and n.startswith("field.detail."))}
         assert unused == (set() if warp else {"deform_codes.weight"}), unused
         assert may_skip_parameters(t.model) == (not warp or rank > 0 or detail > 0)
+    c = cfg()  # `fast`'s warp, in the head's region only: a batch may miss it
+    c.model.field.expr_rank, c.model.field.detail_levels = 0, 0
+    assert c.model.warp.still_head_only
+    t = Trainer(c, toy_dataset, tmp_path / "still", device="cpu", quiet=True)
+    assert t.model.warp_in_head and may_skip_parameters(t.model)
 
 
 def test_train_nproc_passes_its_other_options_on():
