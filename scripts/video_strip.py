@@ -1,12 +1,16 @@
 """A strip of chosen frames of `flamenerf render` videos, one row per video (the README's
-docs/real_keyframes.png and docs/builtin_blink_leak.png).
+docs/real_keyframes.png and docs/builtin_blink_leak.png), or one column per video with
+`--columns` (docs/demo_reanimation_frames.png, from the demo's side-by-side video).
 
     python scripts/video_strip.py R/kf.mp4 R/kf_depth.mp4 --frames 0 15 29 30 45 59 \
         --out docs/real_keyframes.png
     python scripts/video_strip.py R/blink.mp4 R/brow.mp4 --frames 0 1 --diff \
         --out docs/builtin_blink_leak.png
+    python scripts/video_strip.py demo/reanimation_sbs.mp4 --frames 0 3 6 9 --columns \
+        --scale 3 --out docs/demo_reanimation_frames.png
 
-`--diff` appends |last frame - first frame| x 4 (grey) to each row.
+`--diff` appends |last frame - first frame| x 4 (grey) to each row; `--scale K` enlarges
+every pixel to K x K (a 64 px demo is small on a page).
 """
 
 from __future__ import annotations
@@ -22,6 +26,8 @@ def main() -> None:
     ap.add_argument("videos", type=Path, nargs="+")
     ap.add_argument("--frames", type=int, nargs="+", required=True)
     ap.add_argument("--diff", action="store_true")
+    ap.add_argument("--columns", action="store_true", help="one column per video")
+    ap.add_argument("--scale", type=int, default=1)
     ap.add_argument("--out", type=Path, required=True)
     a = ap.parse_args()
     from flamenerf.data.video import read_frames
@@ -36,8 +42,10 @@ def main() -> None:
         picked = [frames[i].astype(np.float32) / 255 for i in a.frames]
         if a.diff:
             picked.append(abs_diff(picked[-1], picked[0], 4.0))
-        rows.append(hstack(picked))
-    save_png(a.out, np.clip(vstack(rows), 0, 1))
+        if a.scale > 1:
+            picked = [p.repeat(a.scale, 0).repeat(a.scale, 1) for p in picked]
+        rows.append(vstack(picked) if a.columns else hstack(picked))
+    save_png(a.out, np.clip(hstack(rows) if a.columns else vstack(rows), 0, 1))
     print(f"wrote {a.out}")
 
 
