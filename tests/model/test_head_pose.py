@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 import torch
 
+from flamenerf.config import preset
 from flamenerf.data.head_pose import (HeadPoseKey, HeadRegion, control_transform,
                                       head_pose_items)
-from flamenerf.config import preset
 from flamenerf.errors import UserError
 from flamenerf.geometry import euler_head, se3_log
 from flamenerf.model.se3 import apply_se3
@@ -163,10 +163,10 @@ def test_zero_head_twists_render_exactly_as_no_head_poses():
         assert torch.equal(plain[k], posed[k]), k
 
 
-def test_confined_warp_trains_alike_with_and_without_still_head_poses(toy_dataset, tmp_path):
-    """`fast`'s defaults confine the deformation to the head's region both where the head
-    is followed (`warp.head_only`) and where it is not (`warp.still_head_only`): the same
-    capture with an identity head_pose on every frame trains to the same weights."""
+def _train_without_and_with_still_head_poses(toy_dataset, tmp_path, everywhere: bool):
+    """Two toy trainings of the same capture: as it is (no head poses), and with an identity
+    head_pose on every frame. `everywhere`: the deformation acts everywhere in both (else
+    it is confined to the head's region, `fast`'s default). -> (runs, datasets)."""
     from toy import toy_config
 
     from flamenerf.training.run import load_run
@@ -181,11 +181,21 @@ def test_confined_warp_trains_alike_with_and_without_still_head_poses(toy_datase
     runs = []
     for name, data in (("plain", toy_dataset), ("posed", posed)):
         cfg = toy_config("masked", 3)
-        assert cfg.model.warp.still_head_only
+        assert cfg.model.warp.still_head_only  # `fast`'s default
+        if everywhere:
+            cfg.model.warp.head_only = cfg.model.warp.still_head_only = False
         train(data, tmp_path / name, cfg, device="cpu", quiet=True)
         runs.append(load_run(tmp_path / name, "cpu"))
-    a, b = runs
-    assert not a.model.follows_head and b.model.follows_head and a.model.warp_in_head
+    assert not runs[0].model.follows_head and runs[1].model.follows_head
+    return runs, (toy_dataset, posed)
+
+
+def test_confined_warp_trains_alike_with_and_without_still_head_poses(toy_dataset, tmp_path):
+    """`fast`'s defaults confine the deformation to the head's region both where the head
+    is followed (`warp.head_only`) and where it is not (`warp.still_head_only`): the same
+    capture with and without identity head poses trains to the same weights."""
+    (a, b), _ = _train_without_and_with_still_head_poses(toy_dataset, tmp_path, False)
+    assert a.model.warp_in_head and b.model.warp_in_head
     for (k, va), vb in zip(a.model.state_dict().items(), b.model.state_dict().values()):
         assert torch.allclose(va, vb, atol=1e-6), k
 
@@ -195,25 +205,7 @@ def test_still_head_poses_train_exactly_as_no_head_poses(toy_dataset, tmp_path):
     training, same renders (a dataset without head poses behaves as it always did), when
     the deformation acts everywhere as without head poses (`warp.head_only` False; with
     it the still world has no deformation, the test above)."""
-    from toy import toy_config
-
-    from flamenerf.training.run import load_run
-    from flamenerf.training.trainer import train
-
-    posed = tmp_path / "posed"
-    shutil.copytree(toy_dataset, posed)
-    meta = json.loads((posed / "transforms.json").read_text())
-    for fr in meta["frames"]:
-        fr["head_pose"] = np.eye(4).tolist()
-    (posed / "transforms.json").write_text(json.dumps(meta))
-    runs = []
-    for name, data in (("plain", toy_dataset), ("posed", posed)):
-        cfg = toy_config("masked", 3)
-        cfg.model.warp.head_only = cfg.model.warp.still_head_only = False
-        train(data, tmp_path / name, cfg, device="cpu", quiet=True)
-        runs.append(load_run(tmp_path / name, "cpu"))
-    a, b = runs
-    assert not a.model.follows_head and b.model.follows_head
+    (a, b), datasets = _train_without_and_with_still_head_poses(toy_dataset, tmp_path, True)
     for (k, va), vb in zip(a.model.state_dict().items(), b.model.state_dict().values()):
         assert torch.equal(va, vb), k
     from flamenerf.data.dataset import load_dataset
@@ -221,7 +213,7 @@ def test_still_head_poses_train_exactly_as_no_head_poses(toy_dataset, tmp_path):
     from flamenerf.evaluation.protocol import render_frames
 
     imgs = []
-    for run, data in ((a, toy_dataset), (b, posed)):
+    for run, data in zip((a, b), datasets):
         ds = load_dataset(data)
         fs = FrameSet(ds, ds.split("val"), run.train_intrinsics(ds))
         om, ph = run.model.codes(fs.frame_index)
