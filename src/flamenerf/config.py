@@ -45,10 +45,11 @@ class WarpConfig:
     a re-animation with frame 0's code sees it moved as in frame 0). None: settled to True
     when a run starts; runs from before this option load as they trained (everywhere)."""
     still_head_only: bool = False
-    """Datasets whose head the model does not follow (no head poses: the built-in scene
-    without --head-motion): the deformation acts only in the head's region too (the ellipsoid of
-    `head_only`, fading out over `band`), so the room's samples skip it. Off: everywhere,
-    as in the paper."""
+    """Datasets without head poses (the built-in scene without --head-motion): the
+    deformation acts only in the head's region too (the ellipsoid of `head_only`, fading
+    out over `band`), so the room's samples skip it (on in `fast`). Off: everywhere, as in
+    the paper. A dataset with head poses trained with `model.head.follow` off keeps the
+    warp everywhere (its head moves through the world)."""
     band: float | None = None
     """With `head_only`: the width of the deformation's fade beyond the head's ellipsoid, as
     a fraction of its radius. Narrower than the head's band, it keeps per-frame codes off

@@ -200,6 +200,33 @@ def test_confined_warp_trains_alike_with_and_without_still_head_poses(toy_datase
         assert torch.allclose(va, vb, atol=1e-6), k
 
 
+def test_an_unfollowed_moving_head_keeps_the_warp_everywhere(toy_dataset, tmp_path):
+    """`fast` with `model.head.follow` off on a dataset with head poses (the `static`
+    ablation): the head moves through the world, so its warp is not confined to the
+    region around frame 0's head."""
+    from toy import toy_config
+
+    from flamenerf.data.dataset import load_dataset
+    from flamenerf.data.scene import model_head_region, model_warp_region
+    from flamenerf.training.trainer import build_for_dataset
+
+    posed = tmp_path / "posed"
+    shutil.copytree(toy_dataset, posed)
+    meta = json.loads((posed / "transforms.json").read_text())
+    for i, fr in enumerate(meta["frames"]):
+        pose = np.eye(4)
+        pose[0, 3] = 0.01 * i  # the head slides sideways
+        fr["head_pose"] = pose.tolist()
+    (posed / "transforms.json").write_text(json.dumps(meta))
+    ds = load_dataset(posed)
+    cfg = toy_config("masked", 3)
+    assert cfg.model.warp.still_head_only
+    cfg.model.head.follow = False
+    assert model_head_region(cfg, ds) is None and model_warp_region(cfg, ds) is None
+    m = build_for_dataset(cfg, ds)
+    assert not m.follows_head and not m.warp_in_head
+
+
 def test_still_head_poses_train_exactly_as_no_head_poses(toy_dataset, tmp_path):
     """The same capture with an identity head_pose on every frame: same weights after
     training, same renders (a dataset without head poses behaves as it always did), when

@@ -56,11 +56,13 @@ def model_head_region(cfg, ds: Dataset) -> dict | None:
 
 def model_warp_region(cfg, ds: Dataset) -> dict | None:
     """Where a model built for `ds` with `cfg` deforms a still head (its init argument
-    `warp_region`): the head's region with `model.warp.still_head_only` on a dataset whose
-    head the model does not follow, else None (the warp acts everywhere, or in the
-    followed head's region)."""
+    `warp_region`): the head's region with `model.warp.still_head_only` on a dataset
+    without head poses, else None (the warp acts everywhere, or in the followed head's
+    region). A dataset with head poses trained with `model.head.follow` off keeps its warp
+    everywhere: its head moves in the world, out of any fixed region, and only the
+    per-frame codes move it (the `static` ablation of benchmarks/bench_head_pose.py)."""
     w = cfg.model.warp
-    if not (w.enabled and w.still_head_only) or model_head_region(cfg, ds) is not None:
+    if not (w.enabled and w.still_head_only) or ds.has_head_poses:
         return None
     return head_region(ds, cfg.model.head.region_scale).to_dict()  # as a followed head's
 
