@@ -42,10 +42,9 @@ def main() -> None:
         picked = [frames[i].astype(np.float32) / 255 for i in a.frames]
         if a.diff:
             picked.append(abs_diff(picked[-1], picked[0], 4.0))
-        if a.scale > 1:
-            picked = [p.repeat(a.scale, 0).repeat(a.scale, 1) for p in picked]
         rows.append(vstack(picked) if a.columns else hstack(picked))
-    save_png(a.out, np.clip(hstack(rows) if a.columns else vstack(rows), 0, 1))
+    img = hstack(rows) if a.columns else vstack(rows)
+    save_png(a.out, np.clip(img.repeat(a.scale, 0).repeat(a.scale, 1), 0, 1))
     print(f"wrote {a.out}")
 
 

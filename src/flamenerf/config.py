@@ -375,7 +375,7 @@ def _fast() -> Config:
     # extra steps sharpen the face a re-animation shows (built-in margin over the Nerfies
     # variant +0.4 dB on three seeds); at full rate the codes took them instead and a real
     # clip's driven face fell 0.9 dB. ~9 minutes on the 2-core CPU with the mesh guide
-    # (the built-in scene, 527-534 s with the warp in the head's region; docs/presets.md
+    # (the built-in scene, 531 s with the warp in the head's region; docs/presets.md
     # item 3)
     # the face-depth prior from a fifth of the run on: without it the face trains as a fog
     # centred ~3 cm behind its surface, which new cameras see wrongly (docs/presets.md)
