@@ -80,6 +80,9 @@ def toy_config(mode: ExpressionMode = "masked", steps: int = 2) -> Config:
     # two steps leave β's effect to the initial weights: over a random colour the first
     # steps' gradients differ, and the rendering tests need a β that shows
     t.random_background = False
+    # float32: whether a run trains in bfloat16 is measured when it starts, and tests
+    # compare runs bit for bit
+    t.bf16 = False
     return cfg
 
 

@@ -306,6 +306,12 @@ class TrainConfig:
     face_depth_start: float = 0.0
     """Share of the training steps after which the face-depth prior acts (it pulls density
     down along whole rays, which early in training thins the background too)."""
+    bf16: bool = False
+    """Train the MLPs' layers in bfloat16 (float32 weights, outputs and everything else: the
+    hash grids, compositing, losses) where that pays: a new run on a CPU settles this to
+    `model.mlp.bf16_pays()` (native AVX-512 BF16 or AMX, and measured faster than float32
+    there) and stores the answer in its config.json, so resuming keeps it; on a GPU it is
+    settled to False."""
     checkpoint_every: int = 5000
     keep_checkpoints: int = 2
     log_every: int = 50
@@ -374,20 +380,22 @@ def _fast() -> Config:
     # 900 steps with the per-frame deformation codes at a tenth of the learning rate: the
     # extra steps sharpen the face a re-animation shows (built-in margin over the Nerfies
     # variant +0.4 dB on three seeds); at full rate the codes took them instead and a real
-    # clip's driven face fell 0.9 dB. ~9 minutes on the 2-core CPU with the mesh guide
-    # (the built-in scene, 531 s with the warp in the head's region; docs/presets.md
-    # item 3)
+    # clip's driven face fell 0.9 dB. ~7 minutes on the 2-core CPU with the mesh guide
+    # (the built-in scene, 420 s with the warp in the head's region and bfloat16 layers,
+    # 472 s in float32; docs/presets.md item 3)
     # the face-depth prior from a fifth of the run on: without it the face trains as a fog
     # centred ~3 cm behind its surface, which new cameras see wrongly (docs/presets.md)
     # rays over a random colour: over black, a half-transparent room with fog in front of it
     # passed for the captured views in some trainings and not for new ones (item 7)
     # 30 % of the rays from the face silhouettes: uniform rays otherwise leave the face's small
     # saturated parts (lips, irises) and the mouth's shapes pale and soft (item 8)
+    # the MLPs in bfloat16 on CPUs where that pays (settled per run): a training 11 %
+    # shorter on a Zen 4, four seeds scoring as in float32 (docs/presets.md)
     cfg.train = TrainConfig(steps=900, batch_rays=4096, lr=1e-2, lr_final=1e-3,
                             lr_warmup=50, warp_lr_scale=0.1, appearance_lr_scale=0.01,
                             deform_code_lr_scale=0.1,
                             face_depth_weight=0.01, face_depth_start=0.2,
-                            random_background=True, face_ray_fraction=0.3,
+                            random_background=True, face_ray_fraction=0.3, bf16=True,
                             checkpoint_every=200,
                             image_every=200, log_every=20)
     return cfg

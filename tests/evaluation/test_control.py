@@ -277,3 +277,22 @@ def test_control_figure_rows_are_the_strongest_controls_in_sweep_order():
     assert rows == ["b", "a"]
     assert img.shape == (4 * 2 + 2, 5 * 3 + 2 * 2, 3)
     assert img[0, 0, 0] == pytest.approx(0.3) and img[6, 0, 0] == pytest.approx(0.0)
+
+
+def test_ground_truth_renderer_redraws_the_built_in_scene(tiny_scene, toy_dataset):
+    """The drive's ground truth: the built-in scene re-rendered at the reference frame's
+    camera reproduces that frame for its own β, and opens the mouth for jawOpen; a dataset
+    the scene did not make has none."""
+    from flamenerf.data.dataset import load_dataset, reference_position
+    from flamenerf.data.scene import FrameSet
+
+    ds = load_dataset(tiny_scene)
+    ref = ds.frames[reference_position(ds)]
+    render = C.ground_truth_renderer(ds, ds.intrinsics)
+    own = render(ref.expression)
+    image = FrameSet(ds, [ref], ds.intrinsics).images[0].numpy()
+    assert own.shape == image.shape and np.abs(own - image).max() < 2 / 255
+    jaw = ref.expression.copy()
+    jaw[ds.expression_names.index("jawOpen")] = 1.0
+    assert np.abs(render(jaw) - own).max() > 0.1  # the mouth opens
+    assert C.ground_truth_renderer(load_dataset(toy_dataset), ds.intrinsics) is None

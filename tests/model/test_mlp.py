@@ -41,3 +41,32 @@ def test_fields_and_warp_accept_per_ray_conditioning():
     y = warp(x, code)
     assert (y - x).abs().max() > 1e-2
     assert torch.allclose(y.reshape(-1, 3), warp(x.reshape(-1, 3), flat(code)), atol=1e-5)
+
+
+def test_bf16_training_layers_follow_float32():
+    """`train.bf16`'s layers (the path runs on any CPU: oneDNN emulates bfloat16 where the
+    CPU lacks it) give float32 outputs and float32 weight gradients within bfloat16's
+    rounding of the float32 ones, per-ray conditioning and skips included; off, nothing
+    changes."""
+    import flamenerf.model.mlp as mlp
+
+    torch.manual_seed(0)
+    net = MLP(10 + 4, 32, 4, (2,), out_dim=5)
+    x, c = torch.randn(6, 7, 10), torch.randn(6, 1, 4)
+
+    def run():
+        net.zero_grad()
+        y = net(x, c)
+        (y ** 2).sum().backward()
+        return y.detach(), [p.grad.clone() for p in net.parameters()]
+
+    y32, g32 = run()
+    with mlp.bf16_training():
+        y16, g16 = run()
+    assert y16.dtype == torch.float32 and all(g.dtype == torch.float32 for g in g16)
+    err = (y16 - y32).abs().max() / y32.abs().max()
+    assert 0 < err < 0.03, err  # bfloat16's rounding, not float32's
+    for a, b in zip(g16, g32):
+        assert (a - b).norm() < 0.05 * b.norm()
+    with mlp.bf16_training(False):
+        assert torch.equal(net(x, c), y32)

@@ -102,6 +102,36 @@ def test_resume_reproduces_uninterrupted_run(tiny_scene, tmp_path):
         assert torch.equal(sa[k], sb[k]), k
 
 
+def test_bf16_is_settled_once_per_run_and_kept_on_resume(tiny_scene, tmp_path, monkeypatch):
+    """`train.bf16` asks for bfloat16 layers; a new run settles it by measuring
+    (`bf16_pays`) and stores the answer, so a resume trains as the run began whatever a
+    new measurement would say, and the layers then really run in bfloat16."""
+    import flamenerf.model.mlp as mlp
+    import flamenerf.training.trainer as trainer
+
+    seen = []
+    real = mlp.MLP._forward_bf16
+
+    def spy(self, inputs):
+        seen.append(True)
+        return real(self, inputs)
+
+    monkeypatch.setattr(mlp.MLP, "_forward_bf16", spy)
+    for pays in (True, False):
+        monkeypatch.setattr(trainer, "bf16_pays", lambda p=pays: p)
+        cfg = small(preset("fast"), 4)
+        assert cfg.train.bf16
+        run = tmp_path / f"pays_{pays}"
+        seen.clear()
+        Trainer(cfg, tiny_scene, run, quiet=True).fit(steps=2)
+        assert load_run(run).config.train.bf16 is pays and bool(seen) is pays
+        monkeypatch.setattr(trainer, "bf16_pays", lambda p=pays: not p)  # the machine changed
+        seen.clear()
+        t = Trainer(small(preset("fast"), 4), tiny_scene, run, resume=True, quiet=True)
+        t.fit()
+        assert t.step == 4 and t.cfg.train.bf16 is pays and bool(seen) is pays
+
+
 def test_ctrl_c_saves_a_resumable_checkpoint(tiny_scene, tmp_path, monkeypatch):
     import signal
 
@@ -189,9 +219,10 @@ def test_cli_detail_levels_background_and_view_dependence_reach_the_run(tiny_sce
     out = tmp_path / "run"
     assert main(["train", str(tiny_scene), "--out", str(out), "--steps", "1",
                  "--batch-rays", "64", "--detail-levels", "0", "--random-background",
-                 "False", "--view-dependent", "False", "--seed", "3"]) == 0
+                 "False", "--view-dependent", "False", "--bf16", "False", "--seed", "3"]) == 0
     cfg = load_run(out).config
     assert cfg.train.seed == 3 and preset("fast").train.seed == 0
+    assert not cfg.train.bf16 and preset("fast").train.bf16
     assert cfg.model.field.detail_levels == 0 and not cfg.train.random_background
     assert not cfg.model.field.view_dependent and preset("fast").model.field.view_dependent
     assert preset("fast").model.field.detail_levels > 0 and preset("fast").train.random_background

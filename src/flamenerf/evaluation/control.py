@@ -483,6 +483,30 @@ def reference_renderer(model: FlameNeRF, ds: Dataset, intr: Intrinsics, omega: t
                            dataset_dilation(ds)), ref, mesh_of)
 
 
+def ground_truth_renderer(ds: Dataset, intr: Intrinsics) -> RenderFn | None:
+    """β (the dataset's control order) -> the built-in scene's own render of it at the
+    reference frame's camera and pose: ground truth for any expression, so that a drive's
+    figures can be read against what the scene itself does under the same commands. None
+    for a dataset that `flamenerf synth` did not make."""
+    from flamenerf.data.dataset import DatasetError, reference_position
+    from flamenerf.synthetic.scene import scene_from_dataset
+
+    try:
+        scene = scene_from_dataset(ds)
+    except DatasetError:
+        return None
+    ref = ds.frames[reference_position(ds)]
+    pose = ref.extra.get("body_pose")
+
+    def render(beta: np.ndarray) -> np.ndarray:
+        view = scene.render(ref.c2w, np.clip(np.asarray(beta, np.float32), 0.0, 1.0),
+                            None if pose is None else np.asarray(pose), intr=intr,
+                            head_pose=ref.head_pose)
+        return np.asarray(view.rgb, np.float32)
+
+    return render
+
+
 def sweep_response(fs: FrameSet, preds: list[np.ndarray], track: Callable) -> dict[str, Any]:
     """Control response on a sweep with ground truth (the built-in scene's leakage split:
     frame 0 neutral, then one control at a time at a fixed camera). Renders and ground-truth

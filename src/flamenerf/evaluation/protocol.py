@@ -467,6 +467,13 @@ def drive_section(run, ds: Dataset, intr, omega0, phi0, opts: EvalOptions
         res, preds = C.drive_response(render, names, seq.values, track, rendered=rendered)
         res["geometry"] = C.geometry_response([seq.driving(i) for i in range(len(preds))],
                                               preds, track.detect)
+        truth = C.ground_truth_renderer(ds, intr) if ds.expression_names == names else None
+        if truth is not None:  # the built-in scene driven the same way: the figures' ceiling
+            gt, _ = C.drive_response(truth, names, seq.values, track, rendered=rendered)
+            res["ground_truth"] = {
+                "controls": {n: {k: c[k] for k in ("gain", "correlation", "detected")}
+                             for n, c in gt["controls"].items()},
+                "mean_gain": gt["mean_gain"], "mean_correlation": gt["mean_correlation"]}
     finally:
         track.close()
     res["video"] = str(opts.drive)

@@ -249,11 +249,26 @@ def eval_markdown(res: dict[str, Any]) -> str:
         L += ["", f"**Drive** (`{dv.get('video')}`, {dv.get('frames')} frames at the reference "
               "frame's camera with frame 0's codes): correlation over time of the driving "
               "video's tracked controls and the renders' re-tracked ones; `drive.png`: driving "
-              "over result", "", "| control | correlation | gain |", "|---|--:|--:|"]
-        for n, c in dv["controls"].items():
-            L.append(f"| {n} | {fmt(c['correlation'])} | {fmt(c['gain'])} |")
-        L.append(f"| **mean** | **{fmt(dv.get('mean_correlation'))}** | "
-                 f"{fmt(dv.get('mean_gain'))} |")
+              "over result", ""]
+        gt = dv.get("ground_truth")
+        if gt is None:
+            L += ["| control | correlation | gain |", "|---|--:|--:|"]
+            for n, c in dv["controls"].items():
+                L.append(f"| {n} | {fmt(c['correlation'])} | {fmt(c['gain'])} |")
+            L.append(f"| **mean** | **{fmt(dv.get('mean_correlation'))}** | "
+                     f"{fmt(dv.get('mean_gain'))} |")
+        else:
+            L += ["Ground truth: the built-in scene's own renders of the same commands, "
+                  "re-tracked the same way.", "",
+                  "| control | correlation | gain | ground truth's correlation | gain |",
+                  "|---|--:|--:|--:|--:|"]
+            for n, c in dv["controls"].items():
+                g = gt["controls"].get(n, {})
+                L.append(f"| {n} | {fmt(c['correlation'])} | {fmt(c['gain'])} | "
+                         f"{fmt(g.get('correlation'))} | {fmt(g.get('gain'))} |")
+            L.append(f"| **mean** | **{fmt(dv.get('mean_correlation'))}** | "
+                     f"{fmt(dv.get('mean_gain'))} | {fmt(gt.get('mean_correlation'))} | "
+                     f"{fmt(gt.get('mean_gain'))} |")
         if not dv["controls"]:
             L.append("\nThe driving video moves no control the landmarker reports enough to "
                      "measure.")

@@ -40,6 +40,21 @@ def fused_cpu_inference(bf16: bool = False) -> Iterator[None]:
         _fusing.on, _fusing.bf16 = old
 
 
+@contextlib.contextmanager
+def bf16_training(on: bool = True) -> Iterator[None]:
+    """Within this block (in this thread), MLPs on float32 CPU tensors *with* autograd run
+    their layers in bfloat16 (float32 weights cast per call, so the optimiser keeps float32
+    masters; each MLP's output is float32 again). Not measured here: a run decides once,
+    when it starts, whether it trains so (`train.bf16`, settled by `bf16_pays`), so that
+    its numbers do not change with the machine's load from one step or resume to the next."""
+    old = getattr(_fusing, "train_bf16", False)
+    _fusing.train_bf16 = on
+    try:
+        yield
+    finally:
+        _fusing.train_bf16 = old
+
+
 def native_bf16() -> bool:
     """Whether this CPU multiplies bfloat16 natively (else oneDNN emulates it, slowly)."""
     cpu = getattr(torch, "cpu", None)
@@ -158,6 +173,19 @@ def linear_of_concat(layer: nn.Linear, parts: list[Tensor]) -> Tensor:
     return out + layer.bias
 
 
+def _linear_cast(layer: nn.Linear, parts: list[Tensor]) -> Tensor:
+    """layer(cat(parts, -1)) in bfloat16 as linear_of_concat broadcasts them (parts[0] one
+    row per sample), with autograd through the weights' casts; the bias rides in the
+    per-sample matmul."""
+    w, b = layer.weight.to(torch.bfloat16), layer.bias.to(torch.bfloat16)
+    k = parts[0].shape[-1]
+    out = F.linear(parts[0], w[:, :k] if len(parts) > 1 else w, b)
+    for p in parts[1:]:
+        out = out + F.linear(p, w[:, k:k + p.shape[-1]])
+        k += p.shape[-1]
+    return out
+
+
 class MLP(nn.Module):
     def __init__(self, in_dim: int, width: int, depth: int, skips: tuple[int, ...] = (),
                  out_dim: int | None = None):
@@ -180,6 +208,9 @@ class MLP(nn.Module):
         if getattr(_fusing, "on", False) and x.device.type == "cpu" and x.dtype == torch.float32 \
                 and not torch.is_grad_enabled():
             return self._forward_fused(inputs)
+        if getattr(_fusing, "train_bf16", False) and x.device.type == "cpu" \
+                and x.dtype == torch.float32:
+            return self._forward_bf16(inputs)
         h = None
         for i, layer in enumerate(self.layers):
             if h is None:
@@ -194,6 +225,16 @@ class MLP(nn.Module):
         if h is None:  # depth 0: a single linear map of the input
             return linear_of_concat(self.out, inputs)
         return self.out(h)
+
+    def _forward_bf16(self, inputs: list[Tensor]) -> Tensor:
+        inputs = [p.to(torch.bfloat16) for p in inputs]
+        h = None
+        for i, layer in enumerate(self.layers):
+            parts = inputs if h is None else [h, *inputs] if i in self.skips else [h]
+            h = torch.relu(_linear_cast(layer, parts))
+        if self.out is not None:
+            h = _linear_cast(self.out, inputs if h is None else [h])
+        return h.float()
 
     def _forward_fused(self, inputs: list[Tensor]) -> Tensor:
         bf16 = getattr(_fusing, "bf16", False)

@@ -22,6 +22,7 @@ from flamenerf.data.scene import (FrameSet, expression_model_residual, face_pixe
 from flamenerf.errors import Interrupted, UserError, warn
 from flamenerf.io import atomic_write_text, read_json
 from flamenerf.model.flame_nerf import FlameNeRF
+from flamenerf.model.mlp import bf16_pays, bf16_training
 from flamenerf.outdir import clean_stale_temps, writable_dir
 from flamenerf.training.checkpoint import (LEGACY_TEMP, latest_checkpoint, load_latest,
                                            load_model_state, rng_states, save_checkpoint,
@@ -198,6 +199,8 @@ class Trainer:
             if resume and ck is not None:
                 saved = read_json(self.run_dir / "config.json")
                 return from_dict(saved["config"]), True  # a resumed run keeps its own config
+            # decided once, here, and stored: a measurement must not change a run's numbers
+            cfg.train.bf16 = cfg.train.bf16 and self.device.type == "cpu" and bf16_pays()
             return cfg, False
 
         # rank 0 reads (and writes) the run folder and tells the others, so that every rank
@@ -363,6 +366,17 @@ class Trainer:
             g["lr"] = learning_rate(self.step, cfg) * g["lr_scale"]
         self.opt.zero_grad(set_to_none=True)
         logs: dict[str, float] = {}
+        with bf16_training(cfg.bf16):
+            self._shard_steps(logs)
+        self.opt.step()
+        self.step += 1
+        logs["metrics/psnr"] = psnr_from_mse(logs["loss/photo"])
+        if model.warp is not None:
+            logs["params/warp_alpha"] = float(model.warp.alpha)
+        return logs
+
+    def _shard_steps(self, logs: dict[str, float]) -> None:
+        """Every shard's forward and backward pass, gradients summed; their logs into `logs`."""
         for j, shard in enumerate(self.shards):
             fn = partial(self._shard_loss, shard)
             # DDP all-reduces the summed gradients once, in the last shard's backward pass
@@ -372,12 +386,6 @@ class Trainer:
                 loss.backward()
             for k, v in shard_logs.items():
                 logs[k] = logs.get(k, 0.0) + v
-        self.opt.step()
-        self.step += 1
-        logs["metrics/psnr"] = psnr_from_mse(logs["loss/photo"])
-        if model.warp is not None:
-            logs["params/warp_alpha"] = float(model.warp.alpha)
-        return logs
 
     def _shard_loss(self, sh: Shard) -> tuple[torch.Tensor, dict[str, float]]:
         """One shard's loss, scaled so that the gradients summed over the step's shards
