@@ -15,7 +15,6 @@ runs it (previews, checkpoints and logging are not part of it).
 from __future__ import annotations
 
 import argparse
-import json
 import platform
 import statistics
 import sys
@@ -78,8 +77,10 @@ def main() -> int:
                                  "seconds_per_step_best": min(v), "rounds": v}
         print(f"{name:12s} median {statistics.median(v):.3f} s/step, best {min(v):.3f}")
     if a.json:
+        from flamenerf.io import write_json
+
         a.json.parent.mkdir(parents=True, exist_ok=True)
-        a.json.write_text(json.dumps(out, indent=1))
+        write_json(a.json, out)
         print(f"wrote {a.json}")
     return 0
 
