@@ -9,7 +9,10 @@ Each variant gets its own fresh run (in a temporary folder), set to the middle o
 schedule (`--at`, a share of the steps: the warp's coarse-to-fine window and the face-depth
 prior then act as they do mid-run), warmed up by `--warmup` steps; then `--rounds` rounds
 time `--steps` steps of every variant in turn. The step is `Trainer.train_step` as training
-runs it (previews, checkpoints and logging are not part of it).
+runs it (previews, checkpoints and logging are not part of it). A fresh model's samples do
+not fall where a trained one's do (the proposal has not learned where the scene is, so the
+head's region holds another share of them): `--run RUN` loads a trained run's weights
+(same preset and dataset) into every variant first, and starts at its step.
 """
 
 from __future__ import annotations
@@ -36,6 +39,8 @@ def main() -> int:
     ap.add_argument("--steps", type=int, default=8, help="steps per variant per round")
     ap.add_argument("--rounds", type=int, default=4)
     ap.add_argument("--threads", type=int, default=0, help="torch threads (0: its default)")
+    ap.add_argument("--run", type=Path, default=None,
+                    help="a trained run of this preset and dataset whose weights to start from")
     ap.add_argument("--json", type=Path, default=None)
     a = ap.parse_args()
     from flamenerf.runtime import reexec_with_tuned_allocator
@@ -47,12 +52,23 @@ def main() -> int:
     if a.threads > 0:
         torch.set_num_threads(a.threads)
     tmp = Path(tempfile.mkdtemp(prefix="bench_step_"))
+    state = None
+    if a.run is not None:
+        from flamenerf.training.checkpoint import load_latest
+
+        found = load_latest(a.run)
+        if found is None:
+            raise SystemExit(f"{a.run}: no checkpoint to start from")
+        state = found[1]
     trainers = {}
     for name, values in parse_variants(a.variants):
         cfg = override(preset(a.preset), values)
         cfg.train.image_every = 0
         t = Trainer(cfg, a.scene, tmp / name, quiet=True)
         t.step = int(a.at * cfg.train.steps)
+        if state is not None:
+            t.model.load_state_dict(state["model"])
+            t.step = int(state["step"])
         for _ in range(a.warmup):
             t.train_step()
         trainers[name] = (t, values)
@@ -67,7 +83,8 @@ def main() -> int:
         print(f"round {r + 1}: " + ", ".join(f"{n} {v[-1]:.3f} s" for n, v in times.items()))
     out = {"machine": {"platform": platform.platform(), "processor": platform.processor(),
                        "torch": torch.__version__, "threads": torch.get_num_threads()},
-           "scene": str(a.scene), "preset": a.preset, "at": a.at, "steps": a.steps,
+           "scene": str(a.scene), "preset": a.preset, "run": str(a.run) if a.run else None,
+           "at": a.at if a.run is None else None, "steps": a.steps,
            "rounds": a.rounds, "variants": {}}
     for name, (t, values) in trainers.items():
         v = times[name]
