@@ -250,25 +250,25 @@ def eval_markdown(res: dict[str, Any]) -> str:
               "frame's camera with frame 0's codes): correlation over time of the driving "
               "video's tracked controls and the renders' re-tracked ones; `drive.png`: driving "
               "over result", ""]
+        # on the built-in scene: the same commands through the scene's own renderer
         gt = dv.get("ground_truth")
-        if gt is None:
-            L += ["| control | correlation | gain |", "|---|--:|--:|"]
-            for n, c in dv["controls"].items():
-                L.append(f"| {n} | {fmt(c['correlation'])} | {fmt(c['gain'])} |")
-            L.append(f"| **mean** | **{fmt(dv.get('mean_correlation'))}** | "
-                     f"{fmt(dv.get('mean_gain'))} |")
-        else:
+        if gt is not None:
             L += ["Ground truth: the built-in scene's own renders of the same commands, "
-                  "re-tracked the same way.", "",
-                  "| control | correlation | gain | ground truth's correlation | gain |",
-                  "|---|--:|--:|--:|--:|"]
-            for n, c in dv["controls"].items():
-                g = gt["controls"].get(n, {})
-                L.append(f"| {n} | {fmt(c['correlation'])} | {fmt(c['gain'])} | "
-                         f"{fmt(g.get('correlation'))} | {fmt(g.get('gain'))} |")
-            L.append(f"| **mean** | **{fmt(dv.get('mean_correlation'))}** | "
-                     f"{fmt(dv.get('mean_gain'))} | {fmt(gt.get('mean_correlation'))} | "
-                     f"{fmt(gt.get('mean_gain'))} |")
+                  "re-tracked the same way.", ""]
+        extra = " ground truth's correlation | gain |" if gt is not None else ""
+        L += ["| control | correlation | gain |" + extra,
+              "|---|--:|--:|" + ("--:|--:|" if gt is not None else "")]
+
+        def truth(c: dict) -> str:
+            return f" {fmt(c.get('correlation'))} | {fmt(c.get('gain'))} |"
+
+        for n, c in dv["controls"].items():
+            L.append(f"| {n} | {fmt(c['correlation'])} | {fmt(c['gain'])} |"
+                     + (truth(gt["controls"].get(n, {})) if gt is not None else ""))
+        L.append(f"| **mean** | **{fmt(dv.get('mean_correlation'))}** | "
+                 f"{fmt(dv.get('mean_gain'))} |"
+                 + (f" {fmt(gt.get('mean_correlation'))} | {fmt(gt.get('mean_gain'))} |"
+                    if gt is not None else ""))
         if not dv["controls"]:
             L.append("\nThe driving video moves no control the landmarker reports enough to "
                      "measure.")
