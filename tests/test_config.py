@@ -77,3 +77,10 @@ def test_parse_variants_names_each_with_its_overrides():
         ("a", {"model.head.band": "0.6", "train.seed": "1"}), ("b", {})]
     assert parse_variants("a:model.head.band=0.6,train.seed=1") == [
         ("a", {"model.head.band": "0.6", "train.seed": "1"})]
+
+
+def test_runs_render_over_the_mean_of_the_backgrounds_they_trained_over():
+    assert preset("fast").train.random_background
+    assert preset("fast").train.render_background == 0.5
+    assert not preset("flame-in-nerf").train.random_background
+    assert preset("flame-in-nerf").train.render_background == 0.0

@@ -322,6 +322,15 @@ class TrainConfig:
     num_threads: int = 0
     """CPU threads for torch (0 = torch's default)."""
 
+    @property
+    def render_background(self) -> float:
+        """The colour (grey level) behind the scene when rendering: what the rest of a ray
+        that leaves the scene unfinished was trained against, on average. Over random
+        colours (uniform in [0, 1]) their mean, 0.5, is the squared-error-optimal guess;
+        over black, black. At a new camera such rays are where the room was never seen
+        (past the head's silhouette, say); rendered over black they came out as dark seams."""
+        return 0.5 if self.random_background else 0.0
+
 
 @dataclass
 class Config:

@@ -82,6 +82,36 @@ def test_exact_inference_path_equals_reference(sampler):
         assert torch.allclose(fast[k], ref[k], atol=2e-4), (k, (fast[k] - ref[k]).abs().max())
 
 
+def test_unfinished_rays_render_over_the_trained_background():
+    """What a ray leaves unfinished is rendered over `model.background` (0.5 for runs
+    trained over random colours) by both paths outside training, and over black in
+    training, where the trainer composites its own colours."""
+    m = toy_model()
+    black = render(m, REFERENCE)
+    m.background = 0.5
+    for settings in (REFERENCE, EXACT):
+        grey = render(m, settings)
+        fill = grey["rgb"] - black["rgb"]
+        assert torch.allclose(fill, 0.5 * (1 - black["acc"])[..., None].expand_as(fill),
+                              atol=2e-4)
+    assert float((1 - black["acc"]).max()) > 0.1  # some rays are left unfinished
+    from flamenerf.data.rays import RayBatch
+
+    n = 8
+    rays = RayBatch(torch.zeros(n, 3) + torch.tensor([0.0, 0.0, 1.0]),
+                    torch.tensor([[0.0, 0.0, -1.0]]).expand(n, 3).contiguous(),
+                    *m.codes(torch.zeros(n, dtype=torch.long)), torch.zeros(n, E),
+                    torch.zeros(n, dtype=torch.bool), None)
+    m.train()
+    with torch.no_grad():
+        out = m(rays)
+    m.eval()
+    with torch.no_grad():
+        out_eval = m(rays)
+    assert torch.allclose(out_eval["rgb"] - out["rgb"], 0.5 * (1 - out["acc"])[:, None],
+                          atol=1e-5)
+
+
 def test_mesh_guided_inference_equals_reference():
     # tracked clips train mesh-guided (fast's default there): the inference path's guide
     # (nearest vertices by k-d tree) is the training forward's

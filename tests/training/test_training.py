@@ -125,6 +125,8 @@ def test_bf16_is_settled_once_per_run_and_kept_on_resume(tiny_scene, tmp_path, m
         seen.clear()
         Trainer(cfg, tiny_scene, run, quiet=True).fit(steps=2)
         assert load_run(run).config.train.bf16 is pays and bool(seen) is pays
+        # trained over random colours, rendered over their mean (TrainConfig.render_background)
+        assert load_run(run).model.background == 0.5
         monkeypatch.setattr(trainer, "bf16_pays", lambda p=pays: not p)  # the machine changed
         seen.clear()
         t = Trainer(small(preset("fast"), 4), tiny_scene, run, resume=True, quiet=True)

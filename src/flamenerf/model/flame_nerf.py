@@ -55,9 +55,12 @@ class FlameNeRF(nn.Module):
                  mesh_vertices: int = 0, mesh_faces: int = 0, head_region: dict | None = None,
                  detail_region: dict | None = None, warp_region: dict | None = None,
                  expression_mean: list[float] | None = None,
-                 guide_skip: list[int] | None = None):
+                 guide_skip: list[int] | None = None, background: float = 0.0):
         super().__init__()
         self.cfg = cfg
+        # what a ray left unfinished is rendered over outside training (TrainConfig's
+        # `render_background`); training composites over black and the trainer adds its own
+        self.background = float(background)
         self.captured: tuple[Tensor, Tensor | None, Tensor] | None = None
         self.captured_max_angle = 0.0
         self.near, self.far = float(near), float(far)
@@ -525,6 +528,9 @@ class FlameNeRF(nn.Module):
         turned = (torch.sin(a - th) * uk + torch.sin(th) * dirs) / torch.sin(a).clamp_min(1e-9)
         return torch.where(a > th, F.normalize(turned, dim=-1), dirs)
 
+    def _background(self) -> float:
+        return 0.0 if self.training else self.background
+
     # ---------------------------------------------------------------- loss
     def loss_dict(self, out: dict[str, Tensor], target: Tensor, interlevel_weight: float = 1.0
                   ) -> dict[str, Tensor]:
@@ -569,7 +575,7 @@ class FlameNeRF(nn.Module):
             t_f, _ = torch.sort(t_f, -1)
         sig_f, rgb_f = self._query_rays(self.field, rays, t_f, expr)
         w_f = render_weights(sig_f, self._deltas(t_f, rays.dirs, 1e10))
-        out = composite(w_f, rgb_f, t_f)
+        out = composite(w_f, rgb_f, t_f, self._background())
         out["rgb_coarse"], out["acc_coarse"] = out_c["rgb"], out_c["acc"]
         if self.training:
             out["weights"], out["t"] = w_f, t_f  # for the face-depth prior
@@ -590,7 +596,7 @@ class FlameNeRF(nn.Module):
         t_m = 0.5 * (edges_m[:, 1:] + edges_m[:, :-1])
         sig_m, rgb_m = self._query_rays(self.field, rays, t_m, expr)
         w_m = render_weights(sig_m, (edges_m[:, 1:] - edges_m[:, :-1]) * scale)
-        out = composite(w_m, rgb_m, t_m)
+        out = composite(w_m, rgb_m, t_m, self._background())
         if self.training:
             out["interlevel"] = interlevel_loss(edges_m, w_m, edges_p, w_p)
             out["weights"], out["t"] = w_m, t_m  # for the face-depth prior

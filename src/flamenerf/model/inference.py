@@ -289,7 +289,7 @@ def _render_rays(model, rays: RayBatch, settings: RenderSettings) -> dict[str, T
         t = sample_pdf(mids, w_c[:, 1:-1], s.num_fine, False)
         t, _ = torch.sort(torch.cat([t_c, t], -1) if s.fine_reuses_coarse else t, -1)
         w, rgb = march(field_at(model.field, t), model._deltas(t, rays.dirs, 1e10), group, eps)
-    out = composite(w, rgb, t)
+    out = composite(w, rgb, t, model.background)
     out["num_samples"] = torch.tensor(sum(counted))
     return out
 

@@ -78,7 +78,7 @@ def load_run(run_dir: str | Path, device: str = "auto") -> Run:
     ck, state = found
     cfg = from_dict(meta["config"])
     dev = pick_device(device)
-    model = FlameNeRF(cfg.model, **state["model_args"])
+    model = FlameNeRF(cfg.model, **state["model_args"], background=cfg.train.render_background)
     load_model_state(model, state["model"], ck)
     model.to(dev).eval()
     model.update_to_step(int(state["step"]), cfg.train.steps)

@@ -121,7 +121,8 @@ def build_for_dataset(cfg: Config, ds: Dataset) -> FlameNeRF:
                       near=ds.near, far=ds.far, box_min=lo, box_max=hi,
                       mesh_vertices=V, mesh_faces=nf, head_region=model_head_region(cfg, ds),
                       detail_region=model_detail_region(cfg, ds),
-                      warp_region=model_warp_region(cfg, ds))
+                      warp_region=model_warp_region(cfg, ds),
+                      background=cfg.train.render_background)
     if cfg.model.expression_centre and cfg.model.expression_mode != "none" and ds.expression_dim:
         model.set_expression_mean(torch.from_numpy(
             ds.expression_matrix(ds.training_frames()).mean(0)))
