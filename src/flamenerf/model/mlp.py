@@ -161,29 +161,23 @@ def _bf16_params(layer: nn.Linear) -> tuple[Tensor, Tensor | None]:
     return cached[1], cached[2]
 
 
-def linear_of_concat(layer: nn.Linear, parts: list[Tensor]) -> Tensor:
-    """layer(cat(parts, -1)) for parts whose leading dims broadcast against each other."""
+def linear_of_concat(layer: nn.Linear, parts: list[Tensor],
+                     dtype: torch.dtype | None = None) -> Tensor:
+    """layer(cat(parts, -1)) for parts whose leading dims broadcast against each other.
+    `dtype`: the float32 weights cast to it on each call, autograd through the cast (the
+    bfloat16 training layers); the bias then rides in parts[0]'s product (one row per
+    sample), which saves a pass over the output."""
+    weight, bias = layer.weight, layer.bias
+    if dtype is not None:
+        weight, bias = weight.to(dtype), bias.to(dtype)
     out, start = None, 0
     for p in parts:
-        w = layer.weight[:, start:start + p.shape[-1]]
+        w = weight[:, start:start + p.shape[-1]]
         start += p.shape[-1]
-        y = F.linear(p, w)
+        y = F.linear(p, w, bias if dtype is not None and out is None else None)
         out = y if out is None else out + y
     assert start == layer.in_features, (start, layer.in_features)
-    return out + layer.bias
-
-
-def _linear_cast(layer: nn.Linear, parts: list[Tensor]) -> Tensor:
-    """layer(cat(parts, -1)) in bfloat16 as linear_of_concat broadcasts them (parts[0] one
-    row per sample), with autograd through the weights' casts; the bias rides in the
-    per-sample matmul."""
-    w, b = layer.weight.to(torch.bfloat16), layer.bias.to(torch.bfloat16)
-    k = parts[0].shape[-1]
-    out = F.linear(parts[0], w[:, :k] if len(parts) > 1 else w, b)
-    for p in parts[1:]:
-        out = out + F.linear(p, w[:, k:k + p.shape[-1]])
-        k += p.shape[-1]
-    return out
+    return out if dtype is not None else out + bias
 
 
 class MLP(nn.Module):
@@ -231,9 +225,9 @@ class MLP(nn.Module):
         h = None
         for i, layer in enumerate(self.layers):
             parts = inputs if h is None else [h, *inputs] if i in self.skips else [h]
-            h = torch.relu(_linear_cast(layer, parts))
+            h = torch.relu(linear_of_concat(layer, parts, torch.bfloat16))
         if self.out is not None:
-            h = _linear_cast(self.out, inputs if h is None else [h])
+            h = linear_of_concat(self.out, inputs if h is None else [h], torch.bfloat16)
         return h.float()
 
     def _forward_fused(self, inputs: list[Tensor]) -> Tensor:
