@@ -327,8 +327,8 @@ class TrainConfig:
         """The colour (grey level) behind the scene when rendering: what the rest of a ray
         that leaves the scene unfinished was trained against, on average. Over random
         colours (uniform in [0, 1]) their mean, 0.5, is the squared-error-optimal guess;
-        over black, black. At a new camera such rays are where the room was never seen
-        (past the head's silhouette, say); rendered over black they came out as dark seams."""
+        over black, black. At a new camera such rays lie mostly next to the outline of the
+        head and body and at the image's border; rendered over black they were dark seams."""
         return 0.5 if self.random_background else 0.0
 
 
