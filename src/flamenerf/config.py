@@ -386,12 +386,12 @@ def _fast() -> Config:
     cfg.model.mesh_guide.max_residual = 0.0015
     cfg.model.sampler = SamplerConfig(kind="proposal", num_proposal=48, num_main=32,
                                       proposal_levels=5, proposal_max_res=128)
-    # 900 steps with the per-frame deformation codes at a tenth of the learning rate: the
-    # extra steps sharpen the face a re-animation shows (built-in margin over the Nerfies
-    # variant +0.4 dB on three seeds); at full rate the codes took them instead and a real
-    # clip's driven face fell 0.9 dB. ~7 minutes on the 2-core CPU with the mesh guide
-    # (the built-in scene, 420 s with the warp in the head's region and bfloat16 layers,
-    # 472 s in float32; docs/presets.md item 3)
+    # the per-frame deformation codes at a tenth of the learning rate: extra steps then
+    # sharpen the face a re-animation shows instead of what each frame's codes fit (at full
+    # rate a real clip's driven face fell 0.9 dB). 1800 steps of 2048 rays, the rays of 900
+    # of 4096 in twice the updates: built-in margin over the Nerfies variant (same schedule)
+    # +2.8 to +3.1 dB on four seeds against +2.3 to +2.6; ~8.5 minutes on the 2-core CPU
+    # (491-528 s, the built-in scene; docs/presets.md item 3)
     # the face-depth prior from a fifth of the run on: without it the face trains as a fog
     # centred ~3 cm behind its surface, which new cameras see wrongly (docs/presets.md)
     # rays over a random colour: over black, a half-transparent room with fog in front of it
@@ -400,7 +400,7 @@ def _fast() -> Config:
     # saturated parts (lips, irises) and the mouth's shapes pale and soft (item 8)
     # the MLPs in bfloat16 on CPUs where that pays (settled per run): a training 11 %
     # shorter on a Zen 4, four seeds scoring as in float32 (docs/presets.md)
-    cfg.train = TrainConfig(steps=900, batch_rays=4096, lr=1e-2, lr_final=1e-3,
+    cfg.train = TrainConfig(steps=1800, batch_rays=2048, lr=1e-2, lr_final=1e-3,
                             lr_warmup=50, warp_lr_scale=0.1, appearance_lr_scale=0.01,
                             deform_code_lr_scale=0.1,
                             face_depth_weight=0.01, face_depth_start=0.2,

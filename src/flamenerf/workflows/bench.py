@@ -53,7 +53,7 @@ class BenchOptions:
         seed: Scene seed (also the ω fit's).
         train_size: Train (and evaluate) at this width (default: 64 on CPU, the scene's on
             CUDA).
-        steps: Training steps of every method (default: the preset's, `fast`: 900; 20000
+        steps: Training steps of every method (default: the preset's, `fast`: 1800; 20000
             with the paper's presets).
         batch_rays: Rays per training step (default: the preset's).
         fit_steps: Steps of the held-out ω fit (default: 2000 on CUDA, 300 on CPU).
