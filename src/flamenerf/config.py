@@ -389,9 +389,10 @@ def _fast() -> Config:
     # the per-frame deformation codes at a tenth of the learning rate: extra steps then
     # sharpen the face a re-animation shows instead of what each frame's codes fit (at full
     # rate a real clip's driven face fell 0.9 dB). 1800 steps of 2048 rays, the rays of 900
-    # of 4096 in twice the updates: built-in margin over the Nerfies variant (same schedule)
-    # +2.8 to +3.1 dB on four seeds against +2.3 to +2.6; ~8.5 minutes on the 2-core CPU
-    # (491-528 s, the built-in scene; docs/presets.md item 3)
+    # of 4096 in twice the updates: a sharper face and a blink that starts to form on both
+    # built-in scenes measured (the margin over the Nerfies variant rose on the scene it was
+    # chosen on, +2.8 to +3.1 dB on four seeds against +2.3 to +2.6, not on a second one);
+    # ~8.5 minutes on the 2-core CPU (491-548 s alone; docs/presets.md item 3)
     # the face-depth prior from a fifth of the run on: without it the face trains as a fog
     # centred ~3 cm behind its surface, which new cameras see wrongly (docs/presets.md)
     # rays over a random colour: over black, a half-transparent room with fog in front of it
