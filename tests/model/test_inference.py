@@ -87,6 +87,7 @@ def test_unfinished_rays_render_over_the_trained_background():
     trained over random colours) by both paths outside training, and over black in
     training, where the trainer composites its own colours."""
     m = toy_model()
+    m.cfg.sampler.refine_main = 0  # rays left unfinished as they are (no second pass)
     black = render(m, REFERENCE)
     m.background = 0.5
     for settings in (REFERENCE, EXACT):
@@ -110,6 +111,29 @@ def test_unfinished_rays_render_over_the_trained_background():
         out_eval = m(rays)
     assert torch.allclose(out_eval["rgb"] - out["rgb"], 0.5 * (1 - out["acc"])[:, None],
                           atol=1e-5)
+
+
+def test_rays_left_unfinished_are_sampled_again():
+    """Outside training, a ray whose main samples leave it below 1 − refine_below opacity
+    is rendered as with `refine_main` samples, in both paths; every other ray as before.
+    The denser samples find more of what the main field holds along those rays."""
+    m = toy_model()
+    s = m.cfg.sampler
+    n, dense_n = s.num_main, s.refine_main
+    assert dense_n > n
+    s.refine_main = 0
+    once = render(m, REFERENCE)
+    s.num_main = dense_n
+    dense = render(m, REFERENCE)
+    s.num_main, s.refine_main = n, dense_n
+    redo = once["acc"] < 1 - s.refine_below
+    assert bool(redo.any()) and bool((~redo).any())
+    for settings in (REFERENCE, EXACT):
+        out = render(m, settings)
+        for k in ("rgb", "depth", "acc"):
+            assert torch.allclose(out[k][~redo], once[k][~redo], atol=2e-4), (settings, k)
+            assert torch.allclose(out[k][redo], dense[k][redo], atol=2e-4), (settings, k)
+    assert float(dense["acc"][redo].mean()) > float(once["acc"][redo].mean())
 
 
 def test_mesh_guided_inference_equals_reference():

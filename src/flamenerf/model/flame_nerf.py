@@ -582,8 +582,9 @@ class FlameNeRF(nn.Module):
         out["num_samples"] = torch.tensor(t_c.numel() + t_f.numel())
         return out
 
-    def _forward_proposal(self, rays, expr, jitter, generator):
+    def _forward_proposal(self, rays, expr, jitter, generator, num_main: int | None = None):
         s = self.cfg.sampler
+        M = s.num_main if num_main is None else num_main
         R, P, dev = len(rays), s.num_proposal, rays.origins.device
         edges_p = torch.linspace(self.near, self.far, P + 1, device=dev).expand(R, P + 1)
         t_p = stratified_samples(self.near, self.far, R, P, jitter, dev, generator)
@@ -591,7 +592,7 @@ class FlameNeRF(nn.Module):
         sig_p = self.proposal.density(xn, None if expr is None else expr[:, None])  # (R, P)
         scale = rays.dirs.norm(dim=-1, keepdim=True) / self.half_extent
         w_p = render_weights(sig_p, (edges_p[:, 1:] - edges_p[:, :-1]) * scale)
-        edges_m, _ = torch.sort(sample_pdf(edges_p, w_p, s.num_main + 1, jitter, generator,
+        edges_m, _ = torch.sort(sample_pdf(edges_p, w_p, M + 1, jitter, generator,
                                           stratified=True), -1)
         t_m = 0.5 * (edges_m[:, 1:] + edges_m[:, :-1])
         sig_m, rgb_m = self._query_rays(self.field, rays, t_m, expr)
@@ -600,5 +601,23 @@ class FlameNeRF(nn.Module):
         if self.training:
             out["interlevel"] = interlevel_loss(edges_m, w_m, edges_p, w_p)
             out["weights"], out["t"] = w_m, t_m  # for the face-depth prior
-        out["num_samples"] = torch.tensor(R * s.num_main)
+        out["num_samples"] = torch.tensor(R * M)
+        if num_main is None and not self.training:
+            out = self._refine_unfinished(out, rays, expr, jitter, generator)
+        return out
+
+    def _refine_unfinished(self, out, rays, expr, jitter, generator):
+        """Rays whose opacity `out["acc"]` stays below 1 − `sampler.refine_below` rendered
+        again with `sampler.refine_main` samples (SamplerConfig.refine_main)."""
+        s = self.cfg.sampler
+        if s.refine_main <= 0:
+            return out
+        redo = (out["acc"] < 1.0 - s.refine_below).nonzero()[:, 0]
+        if len(redo) == 0:
+            return out
+        again = self._forward_proposal(rays[redo], None if expr is None else expr[redo],
+                                       jitter, generator, num_main=s.refine_main)
+        for k in ("rgb", "depth", "acc"):
+            out[k] = out[k].index_put((redo,), again[k])
+        out["num_samples"] = out["num_samples"] + again["num_samples"]
         return out

@@ -18,6 +18,10 @@ scene, 256 px, 2-core CPU; docs/bench/render.md):
   measured to be faster (`mlp.bf16_pays`);
 - the viewer's settings (`VIEWER`) take fewer of the main field's samples than training
   placed (`RenderSettings.main_fraction`); `FAST` takes them all.
+
+Like the training forward outside training, a ray that the proposal sampler's main samples
+leave unfinished is rendered again with more samples (`SamplerConfig.refine_main`); here
+from the first pass's proposal weights, in the same call.
 """
 
 from __future__ import annotations
@@ -223,10 +227,14 @@ def _render_rays(model, rays: RayBatch, settings: RenderSettings) -> dict[str, T
     def sub(v, rows):
         return None if v is None else v[rows, None]
 
-    def field_at(field, t: Tensor) -> Evaluate:
+    def field_at(field, t: Tensor, ray_of: Tensor | None = None) -> Evaluate:
+        """The field at depths t (n, S) of rays `ray_of` (n,) (None: every ray)."""
         def evaluate(rows, lo, hi):
+            depths = t[rows, lo:hi]
+            if ray_of is not None:
+                rows = ray_of[rows]
             xn, d, e = model.sample_points(rays.origins[rows], rays.dirs[rows],
-                                           t[rows, lo:hi], sub_ray(expr, rows),
+                                           depths, sub_ray(expr, rows),
                                            sub_ray(rays.head, rows), sub_ray(inside, rows))
             counted.append(xn.shape[0] * xn.shape[1])
             xc = warp(xn, rows, e)  # in float32: a half-precision warp would move points
@@ -269,11 +277,16 @@ def _render_rays(model, rays: RayBatch, settings: RenderSettings) -> dict[str, T
         w_p, _ = march(proposal, (edges_p[1:] - edges_p[:-1]) * scale,
                        settings.proposal_samples_per_check(dev, P), eps, colour=False)
         edges_p = edges_p.expand(R, P + 1)
+
+        def main_samples(rows: Tensor | None, num: int) -> tuple[Tensor, Tensor]:
+            """Depths (n, num) and their intervals' lengths of rays `rows` (None: all)."""
+            ep, wp = (edges_p, w_p) if rows is None else (edges_p[rows], w_p[rows])
+            edges, _ = torch.sort(sample_pdf(ep, wp, num + 1, False, stratified=True), -1)
+            sc = scale if rows is None else scale[rows]
+            return 0.5 * (edges[:, 1:] + edges[:, :-1]), (edges[:, 1:] - edges[:, :-1]) * sc
+
         num_main = max(1, round(settings.main_fraction * s.num_main))
-        edges_m, _ = torch.sort(sample_pdf(edges_p, w_p, num_main + 1, False,
-                                           stratified=True), -1)
-        t = 0.5 * (edges_m[:, 1:] + edges_m[:, :-1])
-        deltas = (edges_m[:, 1:] - edges_m[:, :-1]) * scale
+        t, deltas = main_samples(None, num_main)
         # a ray the proposal sees through (opacity < ε) gets nothing from the main field.
         # Its samples go in one group: placed by the proposal's weights, they end where the
         # ray's weight ends, so that (trained `fast`, built-in scene, 256 px) groups of 16
@@ -281,6 +294,18 @@ def _render_rays(model, rays: RayBatch, settings: RenderSettings) -> dict[str, T
         # (one group: 1.24 -> 1.11 s median per frame, 2 threads, frames alternated)
         w, rgb = march(field_at(model.field, t), deltas, num_main, eps,
                        live=w_p.sum(-1) >= eps)
+        out = composite(w, rgb, t, model.background)
+        if s.refine_main > 0:
+            # FlameNeRF._refine_unfinished: rays left unfinished, again with more samples
+            # (every one of them marched, whatever the proposal says of it)
+            redo = (out["acc"] < 1.0 - s.refine_below).nonzero()[:, 0]
+            if len(redo):
+                num = max(1, round(settings.main_fraction * s.refine_main))
+                t2, deltas2 = main_samples(redo, num)
+                w2, rgb2 = march(field_at(model.field, t2, redo), deltas2, num, eps)
+                again = composite(w2, rgb2, t2, model.background)
+                for k in ("rgb", "depth", "acc"):
+                    out[k] = out[k].index_put((redo,), again[k])
     else:
         t_c = stratified_samples(model.near, model.far, R, s.num_coarse, False, dev)
         w_c, _ = march(field_at(model.field_coarse, t_c), model._deltas(t_c, rays.dirs, 1e10),
@@ -289,7 +314,7 @@ def _render_rays(model, rays: RayBatch, settings: RenderSettings) -> dict[str, T
         t = sample_pdf(mids, w_c[:, 1:-1], s.num_fine, False)
         t, _ = torch.sort(torch.cat([t_c, t], -1) if s.fine_reuses_coarse else t, -1)
         w, rgb = march(field_at(model.field, t), model._deltas(t, rays.dirs, 1e10), group, eps)
-    out = composite(w, rgb, t, model.background)
+        out = composite(w, rgb, t, model.background)
     out["num_samples"] = torch.tensor(sum(counted))
     return out
 
