@@ -52,8 +52,9 @@ def main() -> int:
             outs.append(render_image(run.model, fs.intr, fs.c2w[i], w0, p0, fs.expressions[i],
                                      fs.masks[i], head=fs.head_of(i)))
         once, twice = (o["rgb"].numpy() for o in outs)
-        marked = once.copy()
-        marked[outs[0]["acc"].numpy() < 1.0 - sampler.refine_below] = (1.0, 0.0, 1.0)
+        marked = once.copy().reshape(-1, 3)
+        marked[sampler.unfinished(outs[0]["acc"].reshape(-1)).numpy()] = (1.0, 0.0, 1.0)
+        marked = marked.reshape(once.shape)
         rows.append(hstack([once, marked, twice, fs.images[i].numpy()], gap=2))
     sampler.refine_main = refine
     img = vstack(rows, gap=2)

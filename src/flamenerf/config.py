@@ -144,6 +144,11 @@ class SamplerConfig:
     +3 dB on every seed), reported on a second scene (+0.36); a 256 px frame a few per
     cent longer on a CPU (docs/bench/control_exploration.md, fourteenth session)."""
     refine_below: float = 0.05
+
+    def unfinished(self, acc):
+        """The rays whose accumulated opacity acc (R,) calls for the second pass
+        (`refine_main`) -> their indices (n,) long."""
+        return (acc < 1.0 - self.refine_below).nonzero()[:, 0]
     proposal_levels: int = 6
     proposal_log2_size: int = 15
     proposal_max_res: int = 256

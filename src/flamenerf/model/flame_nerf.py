@@ -612,7 +612,7 @@ class FlameNeRF(nn.Module):
         s = self.cfg.sampler
         if s.refine_main <= 0:
             return out
-        redo = (out["acc"] < 1.0 - s.refine_below).nonzero()[:, 0]
+        redo = s.unfinished(out["acc"])
         if len(redo) == 0:
             return out
         again = self._forward_proposal(rays[redo], None if expr is None else expr[redo],

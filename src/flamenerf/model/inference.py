@@ -298,7 +298,7 @@ def _render_rays(model, rays: RayBatch, settings: RenderSettings) -> dict[str, T
         if s.refine_main > 0:
             # FlameNeRF._refine_unfinished: rays left unfinished, again with more samples
             # (every one of them marched, whatever the proposal says of it)
-            redo = (out["acc"] < 1.0 - s.refine_below).nonzero()[:, 0]
+            redo = s.unfinished(out["acc"])
             if len(redo):
                 num = max(1, round(settings.main_fraction * s.refine_main))
                 t2, deltas2 = main_samples(redo, num)
