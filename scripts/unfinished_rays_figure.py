@@ -6,8 +6,9 @@ proposal's samples leave unfinished (`SamplerConfig.refine_main`), beside the gr
 
 Rows: the chosen frames of the dataset's `reanimate` split (frame 0's codes, the frame's
 camera and β, as `eval` renders them); columns: the render with one pass, the same with
-its unfinished rays (opacity below 1 − `refine_below`) in magenta, the render with the
-second pass, the ground truth. Rendered with the reference renderer, as `eval` measures.
+the rays it leaves unfinished (opacity below 1 − `refine_below`) in magenta, the render
+with the second pass (which takes those of them that the proposal says end), the ground
+truth. Rendered with the reference renderer, as `eval` measures.
 """
 
 from __future__ import annotations
@@ -52,9 +53,8 @@ def main() -> int:
             outs.append(render_image(run.model, fs.intr, fs.c2w[i], w0, p0, fs.expressions[i],
                                      fs.masks[i], head=fs.head_of(i)))
         once, twice = (o["rgb"].numpy() for o in outs)
-        marked = once.copy().reshape(-1, 3)
-        marked[sampler.unfinished(outs[0]["acc"].reshape(-1)).numpy()] = (1.0, 0.0, 1.0)
-        marked = marked.reshape(once.shape)
+        marked = once.copy()
+        marked[outs[0]["acc"].numpy() < 1.0 - sampler.refine_below] = (1.0, 0.0, 1.0)
         rows.append(hstack([once, marked, twice, fs.images[i].numpy()], gap=2))
     sampler.refine_main = refine
     img = vstack(rows, gap=2)

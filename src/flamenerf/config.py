@@ -135,8 +135,9 @@ class SamplerConfig:
     """proposal: samples of the main field per ray, drawn from the proposal's weights."""
     refine_main: int = 128
     """proposal, outside training: a ray that its `num_main` samples leave unfinished
-    (accumulated opacity below 1 − `refine_below`) is rendered again with this many samples
-    from the same proposal weights; 0: never. The proposal learns only where training rays
+    (accumulated opacity below 1 − `refine_below`) while the proposal's weights say it ends
+    (`unfinished`) is rendered again with this many samples from the same proposal weights;
+    0: never. The proposal learns only where training rays
     went, so at a new camera it can leave out a surface that the main field holds: on the
     built-in scene a crack of wall beside the cheek, which the main field fills when sampled
     more densely. Chosen on the built-in scene's four `fast` seeds (re-animation face
@@ -145,10 +146,14 @@ class SamplerConfig:
     cent longer on a CPU (docs/bench/control_exploration.md, fourteenth session)."""
     refine_below: float = 0.05
 
-    def unfinished(self, acc):
-        """The rays whose accumulated opacity acc (R,) calls for the second pass
-        (`refine_main`) -> their indices (n,) long."""
-        return (acc < 1.0 - self.refine_below).nonzero()[:, 0]
+    def unfinished(self, acc, proposal_acc):
+        """The rays that the second pass (`refine_main`) renders again: those that the
+        proposal's weights say end (its opacity proposal_acc (R,) at least 1 −
+        `refine_below`) and that the main samples leave unfinished (acc (R,) below it).
+        Rays the proposal sees through too (open scenes, an untrained model) keep their
+        one pass. -> their indices (n,) long."""
+        end = 1.0 - self.refine_below
+        return ((acc < end) & (proposal_acc >= end)).nonzero()[:, 0]
     proposal_levels: int = 6
     proposal_log2_size: int = 15
     proposal_max_res: int = 256

@@ -115,8 +115,9 @@ def test_unfinished_rays_render_over_the_trained_background():
 
 def test_rays_left_unfinished_are_sampled_again():
     """Outside training, a ray whose main samples leave it below 1 − refine_below opacity
-    is rendered as with `refine_main` samples, in both paths; every other ray as before.
-    The denser samples find more of what the main field holds along those rays."""
+    where the proposal says it ends is rendered as with `refine_main` samples, in both
+    paths; every other ray as before. The denser samples find more of what the main field
+    holds along those rays. Where the proposal sees through the rays too, nothing changes."""
     m = toy_model()
     s = m.cfg.sampler
     n, dense_n = s.num_main, s.refine_main
@@ -126,17 +127,39 @@ def test_rays_left_unfinished_are_sampled_again():
     s.num_main = dense_n
     dense = render(m, REFERENCE)
     s.num_main, s.refine_main = n, dense_n
-    redo = torch.zeros(once["acc"].numel(), dtype=torch.bool)
-    redo[s.unfinished(once["acc"].reshape(-1))] = True
-    redo = redo.view(once["acc"].shape)
-    assert torch.equal(redo, once["acc"] < 1 - s.refine_below)
-    assert bool(redo.any()) and bool((~redo).any())
-    for settings in (REFERENCE, EXACT):
-        out = render(m, settings)
+    unfinished = once["acc"] < 1 - s.refine_below
+    outs = {settings: render(m, settings) for settings in (REFERENCE, EXACT)}
+    # the rays rendered again: those the second pass changed
+    redo = (outs[REFERENCE]["rgb"] - once["rgb"]).abs().amax(-1) > 1e-4
+    assert bool(redo.any()) and bool((unfinished & ~redo).any())  # the proposal's gate
+    assert not bool((redo & ~unfinished).any())
+    for settings, out in outs.items():
         for k in ("rgb", "depth", "acc"):
             assert torch.allclose(out[k][~redo], once[k][~redo], atol=2e-4), (settings, k)
             assert torch.allclose(out[k][redo], dense[k][redo], atol=2e-4), (settings, k)
     assert float(dense["acc"][redo].mean()) > float(once["acc"][redo].mean())
+
+    with torch.no_grad():  # a proposal that sees through every ray: no second pass
+        m.proposal.head.out.bias.fill_(-30.0)
+    s.refine_main = 0
+    once = render(m, REFERENCE)
+    assert bool((once["acc"] < 1 - s.refine_below).any())
+    s.refine_main = dense_n
+    for settings in (REFERENCE, EXACT):
+        out = render(m, settings)
+        for k in ("rgb", "depth", "acc"):
+            assert torch.allclose(out[k], once[k], atol=2e-4), (settings, k)
+
+
+def test_second_pass_takes_the_rays_the_proposal_ends():
+    """SamplerConfig.unfinished: opacity below 1 − refine_below after the main samples,
+    at least that by the proposal."""
+    from flamenerf.config import SamplerConfig
+
+    s = SamplerConfig(kind="proposal", refine_below=0.05)
+    acc = torch.tensor([0.2, 0.2, 0.96, 0.94, 0.94])
+    prop = torch.tensor([1.0, 0.5, 1.0, 0.95, 0.949])
+    assert s.unfinished(acc, prop).tolist() == [0, 3]
 
 
 def test_mesh_guided_inference_equals_reference():

@@ -28,11 +28,11 @@ def tiny_run(tiny_scene, tmp_path_factory):
     f.hash_levels, f.hash_log2_size, f.hash_max_res = 8, 14, 128
     if hasattr(s, "num_proposal"):
         s.num_proposal, s.num_main = 32, 12
-    # two steps leave every ray unfinished, and a second pass with more samples (what a
-    # trained model gives only the few rays the proposal misses) weighs the thin shell
-    # around the mesh where β acts ~4x less than these 12 samples do: a slider's effect
-    # would fall under the test's threshold. The second pass itself is tested in
-    # tests/model/test_inference.py.
+    # two steps leave the main field's rays unfinished where the proposal already says
+    # they end, and a second pass with more samples (what a trained model gives only the
+    # few rays the proposal misses) weighs the thin shell around the mesh where β acts ~4x
+    # less than these 12 samples do: a slider's effect would fall under the test's
+    # threshold. The second pass itself is tested in tests/model/test_inference.py.
     s.refine_main = 0
     out = tmp_path_factory.mktemp("viewer") / "run"
     Trainer(cfg, tiny_scene, out, quiet=True, device="cpu").fit()

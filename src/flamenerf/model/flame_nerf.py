@@ -603,16 +603,16 @@ class FlameNeRF(nn.Module):
             out["weights"], out["t"] = w_m, t_m  # for the face-depth prior
         out["num_samples"] = torch.tensor(R * M)
         if num_main is None and not self.training:
-            out = self._refine_unfinished(out, rays, expr, jitter, generator)
+            out = self._refine_unfinished(out, w_p.sum(-1), rays, expr, jitter, generator)
         return out
 
-    def _refine_unfinished(self, out, rays, expr, jitter, generator):
-        """Rays whose opacity `out["acc"]` stays below 1 − `sampler.refine_below` rendered
-        again with `sampler.refine_main` samples (SamplerConfig.refine_main)."""
+    def _refine_unfinished(self, out, proposal_acc, rays, expr, jitter, generator):
+        """The rays `SamplerConfig.unfinished` picks (by `out["acc"]` and the proposal's
+        opacity (R,)) rendered again with `sampler.refine_main` samples."""
         s = self.cfg.sampler
         if s.refine_main <= 0:
             return out
-        redo = s.unfinished(out["acc"])
+        redo = s.unfinished(out["acc"], proposal_acc)
         if len(redo) == 0:
             return out
         again = self._forward_proposal(rays[redo], None if expr is None else expr[redo],

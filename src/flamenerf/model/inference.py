@@ -20,8 +20,8 @@ scene, 256 px, 2-core CPU; docs/bench/render.md):
   placed (`RenderSettings.main_fraction`); `FAST` takes them all.
 
 Like the training forward outside training, a ray that the proposal sampler's main samples
-leave unfinished is rendered again with more samples (`SamplerConfig.refine_main`); here
-from the first pass's proposal weights, in the same call.
+leave unfinished where the proposal says it ends is rendered again with more samples
+(`SamplerConfig.refine_main`); here from the first pass's proposal weights, in the same call.
 """
 
 from __future__ import annotations
@@ -298,7 +298,7 @@ def _render_rays(model, rays: RayBatch, settings: RenderSettings) -> dict[str, T
         if s.refine_main > 0:
             # FlameNeRF._refine_unfinished: rays left unfinished, again with more samples
             # (every one of them marched, whatever the proposal says of it)
-            redo = s.unfinished(out["acc"])
+            redo = s.unfinished(out["acc"], w_p.sum(-1))
             if len(redo):
                 num = max(1, round(settings.main_fraction * s.refine_main))
                 t2, deltas2 = main_samples(redo, num)
