@@ -137,14 +137,17 @@ class SamplerConfig:
     """proposal, outside training: a ray that its `num_main` samples leave unfinished
     (accumulated opacity below 1 − `refine_below`) while the proposal's weights say it ends
     (`unfinished`) is rendered again with this many samples from the same proposal weights;
-    0: never. The proposal learns only where training rays
-    went, so at a new camera it can leave out a surface that the main field holds: on the
-    built-in scene a crack of wall beside the cheek, which the main field fills when sampled
-    more densely. Chosen on the built-in scene's four `fast` seeds (re-animation face
+    0: never. The proposal learns only where training rays went, so at a new camera it can
+    leave out a surface that the main field holds: on the built-in scene a crack of wall
+    beside the cheek, which the main field fills when sampled more densely. Chosen on the built-in scene's four `fast` seeds (re-animation face
     +0.04 to +0.25 dB, the Nerfies variant's within 0.03; the margin between them over
     +3 dB on every seed), reported on a second scene (+0.36); a 256 px frame a few per
     cent longer on a CPU (docs/bench/control_exploration.md, fourteenth session)."""
     refine_below: float = 0.05
+    proposal_levels: int = 6
+    proposal_log2_size: int = 15
+    proposal_max_res: int = 256
+    proposal_width: int = 16
 
     def unfinished(self, acc, proposal_acc):
         """The rays that the second pass (`refine_main`) renders again: those that the
@@ -154,10 +157,6 @@ class SamplerConfig:
         one pass. -> their indices (n,) long."""
         end = 1.0 - self.refine_below
         return ((acc < end) & (proposal_acc >= end)).nonzero()[:, 0]
-    proposal_levels: int = 6
-    proposal_log2_size: int = 15
-    proposal_max_res: int = 256
-    proposal_width: int = 16
 
 
 @dataclass

@@ -296,8 +296,8 @@ def _render_rays(model, rays: RayBatch, settings: RenderSettings) -> dict[str, T
                        live=w_p.sum(-1) >= eps)
         out = composite(w, rgb, t, model.background)
         if s.refine_main > 0:
-            # FlameNeRF._refine_unfinished: rays left unfinished, again with more samples
-            # (every one of them marched, whatever the proposal says of it)
+            # FlameNeRF._refine_unfinished: rays the proposal ends and the main samples
+            # leave unfinished, again with more samples from the same weights
             redo = s.unfinished(out["acc"], w_p.sum(-1))
             if len(redo):
                 num = max(1, round(settings.main_fraction * s.refine_main))
