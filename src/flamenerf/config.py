@@ -139,10 +139,13 @@ class SamplerConfig:
     (`unfinished`) is rendered again with this many samples from the same proposal weights;
     0: never. The proposal learns only where training rays went, so at a new camera it can
     leave out a surface that the main field holds: on the built-in scene a crack of wall
-    beside the cheek, which the main field fills when sampled more densely. Chosen on the built-in scene's four `fast` seeds (re-animation face
-    +0.04 to +0.25 dB, the Nerfies variant's within 0.03; the margin between them over
-    +3 dB on every seed), reported on a second scene (+0.36); a 256 px frame a few per
-    cent longer on a CPU (docs/bench/control_exploration.md, fourteenth session)."""
+    beside the cheek, which the main field fills when sampled more densely. Chosen on the
+    built-in scene's four `fast` seeds (re-animation face +0.04 to +0.25 dB, the Nerfies
+    variant's within 0.03; the margin between them over +3 dB on every seed), reported on
+    a second scene (+0.36); a 256 px frame at the re-animation's cameras a few per cent
+    longer on a CPU (docs/bench/control_exploration.md, fourteenth session). The reference
+    forward draws the second pass's proposal samples afresh: the same weights without
+    jitter (eval, render), new ones in the held-out fit's jittered batches."""
     refine_below: float = 0.05
     proposal_levels: int = 6
     proposal_log2_size: int = 15
