@@ -91,22 +91,45 @@ typedef struct {
     __mmask16 inside[3];         /* lanes whose coordinate lies inside [0, 1] */
 } cells16;
 
+/* the x, y or z coordinates of 16 points from their 48 interleaved floats v0 | v1 | v2:
+ * one two-register permutation takes what lies in v0 | v1, a second the rest from v2
+ * (three strided gathers per level cost more than six permutations on a Zen 4) */
+static inline __attribute__((always_inline)) __m512
+axis16(__m512 v0, __m512 v1, __m512 v2, int a) {
+    static const int32_t first[3][16] = {
+        {0, 3, 6, 9, 12, 15, 18, 21, 24, 27, 30, 0, 0, 0, 0, 0},
+        {1, 4, 7, 10, 13, 16, 19, 22, 25, 28, 31, 0, 0, 0, 0, 0},
+        {2, 5, 8, 11, 14, 17, 20, 23, 26, 29, 0, 0, 0, 0, 0, 0}};
+    static const int32_t second[3][16] = {
+        {0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 17, 20, 23, 26, 29},
+        {0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 18, 21, 24, 27, 30},
+        {0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 16, 19, 22, 25, 28, 31}};
+    const __m512 t = _mm512_permutex2var_ps(v0, _mm512_loadu_si512(first[a]), v1);
+    return _mm512_permutex2var_ps(t, _mm512_loadu_si512(second[a]), v2);
+}
+
+static inline __attribute__((always_inline)) __mmask16 floats16(int64_t left) {
+    return left >= 16 ? (__mmask16)0xFFFF
+                      : left <= 0 ? (__mmask16)0 : (__mmask16)((1u << left) - 1u);
+}
+
 static inline __attribute__((always_inline)) cells16
-locate16(const float *xp, __mmask16 k, int64_t r, int dense) {
+locate16(const float *xp, int64_t m, int64_t r, int dense) {
     const __m512 rf = _mm512_set1_ps((float)r), top = _mm512_set1_ps((float)(r - 1));
     const __m512 zero = _mm512_setzero_ps(), one = _mm512_set1_ps(1.0f);
-    const __m512i in3 = _mm512_mullo_epi32(
-        _mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15),
-        _mm512_set1_epi32(3));
     const __m512i ione = _mm512_set1_epi32(1);
     const __m512i sy = dense ? _mm512_set1_epi32((int32_t)(uint32_t)(r + 1))
                              : _mm512_set1_epi32((int32_t)(uint32_t)P1);
     const __m512i sz = dense ? _mm512_set1_epi32((int32_t)(uint32_t)((r + 1) * (r + 1)))
                              : _mm512_set1_epi32((int32_t)(uint32_t)P2);
+    /* the m (<= 16) points' 3m floats; lanes past them read 0, as the masked gather did */
+    const __m512 v0 = _mm512_maskz_loadu_ps(floats16(3 * m), xp);
+    const __m512 v1 = _mm512_maskz_loadu_ps(floats16(3 * m - 16), xp + 16);
+    const __m512 v2 = _mm512_maskz_loadu_ps(floats16(3 * m - 32), xp + 32);
     cells16 c;
     __m512i b[3];
     for (int a = 0; a < 3; a++) {
-        __m512 v = _mm512_mask_i32gather_ps(zero, k, in3, xp + a, 4);
+        __m512 v = axis16(v0, v1, v2, a);
         c.inside[a] = _mm512_cmp_ps_mask(v, zero, _CMP_GE_OQ)
                       & _mm512_cmp_ps_mask(v, one, _CMP_LE_OQ);
         v = _mm512_min_ps(_mm512_max_ps(v, zero), one);
@@ -149,14 +172,70 @@ static inline __attribute__((always_inline)) __mmask16 lanes16(int64_t left) {
     return left >= 16 ? (__mmask16)0xFFFF : (__mmask16)((1u << left) - 1u);
 }
 
+/* both features of 16 table entries (F = 2): two 64-bit gathers of 8 entries each, split
+ * into the features' lanes (f0, f1) — half the gathered elements of one gather per feature */
+static inline __attribute__((always_inline)) void
+pairs16(const float *t, __m512i id, __mmask16 k, __m512 *f0, __m512 *f1) {
+    const __m512d z = _mm512_setzero_pd();
+    const __m512 lo = _mm512_castpd_ps(_mm512_mask_i32gather_pd(
+        z, (__mmask8)k, _mm512_castsi512_si256(id), t, 8));
+    const __m512 hi = _mm512_castpd_ps(_mm512_mask_i32gather_pd(
+        z, (__mmask8)(k >> 8), _mm512_extracti64x4_epi64(id, 1), t, 8));
+    const __m512i even = _mm512_setr_epi32(0, 2, 4, 6, 8, 10, 12, 14, 16, 18, 20, 22, 24, 26,
+                                           28, 30);
+    *f0 = _mm512_permutex2var_ps(lo, even, hi);
+    *f1 = _mm512_permutex2var_ps(lo, _mm512_add_epi32(even, _mm512_set1_epi32(1)), hi);
+}
+
 static inline __attribute__((always_inline)) void
 level_simd(const float *x, int64_t n, const int32_t F, int64_t r, int dense, uint32_t mask,
            const float *t, float *out, int64_t out_stride) {
     const __m512 zero = _mm512_setzero_ps();
     const __m512i ost = strided16(out_stride);
     for (int64_t i = 0; i < n; i += 16) {
-        const __mmask16 k = lanes16(n - i);
-        const cells16 p = locate16(x + 3 * i, k, r, dense);
+        const int64_t m = n - i >= 16 ? 16 : n - i;
+        const __mmask16 k = lanes16(m);
+        const cells16 p = locate16(x + 3 * i, m, r, dense);
+        float *op = out + i * out_stride;
+        if (F == 16) {
+            /* an entry's 16 features are one 64-byte load: per point, 8 loads instead of
+             * 128 gathered elements; the same multiply-adds in the same order */
+            int32_t ids[8][16];
+            float ws[8][16];
+            for (int c = 0; c < 8; c++) {
+                __m512 w;
+                _mm512_storeu_si512(ids[c], corner16(&p, c, dense, mask, F, &w));
+                _mm512_storeu_ps(ws[c], w);
+            }
+            for (int64_t q = 0; q < m; q++) {
+                __m512 acc = zero;
+                for (int c = 0; c < 8; c++)
+                    acc = _mm512_fmadd_ps(_mm512_loadu_ps(t + ids[c][q]),
+                                          _mm512_set1_ps(ws[c][q]), acc);
+                _mm512_storeu_ps(op + q * out_stride, acc);
+            }
+            continue;
+        }
+        if (F == 2) {
+            __m512 a0 = zero, a1 = zero;
+            for (int c = 0; c < 8; c++) {
+                __m512 w, f0, f1;
+                pairs16(t, corner16(&p, c, dense, mask, 1, &w), k, &f0, &f1);
+                a0 = _mm512_fmadd_ps(f0, w, a0);
+                a1 = _mm512_fmadd_ps(f1, w, a1);
+            }
+            /* each point's two features side by side again, one 64-bit store per point */
+            const __m512i lo = _mm512_setr_epi32(0, 16, 1, 17, 2, 18, 3, 19, 4, 20, 5, 21, 6,
+                                                 22, 7, 23);
+            const __m256i rows = _mm512_castsi512_si256(ost);
+            _mm512_mask_i32scatter_pd(op, (__mmask8)k, rows,
+                                      _mm512_castps_pd(_mm512_permutex2var_ps(a0, lo, a1)), 4);
+            _mm512_mask_i32scatter_pd(op + 8 * out_stride, (__mmask8)(k >> 8), rows,
+                                      _mm512_castps_pd(_mm512_permutex2var_ps(
+                                          a0, _mm512_add_epi32(lo, _mm512_set1_epi32(8)), a1)),
+                                      4);
+            continue;
+        }
         __m512 acc[SIMD_MAX_F];
         for (int32_t j = 0; j < F; j++) acc[j] = zero;
         for (int c = 0; c < 8; c++) {
@@ -166,7 +245,6 @@ level_simd(const float *x, int64_t n, const int32_t F, int64_t r, int dense, uin
                 acc[j] = _mm512_fmadd_ps(_mm512_mask_i32gather_ps(zero, k, id, t + j, 4), w,
                                          acc[j]);
         }
-        float *op = out + i * out_stride;
         for (int32_t j = 0; j < F; j++) _mm512_mask_i32scatter_ps(op + j, k, ost, acc[j], 4);
     }
 }
@@ -238,7 +316,7 @@ level_back_simd(const float *x, int64_t n, const int32_t F, int64_t gstride, int
     for (int64_t i = 0; i < n; i += 16) {
         const int64_t m = n - i >= 16 ? 16 : n - i;
         const __mmask16 k = lanes16(m);
-        const cells16 p = locate16(x + 3 * i, k, r, dense);
+        const cells16 p = locate16(x + 3 * i, m, r, dense);
         const float *go = gout + i * gstride;
         __m512 dx = zero, dy = zero, dz = zero;
         __m512 gv[SIMD_MAX_F];
@@ -256,9 +334,15 @@ level_back_simd(const float *x, int64_t n, const int32_t F, int64_t gstride, int
             if (gl) {
                 /* s_c = sum_f gout_f * table_f[idx_c], then the corner's share of each slope */
                 __m512 sc = zero;
-                for (int32_t j = 0; j < F; j++)
-                    sc = _mm512_fmadd_ps(gv[j], _mm512_mask_i32gather_ps(zero, k, id, t + j, 4),
-                                         sc);
+                if (F == 2) {
+                    __m512 w1, f0, f1;
+                    pairs16(t, corner16(&p, c, dense, mask, 1, &w1), k, &f0, &f1);
+                    sc = _mm512_fmadd_ps(gv[1], f1, _mm512_fmadd_ps(gv[0], f0, sc));
+                } else {
+                    for (int32_t j = 0; j < F; j++)
+                        sc = _mm512_fmadd_ps(gv[j],
+                                             _mm512_mask_i32gather_ps(zero, k, id, t + j, 4), sc);
+                }
                 const __m512 sx = ix ? sc : _mm512_sub_ps(zero, sc);
                 const __m512 sy = iy ? sc : _mm512_sub_ps(zero, sc);
                 const __m512 sz = iz ? sc : _mm512_sub_ps(zero, sc);
