@@ -13,7 +13,7 @@ if [ -z "${FLAMENERF_CHROMIUM:-}" ] && ! command -v chromium >/dev/null 2>&1 \
     && ! command -v chromium-browser >/dev/null 2>&1; then
   PACKAGES+=(chromium)
 fi
-# the hash grid's C kernel (model/cpu_kernels.py) is built with cc; the tests check it
+# the hash grid's C kernel (cpu_kernels.py) is built with cc; the tests check it
 # builds and agrees with the PyTorch reference (a slim image may lack a compiler)
 if ! command -v cc >/dev/null 2>&1 && ! command -v gcc >/dev/null 2>&1; then
   PACKAGES+=(gcc libc6-dev)

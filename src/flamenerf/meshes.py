@@ -142,9 +142,12 @@ def nearest_vertices(pts: Tensor, verts: Tensor, k: int, bound: float,
     nearest first; neighbours farther than `bound` get d² = inf and index 0. With several
     meshes verts (M, V, 3) and `which` saying whose mesh each point is on, indices run into
     the M·V stacked vertices: pts (P, 3) with which (P,), or the samples of rays pts
-    (R, S, 3) with which (R,) (a ray's samples share its mesh). A k-d tree on a CPU
-    (brute-force distances to every vertex were over a third of a mesh-guided frame's
-    time), distance blocks elsewhere. -> (P, k) or (R·S, k), and the same shape long."""
+    (R, S, 3) with which (R,) (a ray's samples share its mesh). On a CPU the compiled
+    kernel (kernels/knn.c: each point walks its mesh's vertices, seeded by the previous
+    point's neighbours; 41 -> 13 ms for a 128 px viewer update's queries, the same answer)
+    or, without it, a k-d tree (brute-force distances in PyTorch were over a third of a
+    mesh-guided frame's time); distance blocks elsewhere. -> (P, k) or (R·S, k), and the
+    same shape long."""
     if verts.dim() == 3 and which is None:
         raise ValueError("nearest_vertices: several meshes need `which`")
     if pts.device.type != "cpu":
@@ -155,6 +158,11 @@ def nearest_vertices(pts: Tensor, verts: Tensor, k: int, bound: float,
     if pts.dim() == 3:
         which = which.repeat_interleave(pts.shape[1])
         pts = pts.reshape(-1, 3)
+    from flamenerf.cpu_kernels import kernel_library
+
+    lib = kernel_library()
+    if lib is not None and 1 <= k <= KNN_MAX_K:
+        return _nearest_vertices_kernel(lib, pts, verts, k, bound, which)
     from scipy.spatial import cKDTree
 
     v = verts.double().reshape(-1, 3).numpy()
@@ -168,11 +176,35 @@ def nearest_vertices(pts: Tensor, verts: Tensor, k: int, bound: float,
         v = np.concatenate([v, (m * gap)[:, None]], 1)
         p = np.concatenate([p, which.double().numpy()[:, None] * gap], 1)
     d, i = cKDTree(v).query(p, k=k, distance_upper_bound=bound,
-                            workers=_tree_workers(len(pts)))
+                            workers=_threads_for(len(pts)))
     d, i = d.reshape(len(pts), k), i.reshape(len(pts), k)
     far = ~np.isfinite(d)
     i[far] = 0
     return torch.from_numpy(np.square(d)).to(pts.dtype), torch.from_numpy(i).long()
+
+
+KNN_MAX_K = 16
+"""The most neighbours the compiled kernel keeps (kernels/knn.c)."""
+
+
+def _nearest_vertices_kernel(lib, pts: Tensor, verts: Tensor, k: int, bound: float,
+                             which: Tensor | None) -> tuple[Tensor, Tensor]:
+    """`nearest_vertices` on a CPU through kernels/knn.c: pts (P, 3), verts (V, 3) or
+    (M, V, 3) with which (P,)."""
+    meshes = verts[None] if verts.dim() == 2 else verts
+    p = pts.detach().float().contiguous()
+    v = meshes.detach().float().contiguous()
+    w = None if verts.dim() == 2 else which.to(torch.int64).contiguous()
+    if w is not None and len(w) and (int(w.min()) < 0 or int(w.max()) >= v.shape[0]):
+        raise ValueError(f"nearest_vertices: mesh indices outside 0..{v.shape[0] - 1}")
+    d2 = torch.empty(len(p), k)
+    idx = torch.empty(len(p), k, dtype=torch.int64)
+    rc = lib.knn_forward(p.data_ptr(), len(p), None if w is None else w.data_ptr(),
+                         v.data_ptr(), v.shape[0], v.shape[1], k, float(bound),
+                         d2.data_ptr(), idx.data_ptr(), _threads_for(len(p)))
+    if rc != 0:
+        raise RuntimeError(f"knn_forward failed ({rc})")
+    return d2.to(pts.dtype), idx
 
 
 def nearest_vertices_brute(pts: Tensor, meshes: Tensor, k: int, bound: float, which: Tensor,
@@ -221,8 +253,8 @@ def nearest_vertices_brute(pts: Tensor, meshes: Tensor, k: int, bound: float, wh
     return d2.masked_fill(far, float("inf")), idx.masked_fill(far, 0)
 
 
-def _tree_workers(n: int) -> int:
+def _threads_for(n: int) -> int:
     # threads pay from a few thousand points: a training step's one query of ~50k points
-    # took 49 ms with 2 threads against 87 ms with one; small queries (a viewer's few rays)
-    # stay on one
+    # took 49 ms with 2 threads against 87 ms with one (the k-d tree); small queries (a
+    # viewer's few rays) stay on one
     return max(1, torch.get_num_threads()) if n >= 8192 else 1

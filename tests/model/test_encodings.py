@@ -84,27 +84,6 @@ def _grid_with_features(levels, features, log2_size, base_res, max_res):
     return g
 
 
-def test_cpu_kernel_builds_here():
-    from flamenerf.model.cpu_kernels import hashgrid_library
-
-    assert hashgrid_library() is not None, "the C hash-grid kernel did not build"
-
-
-def test_cpu_kernel_builds_without_native_flags(monkeypatch, tmp_path):
-    """A compiler that rejects the CPU-specific flag still gets the portable kernel; the
-    CPU-specific build is cached under a name that includes the CPU."""
-    from flamenerf.model import cpu_kernels
-
-    monkeypatch.setenv("FLAMENERF_CACHE", str(tmp_path))
-    monkeypatch.setattr(cpu_kernels, "_tried", False)
-    monkeypatch.setattr(cpu_kernels, "_lib", None)
-    monkeypatch.setattr(cpu_kernels, "_NATIVE", ["-mno-such-flag-here"])
-    lib = cpu_kernels.hashgrid_library()
-    assert lib is not None
-    assert len(list((tmp_path / "kernels").glob("hashgrid-*.so"))) == 1
-    assert cpu_kernels.cpu_identity()
-
-
 def test_cpu_kernel_matches_the_pytorch_reference():
     torch.manual_seed(0)
     # dense coarse levels and hashed fine ones (2^10 entries < (r+1)^3 from r = 10 on)
@@ -130,7 +109,7 @@ def test_portable_and_native_kernels_agree(monkeypatch, tmp_path):
     """The native build (on an AVX-512 CPU: 16 points at a time with gathers, forward and
     backward) and the portable one (the generic loops) give the same encoding and
     gradients (up to the rounding of fused multiply-adds, which only the native build has)."""
-    from flamenerf.model import cpu_kernels
+    from flamenerf import cpu_kernels
 
     torch.manual_seed(0)
     x = torch.rand(1001, 3) * 1.2 - 0.1
@@ -150,7 +129,7 @@ def test_portable_and_native_kernels_agree(monkeypatch, tmp_path):
     monkeypatch.setattr(cpu_kernels, "_tried", False)
     monkeypatch.setattr(cpu_kernels, "_lib", None)
     monkeypatch.setattr(cpu_kernels, "_NATIVE", ["-mno-such-flag-here"])
-    assert cpu_kernels.hashgrid_library() is not None
+    assert cpu_kernels.kernel_library() is not None
     portable = encode_and_grads()
     for (ya, gxa, *gta), (yb, gxb, *gtb) in zip(native, portable):
         assert torch.allclose(ya, yb, atol=1e-6)
@@ -164,7 +143,7 @@ def test_portable_and_native_kernels_agree(monkeypatch, tmp_path):
 def test_encode_into_writes_the_encoding_beside_other_columns(monkeypatch):
     """`encode_into` fills a column block of a wider buffer with the encoding and leaves
     the other columns alone; without the kernel it does the same by a copy."""
-    from flamenerf.model import cpu_kernels
+    from flamenerf import cpu_kernels
 
     g = _grid_with_features(4, 2, 10, 4, 64)
     x = torch.rand(1001, 3)
@@ -190,7 +169,7 @@ def test_cpu_kernel_table_gradient_without_position_gradient_is_deterministic():
 
 
 def test_hash_grid_without_the_kernel_uses_pytorch(monkeypatch):
-    from flamenerf.model import cpu_kernels
+    from flamenerf import cpu_kernels
 
     g = _grid_with_features(3, 2, 10, 4, 32)
     x = torch.rand(50, 3)

@@ -193,7 +193,7 @@ def test_bakes_converge_to_the_fields(kernel, monkeypatch):
     3x or more on this random model's warp (O(h²) once the grid resolves its frequencies),
     the proposal's error by 40 % or more.
     Through the CPU kernel and through grid_sample (the GPU path)."""
-    import flamenerf.model.cpu_kernels as ck
+    import flamenerf.cpu_kernels as ck
 
     monkeypatch.setattr(ck, "_tried", kernel == "0")
     monkeypatch.setattr(ck, "_lib", None if kernel == "0" else ck._lib)

@@ -49,9 +49,9 @@ class DenseGrid:
         """x (N, 3) -> (N, C)."""
         C = self.table.shape[1]
         if x.device.type == "cpu" and x.dtype == torch.float32:
-            from flamenerf.model.cpu_kernels import hashgrid_library
+            from flamenerf.cpu_kernels import kernel_library
 
-            lib = hashgrid_library()
+            lib = kernel_library()
             if lib is not None:
                 # one dense level of the hash-grid kernel is exactly this interpolation
                 u = ((x + 1.0) * 0.5).contiguous()

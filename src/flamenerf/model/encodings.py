@@ -75,13 +75,13 @@ class HashGrid(nn.Module):
 
     def forward(self, x: Tensor) -> Tensor:
         """x (N, 3) in [0, 1]^3 -> (N, L·F). On a CPU, the compiled kernel when it builds
-        (model/cpu_kernels.py), else `forward_torch`; on a GPU without autograd the Triton
+        (cpu_kernels.py), else `forward_torch`; on a GPU without autograd the Triton
         kernel (gpu_kernels.py) where Triton is installed; else `forward_grouped`."""
         if (x.device.type == "cpu" and x.dtype == torch.float32
                 and self.tables[0].dtype == torch.float32):  # the kernel is float32 only
-            from flamenerf.model.cpu_kernels import hashgrid_library
+            from flamenerf.cpu_kernels import kernel_library
 
-            lib = hashgrid_library()
+            lib = kernel_library()
             if lib is not None:
                 return _HashGridCPU.apply(x.contiguous(), self, lib, *self.tables)
             return self.forward_torch(x)
@@ -103,9 +103,9 @@ class HashGrid(nn.Module):
         if (x.device.type == "cpu" and x.dtype == torch.float32 and out.dtype == torch.float32
                 and self.tables[0].dtype == torch.float32 and out.stride(-1) == 1
                 and out.shape == (x.shape[0], self.out_dim)):
-            from flamenerf.model.cpu_kernels import hashgrid_library
+            from flamenerf.cpu_kernels import kernel_library
 
-            lib = hashgrid_library()
+            lib = kernel_library()
             if lib is not None:
                 _kernel_forward(lib, self, x.contiguous(),
                                 [t.detach().contiguous() for t in self.tables], out)

@@ -180,9 +180,9 @@ def prepare(model, deform_code: Tensor, settings: RenderSettings) -> None:
         if _bakes_proposal(model, settings):
             baked_proposal_logits(model.proposal, settings.proposal_grid, dev)
     if dev.type == "cpu":
-        from flamenerf.model.cpu_kernels import hashgrid_library
+        from flamenerf.cpu_kernels import kernel_library
 
-        hashgrid_library()
+        kernel_library()
 
 
 def _warp_fn(model, rays: RayBatch, settings: RenderSettings):

@@ -1,9 +1,14 @@
-"""The hash grid's compiled CPU kernel: built on first use with the system's C compiler
-and cached; without a compiler the PyTorch implementation runs instead (with a warning).
+"""The compiled CPU kernels: built on first use with the system's C compiler and cached;
+without a compiler the callers run their PyTorch (or SciPy) paths instead (with a warning).
 
-One small C file called through ctypes, rather than a PyTorch C++ extension: it compiles
-in 0.4 s on the 2-core development machine and needs nothing beyond `cc` (an extension
-would compile torch's headers and need ninja). `FLAMENERF_CPU_KERNELS=0` turns it off (to compare, or to debug).
+- kernels/hashgrid.c: the hash grid's encoding, forward and backward (model/encodings.py,
+  the bakes of model/baked.py);
+- kernels/knn.c: the k nearest mesh vertices of many points (meshes.nearest_vertices).
+
+Small C files called through ctypes, rather than a PyTorch C++ extension: they compile in
+under a second on the 2-core development machine and need nothing beyond `cc` (an
+extension would compile torch's headers and need ninja). `FLAMENERF_CPU_KERNELS=0` turns
+them off (to compare, or to debug).
 """
 
 from __future__ import annotations
@@ -17,7 +22,7 @@ import tempfile
 import warnings
 from pathlib import Path
 
-_SOURCE = Path(__file__).with_name("kernels") / "hashgrid.c"
+_SOURCES = [Path(__file__).with_name("kernels") / name for name in ("hashgrid.c", "knn.c")]
 _FLAGS = ["-O3", "-fPIC", "-shared", "-fopenmp"]
 # compiled for the CPU at hand (AVX-512 gathers: the forward pass 1.3-1.9x faster on the
 # development machine's Zen 4); the cache key names that CPU, so a cache shared between
@@ -54,7 +59,7 @@ def _build(cc: str, out: Path, flags: list[str]) -> None:
     fd, tmp = tempfile.mkstemp(suffix=".so", dir=out.parent)
     os.close(fd)
     try:
-        subprocess.run([cc, *flags, str(_SOURCE), "-o", tmp, "-lm"], check=True,
+        subprocess.run([cc, *flags, *map(str, _SOURCES), "-o", tmp, "-lm"], check=True,
                        capture_output=True, text=True)
         os.replace(tmp, out)
     finally:
@@ -62,8 +67,8 @@ def _build(cc: str, out: Path, flags: list[str]) -> None:
             os.unlink(tmp)
 
 
-def hashgrid_library() -> ctypes.CDLL | None:
-    """The compiled kernel, or None (disabled, no compiler, or the build failed)."""
+def kernel_library() -> ctypes.CDLL | None:
+    """The compiled kernels, or None (disabled, no compiler, or the build failed)."""
     global _lib, _tried
     if _tried:
         return _lib
@@ -77,9 +82,10 @@ def hashgrid_library() -> ctypes.CDLL | None:
         return None
     lib, errors = None, []
     for flags in (_FLAGS + _NATIVE, _FLAGS):  # without -march=native where cc lacks it
-        key = hashlib.sha256(_SOURCE.read_bytes() + " ".join([cc, *flags]).encode()
+        key = hashlib.sha256(b"".join(f.read_bytes() for f in _SOURCES)
+                             + " ".join([cc, *flags]).encode()
                              + (cpu_identity().encode() if _NATIVE[0] in flags else b""))
-        so = cache_dir() / f"hashgrid-{key.hexdigest()[:16]}.so"
+        so = cache_dir() / f"kernels-{key.hexdigest()[:16]}.so"
         try:
             if not so.exists():
                 _build(cc, so, flags)
@@ -88,12 +94,14 @@ def hashgrid_library() -> ctypes.CDLL | None:
         except (OSError, subprocess.CalledProcessError) as e:
             errors.append((getattr(e, "stderr", "") or str(e)).strip())
     if lib is None:
-        warnings.warn(f"flamenerf: building the CPU hash-grid kernel failed ({errors[-1][:200]}); "
-                      "using the slower PyTorch hash grid", stacklevel=2)
+        warnings.warn(f"flamenerf: building the CPU kernels failed ({errors[-1][:200]}); "
+                      "using the slower PyTorch hash grid and SciPy's k-d tree", stacklevel=2)
         return None
     p, i64, i32 = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int32
     lib.hashgrid_forward.argtypes = [p, i64, i32, i32, p, p, p, i64, p, i64, i32]
     lib.hashgrid_backward.argtypes = [p, i64, i32, i32, p, p, p, i64, p, p, p, p, i32]
     lib.hashgrid_forward.restype = lib.hashgrid_backward.restype = None
+    lib.knn_forward.argtypes = [p, i64, p, p, i64, i64, i32, ctypes.c_double, p, p, i32]
+    lib.knn_forward.restype = ctypes.c_int
     _lib = lib
     return lib
