@@ -166,21 +166,28 @@ class HashField(nn.Module):
         into `out` (N, ·), a view holding zeros, without autograd."""
         cfg = self.cfg
         L, R, Fe = cfg.expr_levels, cfg.expr_rank, cfg.expr_features
-        bs = x.shape[:-1]
-        z = self.expr_proj(expr).expand(*bs, R).reshape(-1, R)
+        bs, E = x.shape[:-1], expr.shape[-1]
         if torch.is_grad_enabled():  # A's gradient needs G wherever β ≠ 0
+            z = self.expr_proj(expr).expand(*bs, R).reshape(-1, R)
             active = (expr.abs().amax(-1, keepdim=True) > 0).expand(*bs, 1).reshape(-1)
-        else:  # the sum is exactly 0 where Aβ = 0: R columns to look at instead of E
-            active = (z != 0).any(-1)
-        idx = active.nonzero()[:, 0]
+            idx = active.nonzero()[:, 0]
+            z = z[idx]
+        else:
+            # the sum is 0 where β = 0 (A has no bias): project only the other points, found
+            # by one matrix-vector product. Most points of an image lie outside the face's
+            # silhouette; projecting all of them and testing Aβ was ~8 % of a 128 px viewer
+            # update on the 2-core CPU
+            live = (expr.abs() @ expr.new_ones(E)) > 0  # expr's leading shape
+            idx = live.expand(bs).reshape(-1).nonzero()[:, 0]
+            z = self.expr_proj(expr.expand(*bs, E).reshape(-1, E)[idx]) if len(idx) else None
         if len(idx):
             g = self.expr_grid((x.reshape(-1, 3)[idx] + 1) * 0.5).view(-1, L, R, Fe)
             # (n, 1, 1, R) @ (n, L, R, F): a batched product, ~1.6x faster than the
             # equivalent einsum on a CPU
-            f = torch.matmul(z[idx, None, None, :], g).reshape(-1, L * Fe)
+            f = torch.matmul(z[:, None, None, :], g).reshape(-1, L * Fe)
         else:
             f = x.new_zeros(0, L * Fe)
-        return _scatter_rows(f, idx, z.shape[0], bs, out)
+        return _scatter_rows(f, idx, x.numel() // 3, bs, out)
 
     def density(self, x: Tensor, expr: Tensor | None) -> Tensor:
         return trunc_exp(self._geo(x, expr)[..., 0])
