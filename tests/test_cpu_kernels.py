@@ -62,10 +62,13 @@ def _ray_points(meshes, which, samples, gen):
 @pytest.mark.parametrize("native", [True, False])
 def test_nearest_vertices_kernel_matches_the_tree(monkeypatch, tmp_path, native):
     """Several meshes, points near and far (fewer than k within the bound: inf and index
-    0), k from 1 to 8, per-ray mesh indices: the same neighbours and distances."""
-    if not native:
-        assert _portable(monkeypatch, tmp_path) is not None
-    assert cpu_kernels.kernel_library() is not None
+    0), k from 1 to 8, per-ray mesh indices, one mesh without indices: the kernel's
+    neighbours and distances are the tree's, in the native build (where it has AVX-512,
+    `nearest_vertices` takes it) and in the portable one (its plain loop)."""
+    from flamenerf.meshes import _nearest_vertices_kernel
+
+    lib = _portable(monkeypatch, tmp_path) if not native else cpu_kernels.kernel_library()
+    assert lib is not None
     gen = torch.Generator().manual_seed(0)
     meshes = torch.randn(3, 61, 3, generator=gen) * 0.2
     which = torch.randint(0, 3, (40,), generator=gen)
@@ -73,7 +76,7 @@ def test_nearest_vertices_kernel_matches_the_tree(monkeypatch, tmp_path, native)
     pts = rays.reshape(-1, 3)
     per_point = which.repeat_interleave(24)
     for k, bound in ((1, 0.05), (4, 0.15), (8, 10.0), (4, 0.02)):
-        d2, idx = nearest_vertices(rays, meshes, k, bound, which)
+        d2, idx = _nearest_vertices_kernel(lib, pts, meshes, k, bound, per_point)
         td2, tidx = _tree(pts, meshes, k, bound, per_point)
         assert torch.equal(idx, tidx)
         assert torch.equal(torch.isinf(d2), torch.isinf(td2))
@@ -81,10 +84,26 @@ def test_nearest_vertices_kernel_matches_the_tree(monkeypatch, tmp_path, native)
         assert torch.allclose(d2[fin], td2[fin], rtol=1e-6, atol=0)
         if bound < 1:
             assert bool(torch.isinf(d2).any()) and bool(torch.isfinite(d2).any())
-    # one mesh (V, 3), points without mesh indices
-    d2, idx = nearest_vertices(pts, meshes[1], 4, 0.15)
+        # the public function gives the same answer, whichever path it takes here
+        pd2, pidx = nearest_vertices(rays, meshes, k, bound, which)
+        assert torch.equal(pidx, tidx) and torch.equal(torch.isinf(pd2), torch.isinf(td2))
+    d2, idx = _nearest_vertices_kernel(lib, pts, meshes[1], 4, 0.15, None)
     td2, tidx = _tree(pts, meshes[1:2], 4, 0.15, torch.zeros(len(pts), dtype=torch.long))
     assert torch.equal(idx, tidx) and torch.equal(torch.isinf(d2), torch.isinf(td2))
+
+
+def test_nearest_vertices_takes_the_kernel_where_it_is_vectorised(monkeypatch):
+    """The kernel where its build walks eight vertices at a time; the tree elsewhere (the
+    plain loop is slower than the tree on a viewer's points)."""
+    from flamenerf import meshes as M
+
+    calls = []
+    real = M._nearest_vertices_kernel
+    monkeypatch.setattr(M, "_nearest_vertices_kernel",
+                        lambda *a: calls.append(1) or real(*a))
+    lib = cpu_kernels.kernel_library()
+    M.nearest_vertices(torch.zeros(5, 3), torch.ones(7, 3), 2, 10.0)
+    assert len(calls) == int(lib.knn_vectorised())
 
 
 def test_nearest_vertices_without_the_kernel_uses_the_tree(monkeypatch):
@@ -100,7 +119,10 @@ def test_nearest_vertices_without_the_kernel_uses_the_tree(monkeypatch):
     assert torch.allclose(with_kernel[0], without[0], rtol=1e-6)
 
 
-def test_nearest_vertices_rejects_mesh_indices_out_of_range():
+def test_nearest_vertices_kernel_rejects_mesh_indices_out_of_range():
+    from flamenerf.meshes import _nearest_vertices_kernel
+
     meshes = torch.zeros(2, 5, 3)
     with pytest.raises(ValueError, match="mesh indices"):
-        nearest_vertices(torch.zeros(3, 3), meshes, 1, 1.0, torch.tensor([0, 1, 2]))
+        _nearest_vertices_kernel(cpu_kernels.kernel_library(), torch.zeros(3, 3), meshes, 1,
+                                 1.0, torch.tensor([0, 1, 2]))

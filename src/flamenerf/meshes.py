@@ -142,11 +142,11 @@ def nearest_vertices(pts: Tensor, verts: Tensor, k: int, bound: float,
     nearest first; neighbours farther than `bound` get d² = inf and index 0. With several
     meshes verts (M, V, 3) and `which` saying whose mesh each point is on, indices run into
     the M·V stacked vertices: pts (P, 3) with which (P,), or the samples of rays pts
-    (R, S, 3) with which (R,) (a ray's samples share its mesh). On a CPU the compiled
-    kernel (kernels/knn.c: each point walks its mesh's vertices, seeded by the previous
-    point's neighbours; 41 -> 13 ms for a 128 px viewer update's queries, the same answer)
-    or, without it, a k-d tree (brute-force distances in PyTorch were over a third of a
-    mesh-guided frame's time); distance blocks elsewhere. -> (P, k) or (R·S, k), and the
+    (R, S, 3) with which (R,) (a ray's samples share its mesh). On a CPU with AVX-512 the
+    compiled kernel (kernels/knn.c: each point walks its mesh's vertices, seeded by the
+    previous point's neighbours; 41 -> 13 ms for a 128 px viewer update's queries, the same
+    answer), on other CPUs a k-d tree (brute-force distances in PyTorch were over a third
+    of a mesh-guided frame's time); distance blocks elsewhere. -> (P, k) or (R·S, k), and the
     same shape long."""
     if verts.dim() == 3 and which is None:
         raise ValueError("nearest_vertices: several meshes need `which`")
@@ -161,7 +161,7 @@ def nearest_vertices(pts: Tensor, verts: Tensor, k: int, bound: float,
     from flamenerf.cpu_kernels import kernel_library
 
     lib = kernel_library()
-    if lib is not None and 1 <= k <= KNN_MAX_K:
+    if lib is not None and lib.knn_vectorised() and 1 <= k <= KNN_MAX_K:
         return _nearest_vertices_kernel(lib, pts, verts, k, bound, which)
     from scipy.spatial import cKDTree
 
