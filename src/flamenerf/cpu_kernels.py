@@ -24,9 +24,9 @@ from pathlib import Path
 
 _SOURCES = [Path(__file__).with_name("kernels") / name for name in ("hashgrid.c", "knn.c")]
 _FLAGS = ["-O3", "-fPIC", "-shared", "-fopenmp"]
-# compiled for the CPU at hand (AVX-512 gathers: the forward pass 1.3-1.9x faster on the
-# development machine's Zen 4); the cache key names that CPU, so a cache shared between
-# machines never hands one another's build
+# compiled for the CPU at hand (AVX-512: the hash grid's forward pass 1.3-1.9x faster on the
+# development machine's Zen 4, the nearest-vertex walk vectorised at all); the cache key
+# names that CPU, so a cache shared between machines never hands one another's build
 _NATIVE = ["-march=native"]
 _lib: ctypes.CDLL | None = None
 _tried = False
@@ -78,7 +78,8 @@ def kernel_library() -> ctypes.CDLL | None:
     cc = os.environ.get("CC") or shutil.which("cc") or shutil.which("gcc")
     if cc is None:
         warnings.warn("flamenerf: no C compiler (cc) found; the hash grid runs as plain "
-                      "PyTorch, several times slower on a CPU", stacklevel=2)
+                      "PyTorch, several times slower on a CPU, and the nearest mesh "
+                      "vertices through SciPy's k-d tree", stacklevel=2)
         return None
     lib, errors = None, []
     for flags in (_FLAGS + _NATIVE, _FLAGS):  # without -march=native where cc lacks it
