@@ -74,11 +74,11 @@ static inline void weights(const float f[3], float w[8]) {
 /* One level with F <= 16 features (every grid of the presets, and the bakes) for 16 points
  * at a time with AVX-512 (32-bit lanes; the table read by gathers for F = 1, by 64-bit
  * gathers for F = 2, by one vector load per point and corner for F >= 3): 3x faster than
- * the generic loop for `fast`'s grid on an Intel Xeon. 32-bit index arithmetic gives the 64-bit path's
- * indices while the table holds < 2^31 floats (the hash is masked from the same low bits;
- * a dense index is < (r+1)^3 <= the table's size). The same operations in the same order
- * as `locate`, `weights` and the generic loop; only the rounding of a fused multiply-add
- * may differ. Built only where the compiler targets AVX-512 (-march=native on such a CPU);
+ * the generic loop for `fast`'s grid on an Intel Xeon. 32-bit index arithmetic gives the
+ * 64-bit path's indices while the table holds < 2^31 floats (the hash is masked from the
+ * same low bits; a dense index is < (r+1)^3 <= the table's size). The same operations in
+ * the same order as `locate`, `weights` and the generic loop; only the rounding of a fused
+ * multiply-add may differ. Built only where the compiler targets AVX-512 (-march=native on such a CPU);
  * elsewhere the generic loop runs. */
 #if defined(__AVX512F__)
 #include <immintrin.h>
@@ -123,7 +123,7 @@ locate16(const float *xp, int64_t m, int64_t r, int dense) {
                              : _mm512_set1_epi32((int32_t)(uint32_t)P1);
     const __m512i sz = dense ? _mm512_set1_epi32((int32_t)(uint32_t)((r + 1) * (r + 1)))
                              : _mm512_set1_epi32((int32_t)(uint32_t)P2);
-    /* the m (<= 16) points' 3m floats; lanes past them read 0, as the masked gather did */
+    /* the m (<= 16) points' 3m floats; lanes past them read 0 */
     const __m512 v0 = _mm512_maskz_loadu_ps(floats16(3 * m), xp);
     const __m512 v1 = _mm512_maskz_loadu_ps(floats16(3 * m - 16), xp + 16);
     const __m512 v2 = _mm512_maskz_loadu_ps(floats16(3 * m - 32), xp + 32);
