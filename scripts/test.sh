@@ -13,8 +13,9 @@ if [ -z "${FLAMENERF_CHROMIUM:-}" ] && ! command -v chromium >/dev/null 2>&1 \
     && ! command -v chromium-browser >/dev/null 2>&1; then
   PACKAGES+=(chromium)
 fi
-# the hash grid's C kernel (cpu_kernels.py) is built with cc; the tests check it
-# builds and agrees with the PyTorch reference (a slim image may lack a compiler)
+# the C kernels (cpu_kernels.py: the hash grid, the nearest mesh vertices) are built with
+# cc; the tests check they build and agree with the PyTorch reference and SciPy's k-d tree
+# (a slim image may lack a compiler)
 if ! command -v cc >/dev/null 2>&1 && ! command -v gcc >/dev/null 2>&1; then
   PACKAGES+=(gcc libc6-dev)
 fi

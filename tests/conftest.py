@@ -43,3 +43,19 @@ def synth_scene(tmp_path_factory):
 
     out = tmp_path_factory.mktemp("synth") / "scene"
     return make_scene(out, seed=1, size=32, frames=40, reanimate=4, leakage_steps=1, workers=1)
+
+
+@pytest.fixture
+def portable_kernels(monkeypatch, tmp_path):
+    """A function that rebuilds the CPU kernels without the CPU-specific flag (the build a
+    CPU without AVX-512 gets), in a fresh cache, and returns the library it loads."""
+    from flamenerf import cpu_kernels
+
+    def build():
+        monkeypatch.setenv("FLAMENERF_CACHE", str(tmp_path))
+        monkeypatch.setattr(cpu_kernels, "_tried", False)
+        monkeypatch.setattr(cpu_kernels, "_lib", None)
+        monkeypatch.setattr(cpu_kernels, "_NATIVE", ["-mno-such-flag-here"])
+        return cpu_kernels.kernel_library()
+
+    return build

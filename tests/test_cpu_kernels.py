@@ -13,19 +13,10 @@ def test_cpu_kernels_build_here():
     assert cpu_kernels.kernel_library() is not None, "the C kernels did not build"
 
 
-def _portable(monkeypatch, tmp_path):
-    """Rebuild the kernels without the CPU-specific flag, in a fresh cache."""
-    monkeypatch.setenv("FLAMENERF_CACHE", str(tmp_path))
-    monkeypatch.setattr(cpu_kernels, "_tried", False)
-    monkeypatch.setattr(cpu_kernels, "_lib", None)
-    monkeypatch.setattr(cpu_kernels, "_NATIVE", ["-mno-such-flag-here"])
-    return cpu_kernels.kernel_library()
-
-
-def test_cpu_kernels_build_without_native_flags(monkeypatch, tmp_path):
+def test_cpu_kernels_build_without_native_flags(portable_kernels, tmp_path):
     """A compiler that rejects the CPU-specific flag still gets the portable kernels; the
     CPU-specific build is cached under a name that includes the CPU."""
-    assert _portable(monkeypatch, tmp_path) is not None
+    assert portable_kernels() is not None
     assert len(list((tmp_path / "kernels").glob("kernels-*.so"))) == 1
     assert cpu_kernels.cpu_identity()
 
@@ -60,14 +51,14 @@ def _ray_points(meshes, which, samples, gen):
 
 
 @pytest.mark.parametrize("native", [True, False])
-def test_nearest_vertices_kernel_matches_the_tree(monkeypatch, tmp_path, native):
+def test_nearest_vertices_kernel_matches_the_tree(portable_kernels, native):
     """Several meshes, points near and far (fewer than k within the bound: inf and index
     0), k from 1 to 8, per-ray mesh indices, one mesh without indices: the kernel's
     neighbours and distances are the tree's, in the native build (where it has AVX-512,
     `nearest_vertices` takes it) and in the portable one (its plain loop)."""
     from flamenerf.meshes import _nearest_vertices_kernel
 
-    lib = _portable(monkeypatch, tmp_path) if not native else cpu_kernels.kernel_library()
+    lib = portable_kernels() if not native else cpu_kernels.kernel_library()
     assert lib is not None
     gen = torch.Generator().manual_seed(0)
     meshes = torch.randn(3, 61, 3, generator=gen) * 0.2
