@@ -159,7 +159,13 @@ def summary_line(name: str, res: dict) -> str:
     elif c:  # a tracked clip's sweep at the reference camera
         ctl = (f"; control gain {c.get('mean_gain', float('nan')):.3f}, with companions "
                f"{c.get('mean_gain_with_companions', float('nan')):.3f}, landmark gain "
-               f"{c.get('mean_landmark_gain', float('nan')):.3f}")
+               f"{c.get('mean_landmark_gain', float('nan')):.3f}; responding "
+               f"{c.get('responding')} / {len(c.get('controls', {}))}, with companions "
+               f"{c.get('responding_with_companions')}")
+    rt = d.get("retracked")
+    if rt and rt.get("controls"):
+        ctl += (f"; driven re-tracked: responding {rt['responding']} / {len(rt['controls'])} "
+                f"(the frames themselves {rt['truth']['responding']})")
     return (f"[{name}] held-out {h['psnr']:.2f} dB; driven face {d['psnr_face']:.2f} / "
             f"expressive {d['psnr_expressive']:.2f} / background {d['psnr_background']:.2f} / "
             f"scene {d.get('psnr_scene', float('nan')):.2f} dB, face depth error "

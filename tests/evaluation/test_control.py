@@ -42,6 +42,13 @@ def test_control_response_tells_a_working_control_from_a_dead_one():
     assert res["controls"]["jawOpen"]["gain"] == pytest.approx(0.5)
     assert res["controls"]["jawOpen"]["correlation"] == pytest.approx(1.0)
     assert abs(res["controls"]["eyeBlinkLeft"]["gain"]) < 1e-9
+    assert res["responding"] == 1  # the jaw at gain 0.5 meets the bar; the blink does not
+
+
+def test_responds_is_the_issue_bar():
+    assert C.responds(0.5, 0.9) and C.responds(1.2, 0.99)
+    assert not C.responds(0.49, 1.0) and not C.responds(1.0, 0.89)
+    assert not C.responds(math.nan, 1.0) and not C.responds(1.0, math.nan)
 
 
 def test_control_response_with_companions_sweeps_what_a_keyframe_renders():
@@ -73,6 +80,7 @@ def test_control_response_with_companions_sweeps_what_a_keyframe_renders():
     assert "gain_with_companions" not in jaw  # no companion in this model
     assert len(renders) == 4 * 2 + 4 * 2 + 4  # the two eye controls twice, the jaw once
     assert res["mean_gain_with_companions"] > res["mean_gain"]
+    assert res["responding"] == 1 and res["responding_with_companions"] == 2  # + the blink
 
 
 def test_landmark_gain_reads_how_far_the_face_moves_along_the_mesh_model():
@@ -223,6 +231,34 @@ def test_drive_response_renders_the_clamped_sequence_against_the_driver():
     assert jaw["commanded"] == pytest.approx(values[:, 0].tolist())
     assert jaw["retracked"] == pytest.approx(rendered[:, 0].tolist())
     assert jaw["gain"] < 0.6  # the clamp shows: the re-tracked value stops at 0.5
+
+
+def test_driven_response_reads_renders_and_frames_against_their_expressions():
+    """Renders that follow the jaw at 0.8 and lose the blink, beside frames the tracker reads
+    in full; only controls the training frames vary are read."""
+    names = ["jawOpen", "eyeBlinkLeft", "browInnerUp", "notAControl"]
+    rng = np.random.default_rng(1)
+    values = np.stack([rng.uniform(0, 0.6, 10), rng.uniform(0, 1, 10), np.full(10, 0.1),
+                       rng.uniform(0, 1, 10)], 1)
+    train = np.stack([rng.uniform(0, 0.6, 30), rng.uniform(0, 1, 30), np.full(30, 0.1),
+                      rng.uniform(0, 1, 30)], 1)
+    train[:, 2] = np.linspace(0, 0.05, 30)  # browInnerUp barely varies in training
+    renders = [np.array([0.8 * v[0], 0.0, v[2]]) for v in values]
+    frames = [v[:3].copy() for v in values]
+
+    def track(img):
+        return {"jawOpen": float(img[0]), "eyeBlinkLeft": float(img[1]),
+                "browInnerUp": float(img[2])}
+
+    res = C.driven_response(renders, frames, values, names, train, track)
+    assert set(res["controls"]) == {"jawOpen", "eyeBlinkLeft"}
+    assert res["controls"]["jawOpen"]["gain"] == pytest.approx(0.8)
+    assert res["controls"]["jawOpen"]["correlation"] == pytest.approx(1.0)
+    assert abs(res["controls"]["eyeBlinkLeft"]["gain"]) < 1e-9
+    assert res["responding"] == 1 and res["frames"] == 10
+    truth = res["truth"]
+    assert truth["responding"] == 2
+    assert truth["controls"]["eyeBlinkLeft"]["gain"] == pytest.approx(1.0)
 
 
 @pytest.fixture(scope="module")

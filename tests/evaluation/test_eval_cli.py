@@ -60,6 +60,10 @@ def test_eval_writes_the_documented_schema(evaluated):
     assert d["num_frames"] == len(d["frames"]) == 2 and d["split"] == "val"
     assert d["psnr_face"] == pytest.approx(np.mean([f["psnr_face"] for f in d["frames"]]))
     assert h["budget"]["updates_per_frame"] == 3
+    rt = d["retracked"]  # the driven renders re-tracked, beside the frames themselves
+    assert rt["frames"] == 2 and rt["responding"] == 0 and rt["truth"]["responding"] == 0
+    # the toy quad is no face: every control read, none detected
+    assert rt["controls"] and all(c["detected"] == 0 for c in rt["controls"].values())
     ct = res["control"]  # the toy's quad is no face: re-tracking finds none, and says so
     assert ct["source"].startswith("the dataset's leakage sweep")
     assert ct["controls"]["jawOpen"]["detected"] == 0 and ct["mean_gain"] is None

@@ -17,8 +17,13 @@ control response   at a fixed camera, sweep one control across the range the tra
                    the rest (an open mouth doubles the brows' scores, the brows' pixels
                    unchanged), so a control commanded alone can move the face as the clip
                    does and still score low.
+driven, re-tracked the driven held-out renders re-tracked against their frames' β, beside
+                   the frames' own images re-tracked alike: the controls followed along
+                   expressions like the capture's, where the sweep asks for each alone.
 drive correlation  for a driving sequence, the correlation over time of driving and
                    re-tracked controls.
+A control *responds* when its gain is at least 0.5 and its correlation at least 0.9
+(`RESPONDS`, issue 11's bar); each reading counts those (`responding`).
 """
 
 from __future__ import annotations
@@ -121,6 +126,16 @@ def fit_line(commanded: np.ndarray, measured: np.ndarray) -> tuple[float, float]
     slope = float(np.polyfit(x, y, 1)[0])
     corr = float(np.corrcoef(x, y)[0, 1]) if np.ptp(y) > 0 else float("nan")
     return slope, corr
+
+
+RESPONDS = (0.5, 0.9)
+"""Issue 11's bar for a control that responds: re-tracked gain at least 0.5 and correlation
+at least 0.9."""
+
+
+def responds(gain: float, correlation: float) -> bool:
+    """Whether a control's (gain, correlation) meets `RESPONDS` (NaN does not)."""
+    return bool(gain >= RESPONDS[0] and correlation >= RESPONDS[1])
 
 
 @dataclass
@@ -281,7 +296,8 @@ def control_response(render: RenderFn, names: list[str], base: np.ndarray,
     scores, a render that followed the mesh exactly.
     -> {"controls": {name: {commanded, retracked, gain, correlation, detected, ...}},
     "mean_gain", "mean_correlation", "mean_gain_with_companions" (each control's gain with
-    its companions where it has some, else alone), "mean_landmark_gain" and
+    its companions where it has some, else alone), "responding" and
+    "responding_with_companions" (how many meet `RESPONDS`, likewise), "mean_landmark_gain" and
     "mean_mesh_gain" (likewise, with `motion`), "skipped": {name: why}}.
     """
     out: dict[str, Any] = {"controls": {}, "skipped": {}}
@@ -343,9 +359,13 @@ def control_response(render: RenderFn, names: list[str], base: np.ndarray,
     rows = out["controls"].values()
     out["mean_gain"] = finite_mean(c["gain"] for c in rows)
     out["mean_correlation"] = finite_mean(c["correlation"] for c in rows)
+    out["responding"] = sum(responds(c["gain"], c["correlation"]) for c in rows)
     if companions is not None:
         out["mean_gain_with_companions"] = finite_mean(
             c.get("gain_with_companions", c["gain"]) for c in rows)
+        out["responding_with_companions"] = sum(
+            responds(c.get("gain_with_companions", c["gain"]),
+                     c.get("correlation_with_companions", c["correlation"])) for c in rows)
     if motion is not None:
         out["mean_landmark_gain"] = finite_mean(
             c.get("landmark_gain_with_companions", c["landmark_gain"]) for c in rows)
@@ -366,40 +386,75 @@ def finite_mean(values) -> float:
     return float(np.mean(vals)) if vals else float("nan")
 
 
-def drive_response(render: RenderFn, names: list[str], values: np.ndarray, track: Callable,
-                   min_range: float = 0.05, controls: list[str] | None = None,
-                   rendered: np.ndarray | None = None
-                   ) -> tuple[dict[str, Any], list[np.ndarray]]:
-    """Render a driving sequence and re-track it: per control that the sequence moves, the
-    correlation over time of commanded (the driving video's tracked value, mapped onto the
-    run) and re-tracked, and the gain (slope of re-tracked on commanded).
-
-    values (T, E) the sequence in the run's control order; rendered (T, E) what is rendered
-    for it (default: values; `render` clamps them to the training range, and the gain and
-    correlation are still against what the driver did). -> ({"controls": {name:
-    {commanded, retracked, gain, correlation, detected}}, "mean_gain", "mean_correlation",
-    "frames", "skipped": {name: why}}, the renders).
-    """
+def retrack_series(images: list[np.ndarray], values: np.ndarray, names: list[str],
+                   track: Callable, min_range: float = 0.05,
+                   controls: list[str] | None = None) -> dict[str, Any]:
+    """Re-track a sequence of images made for the expressions values (T, E) (the run's
+    control order): per control that the sequence moves by at least `min_range`, the
+    correlation over the sequence of commanded and re-tracked, and the gain (slope of
+    re-tracked on commanded). -> {"controls": {name: {commanded, retracked, gain,
+    correlation, detected}}, "mean_gain", "mean_correlation", "responding" (how many meet
+    `RESPONDS`), "frames", "skipped": {name: why}}."""
     want = controls if controls is not None else trackable_controls(names)
-    preds, scores = [], []
-    for beta in (values if rendered is None else rendered):
-        preds.append(render(np.asarray(beta, np.float32)))
-        scores.append(track(preds[-1]))
+    scores = [track(im) for im in images]
     out: dict[str, Any] = {"controls": {}, "skipped": {}, "frames": len(values)}
     for name in want:
         k = names.index(name)
         x = np.asarray(values[:, k], np.float64)
         if np.ptp(x) < min_range:
-            out["skipped"][name] = f"the driving sequence moves it by less than {min_range}"
+            out["skipped"][name] = f"the sequence moves it by less than {min_range}"
             continue
         got = np.array([math.nan if sc is None else sc.get(name, math.nan) for sc in scores])
         ok = np.isfinite(got)
         gain, corr = fit_line(x[ok], got[ok]) if ok.sum() >= 3 else (math.nan, math.nan)
         out["controls"][name] = {"commanded": x.tolist(), "retracked": got.tolist(),
                                  "gain": gain, "correlation": corr, "detected": int(ok.sum())}
-    out["mean_gain"] = finite_mean(c["gain"] for c in out["controls"].values())
-    out["mean_correlation"] = finite_mean(c["correlation"] for c in out["controls"].values())
-    return out, preds
+    rows = out["controls"].values()
+    out["mean_gain"] = finite_mean(c["gain"] for c in rows)
+    out["mean_correlation"] = finite_mean(c["correlation"] for c in rows)
+    out["responding"] = sum(responds(c["gain"], c["correlation"]) for c in rows)
+    return out
+
+
+def drive_response(render: RenderFn, names: list[str], values: np.ndarray, track: Callable,
+                   min_range: float = 0.05, controls: list[str] | None = None,
+                   rendered: np.ndarray | None = None
+                   ) -> tuple[dict[str, Any], list[np.ndarray]]:
+    """Render a driving sequence and re-track it (`retrack_series`): per control that the
+    sequence moves, the correlation over time of commanded (the driving video's tracked
+    value, mapped onto the run) and re-tracked, and the gain.
+
+    values (T, E) the sequence in the run's control order; rendered (T, E) what is rendered
+    for it (default: values; `render` clamps them to the training range, and the gain and
+    correlation are still against what the driver did). -> (as `retrack_series`, the
+    renders).
+    """
+    preds = [render(np.asarray(beta, np.float32))
+             for beta in (values if rendered is None else rendered)]
+    return retrack_series(preds, values, names, track, min_range, controls), preds
+
+
+def driven_response(preds: list[np.ndarray], images: list[np.ndarray], values: np.ndarray,
+                    names: list[str], train_values: np.ndarray, track: Callable
+                    ) -> dict[str, Any]:
+    """The driven held-out renders re-tracked against their frames' β (T, E): whether the
+    controls follow expressions like the capture's at its own cameras, where the sweep
+    commands one control at a time from the reference frame (which asks the model for faces
+    no frame showed where the capture moves its controls together). The controls are the
+    sweep's (those that vary in the training frames, train_values (N, E)); the frames' own
+    images (T of (H, W, 3)) re-tracked the same way are `truth`: what the landmarker reads
+    from the capture at this resolution, the most a render can show.
+    -> as `retrack_series`, plus "truth": {"controls": {name: {gain, correlation}},
+    "responding", "mean_gain", "mean_correlation"}."""
+    from flamenerf.data.expression_range import varies
+
+    want = [n for n in trackable_controls(names) if varies(train_values[:, names.index(n)])]
+    out = retrack_series(preds, values, names, track, controls=want)
+    gt = retrack_series(images, values, names, track, controls=want)
+    out["truth"] = {"controls": {n: {k: c[k] for k in ("gain", "correlation")}
+                                 for n, c in gt["controls"].items()},
+                    **{k: gt[k] for k in ("responding", "mean_gain", "mean_correlation")}}
+    return out
 
 
 # MediaPipe face-mesh landmarks: inner lip centres; each eye's upper and lower lid centre

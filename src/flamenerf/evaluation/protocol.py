@@ -10,7 +10,9 @@ held-out (`val`)  the paper's protocol: freeze the model, fit only each frame's 
                   fitted together: each frame's ω gets `fit_steps` Adam updates from about
                   fit_batch_rays / N of its own rays each (stated in the results).
 driven (`val`)    the same frames with nothing fitted: frame 0's codes and each frame's own
-                  β (evaluation/control.py); whole / face / background / expressive region.
+                  β (evaluation/control.py); whole / face / background / expressive region;
+                  with `control` on ARKit-named controls, the renders and the frames
+                  re-tracked (`retracked`: do the controls follow the frames' β?).
 control           re-tracked response of the renders to commanded controls (control.py): on
                   the built-in scene's leakage sweep, against the same re-tracking of its
                   ground truth; elsewhere a sweep over each control's training range.
@@ -352,6 +354,9 @@ def evaluate_run(run, ds: Dataset, opts: EvalOptions, out_dir: Path | None = Non
     res["driven"]["split"] = opts.split
     for k in range(min(opts.num_images, fs.n)):
         images[f"driven_{k:02d}.png"] = _triptych(fs, k, preds[k])
+    if opts.control and trackable(run.expression_names):
+        log(f"driven, re-tracked: {fs.n} renders and their frames")
+        res["driven"]["retracked"] = driven_retracked(run, ds, fs, preds)
     leak_preds = None
     if ds.splits.get("reanimate"):
         fs = FrameSet(ds, ds.split("reanimate"), intr)
@@ -385,6 +390,27 @@ def evaluate_run(run, ds: Dataset, opts: EvalOptions, out_dir: Path | None = Non
     if out_dir is not None:
         write_results(Path(out_dir), res, images)
     return res
+
+
+def trackable(names: list[str]) -> bool:
+    """Whether the landmarker reports any of an expression model's controls by name."""
+    from flamenerf.evaluation.control import trackable_controls
+
+    return bool(trackable_controls(names))
+
+
+def driven_retracked(run, ds: Dataset, fs: FrameSet, preds: list[np.ndarray]
+                     ) -> dict[str, Any]:
+    """The driven renders and their frames re-tracked (control.driven_response)."""
+    from flamenerf.evaluation import control as C
+
+    track = C.Retracker()
+    try:
+        return C.driven_response(preds, [im.numpy() for im in fs.images],
+                                 fs.expressions.numpy(), run.expression_names,
+                                 ds.expression_matrix(ds.split("train")), track)
+    finally:
+        track.close()
 
 
 def control_section(run, ds: Dataset, intr, omega0, phi0, opts: EvalOptions,

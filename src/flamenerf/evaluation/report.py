@@ -144,6 +144,8 @@ def load_eval(path: str | Path) -> dict[str, Any]:
 
 def eval_markdown(res: dict[str, Any]) -> str:
     """metrics.md of one run."""
+    from flamenerf.evaluation.control import RESPONDS
+
     p = res.get("protocol", {})
     L = [f"# Evaluation: {res.get('method')} ({res.get('preset')}, step {res.get('step')})", "",
          f"- run: `{res.get('run')}`",
@@ -196,6 +198,26 @@ def eval_markdown(res: dict[str, Any]) -> str:
               "*scene*: outside a generous region around the person, the static world; "
               "*face depth error*: median distance along the ray between the rendered depth "
               "and the frame's face mesh (scene units taken as metres)."]
+        rt = dr.get("retracked")
+        if rt and rt.get("controls"):
+            tr = rt["truth"]["controls"]
+            L += ["", f"**Driven, re-tracked**: the driven renders and the frames themselves "
+                  "re-tracked with MediaPipe's landmarker; gain and correlation against the "
+                  "frames' β over these frames, for the controls the training frames vary; "
+                  "*frames*: the same for the captured frames at this resolution (the most "
+                  f"a render can show). Responding (gain ≥ {RESPONDS[0]}, correlation ≥ "
+                  f"{RESPONDS[1]}): **{rt['responding']}** of {len(rt['controls'])} "
+                  f"(frames: {rt['truth']['responding']}).", "",
+                  "| control | gain | correlation | frames' gain | frames' correlation |",
+                  "|---|--:|--:|--:|--:|"]
+            for n, c in rt["controls"].items():
+                t = tr.get(n, {})
+                L.append(f"| {n} | {fmt(c['gain'])} | {fmt(c['correlation'])} | "
+                         f"{fmt(t.get('gain'))} | {fmt(t.get('correlation'))} |")
+            L.append(f"| **mean** | **{fmt(rt.get('mean_gain'))}** | "
+                     f"{fmt(rt.get('mean_correlation'))} | "
+                     f"{fmt(rt['truth'].get('mean_gain'))} | "
+                     f"{fmt(rt['truth'].get('mean_correlation'))} |")
     ct = res.get("control")
     if ct and ct.get("controls"):
         gt = any("gt_gain" in c for c in ct["controls"].values())
@@ -238,6 +260,11 @@ def eval_markdown(res: dict[str, Any]) -> str:
                  + (f" **{fmt(ct.get('mean_gain_with_companions'))}** | |" if comp else "")
                  + (f" **{fmt(ct.get('mean_landmark_gain'))}** | |" if geo else "")
                  + (f" **{fmt(ct.get('mean_mesh_gain'))}** |" if own else ""))
+        if ct.get("responding") is not None:
+            L.append(f"\nResponding (gain ≥ {RESPONDS[0]}, correlation ≥ {RESPONDS[1]}): "
+                     f"**{ct['responding']}** of {len(ct['controls'])}"
+                     + (f", with companions **{ct['responding_with_companions']}**"
+                        if "responding_with_companions" in ct else "") + ".")
         if ct.get("figure_rows"):
             L.append(f"\n`images/control.png`: the sweep's renders, one row per control "
                      f"(low to high): {', '.join(ct['figure_rows'])}.")
