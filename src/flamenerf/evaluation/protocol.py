@@ -347,14 +347,14 @@ def evaluate_run(run, ds: Dataset, opts: EvalOptions, out_dir: Path | None = Non
     for k in range(min(opts.num_images, fs.n)):
         images[f"{opts.split}_{k:02d}.png"] = _triptych(fs, k, preds[k])
     omega0, phi0 = run.frame_codes(0)
-    from flamenerf.evaluation.control import driven
+    from flamenerf.evaluation.control import driven, trackable_controls
 
     log(f"driven: {fs.n} {opts.split} frames with their own β and frame 0's codes")
     res["driven"], preds = driven(model, ds, fs, omega0, phi0, opts.chunk)
     res["driven"]["split"] = opts.split
     for k in range(min(opts.num_images, fs.n)):
         images[f"driven_{k:02d}.png"] = _triptych(fs, k, preds[k])
-    if opts.control and trackable(run.expression_names):
+    if opts.control and trackable_controls(run.expression_names):
         log(f"driven, re-tracked: {fs.n} renders and their frames")
         res["driven"]["retracked"] = driven_retracked(run, ds, fs, preds)
     leak_preds = None
@@ -390,13 +390,6 @@ def evaluate_run(run, ds: Dataset, opts: EvalOptions, out_dir: Path | None = Non
     if out_dir is not None:
         write_results(Path(out_dir), res, images)
     return res
-
-
-def trackable(names: list[str]) -> bool:
-    """Whether the landmarker reports any of an expression model's controls by name."""
-    from flamenerf.evaluation.control import trackable_controls
-
-    return bool(trackable_controls(names))
 
 
 def driven_retracked(run, ds: Dataset, fs: FrameSet, preds: list[np.ndarray]
