@@ -53,7 +53,8 @@ def eval(  # noqa: A001 - the subcommand's name
         leakage_dilate_px: Grow the face masks by this many pixels before measuring
             background change outside them.
         control: Measure the control response: renders re-tracked with MediaPipe's face
-            landmarker, gain and correlation of re-tracked vs commanded controls.
+            landmarker, gain and correlation of re-tracked vs commanded controls (a sweep
+            of each control, and the driven held-out renders against their frames' β).
         control_steps: Values per control in the control sweep (datasets without a
             leakage split).
         images: Number of held-out and re-animation frames saved as PNGs.

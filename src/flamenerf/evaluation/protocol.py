@@ -60,7 +60,8 @@ class EvalOptions:
     fit_lr: float = 1e-2
     seed: int = 0
     control: bool = True
-    """Measure the control response (re-tracks renders with MediaPipe's landmarker)."""
+    """Measure the control response (re-tracks renders with MediaPipe's landmarker): the
+    sweep, and the driven held-out renders against their frames' β."""
     control_steps: int = 5
     """Values per control in the control sweep (datasets without a leakage split)."""
     leakage_dilate_px: int = 3
