@@ -8,8 +8,7 @@ without a compiler the callers run their PyTorch (or SciPy) paths instead (with 
 Small C files called through ctypes, rather than a PyTorch C++ extension: both compile in
 1.4 s on the 2-core development machine (-march=native; 0.4 s portable), once per CPU and
 source, and need nothing beyond `cc` (an extension would compile torch's headers and need
-ninja). `FLAMENERF_CPU_KERNELS=0` turns
-them off (to compare, or to debug).
+ninja). `FLAMENERF_CPU_KERNELS=0` turns them off (to compare, or to debug).
 """
 
 from __future__ import annotations

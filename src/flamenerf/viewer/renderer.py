@@ -88,9 +88,10 @@ class RenderWorker:
         self.on_error = on_error
         self.settle_s = settle_s
         # rays per band: each band pays the per-image work once (the silhouette's mesh and
-        # the setup of its nearest-vertex queries) and is split among the CPU's threads (render_image); 16384 (a whole 128 px
-        # update) made it 0.31 -> 0.26 s on the 2-core CPU (8192 before, 4096 before that),
-        # still abandoning a stale image within ~0.25 s
+        # the setup of its nearest-vertex queries) and is split among the CPU's threads
+        # (render_image); 16384 (a whole 128 px update) made it 0.31 -> 0.26 s on the
+        # 2-core CPU (8192 before, 4096 before that), still abandoning a stale image within
+        # ~0.25 s
         self.band_rays = band_rays
         self.shared = Shared(expression=np.asarray(expression, np.float32).copy(),
                              height=int(height))
