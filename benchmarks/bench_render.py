@@ -241,6 +241,10 @@ def main() -> int:
     ap.add_argument("--frames", type=int, default=4, help="frames for the quality figure")
     ap.add_argument("--viewer-height", type=int, default=128)
     ap.add_argument("--threads", type=int, default=0)
+    ap.add_argument("--refine-main", type=int, default=-1,
+                    help="the trained run's second-pass samples for rays its main samples "
+                         "leave unfinished (model.sampler.refine_main; 0: no second pass; "
+                         "-1: the run's own), to time a frame with and without it")
     ap.add_argument("--out", type=Path, default=Path("docs/bench/render"))
     args = ap.parse_args()
     from flamenerf.runtime import reexec_with_tuned_allocator
@@ -284,6 +288,8 @@ def main() -> int:
         from flamenerf.training.run import load_run
 
         run = load_run(args.run, str(dev))
+        if args.refine_main >= 0:  # both renderers read it at render time
+            run.model.cfg.sampler.refine_main = args.refine_main
         ds = run.dataset(args.dataset)
         fr = ds.frames[0]
         omega, phi = run.frame_codes(0)
@@ -298,6 +304,7 @@ def main() -> int:
                                    phi, torch.as_tensor(fr.expression), run_masks, args.sizes,
                                    args.repeats, cap(run.model))
         res["run"] = str(args.run)
+        res["refine_main"] = run.model.cfg.sampler.refine_main
         res["quality"] = quality(run, ds, args.frames)
         q = res["quality"]
         print(f"quality: reference {q['reference_psnr']:.3f} dB, inference "

@@ -53,10 +53,10 @@ def heldout_psnr(model, ds, intr, frames, fit_steps, batch_rays):
 
 
 def quality_run(args, scene: Path, log) -> dict:
-    from flamenerf.config import preset
+    from flamenerf.config import override, parse_overrides, preset
     from flamenerf.training.trainer import Trainer
 
-    cfg = preset(args.quality_preset)
+    cfg = override(preset(args.quality_preset), parse_overrides(args.set))
     if args.steps:
         cfg.train.steps = args.steps
     if args.batch_rays:
@@ -94,7 +94,7 @@ def quality_run(args, scene: Path, log) -> dict:
         shutil.rmtree(args.keep_run, ignore_errors=True)
         shutil.move(str(run_dir / "run"), args.keep_run)
     shutil.rmtree(run_dir, ignore_errors=True)
-    return {"preset": args.quality_preset, "seed": args.seed, "batch_rays": cfg.train.batch_rays, "size": args.size, "budget_seconds": args.budget, "steps": t.step,
+    return {"preset": args.quality_preset, "set": args.set, "seed": args.seed, "batch_rays": cfg.train.batch_rays, "size": args.size, "budget_seconds": args.budget, "steps": t.step,
             "train_seconds": round(train_s, 1), "final_heldout_psnr": p, "final_heldout_mse": m,
             "val_frames": len(val), "final_fit_steps": args.final_fit_steps,
             "curve": curve, "curve_val_frames": len(sub), "curve_fit_steps": args.eval_fit_steps,
@@ -169,6 +169,9 @@ def main() -> int:
     ap.add_argument("--seed", type=int, default=0, help="the quality run's training seed")
     ap.add_argument("--batch-rays", type=int, default=0,
                     help="override the quality run's rays per step (0: the preset's)")
+    ap.add_argument("--set", default="",
+                    help="the quality run's configuration changes, `key=value,...` (e.g. "
+                         "model.warp.still_head_only=true): a variant timed as the preset is")
     ap.add_argument("--keep-run", type=Path, default=None,
                     help="keep the quality run (checkpoint at its last step) in this folder")
     ap.add_argument("--skip-quality", action="store_true")
