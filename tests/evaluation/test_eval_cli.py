@@ -119,3 +119,18 @@ def test_compare_names_a_missing_eval(tmp_path):
 def test_eval_of_a_missing_run_names_it(tmp_path):
     with pytest.raises(UserError, match="nope: run directory does not exist"):
         eval_cmd(tmp_path / "nope")
+
+
+def test_the_drive_report_counts_the_controls_at_the_bar():
+    from flamenerf.evaluation.report import eval_markdown
+
+    res = {"resolution": [8, 8], "drive": {
+        "video": "v.mp4", "frames": 3, "mean_correlation": 0.7, "mean_gain": 0.85,
+        "controls": {"jawOpen": {"correlation": 0.95, "gain": 0.8},
+                     "eyeBlinkLeft": {"correlation": 0.5, "gain": 0.9}},
+        "responding": 1, "ground_truth": {"controls": {}, "responding": 2, "mean_gain": 1.0,
+                                          "mean_correlation": 1.0}}}
+    text = eval_markdown(res)
+    assert "correlation ≥ 0.9: **1** of 2 (ground truth 2)." in text
+    del res["drive"]["ground_truth"]
+    assert "correlation ≥ 0.9: **1** of 2." in eval_markdown(res)

@@ -299,6 +299,12 @@ def eval_markdown(res: dict[str, Any]) -> str:
         if not dv["controls"]:
             L.append("\nThe driving video moves no control the landmarker reports enough to "
                      "measure.")
+        elif dv.get("responding") is not None:
+            L.append(f"\nControls with gain ≥ {RESPONDS[0]} and correlation ≥ {RESPONDS[1]}: "
+                     f"**{dv['responding']}** of {len(dv['controls'])}"
+                     + (f" (ground truth {gt['responding']})"
+                        if gt is not None and gt.get("responding") is not None else "")
+                     + ".")
         geo = (dv.get("geometry") or {}).get("measures")
         if geo:
             L += ["", "Openings from the landmarks (lip and lid gaps over the eye distance; "
