@@ -134,3 +134,17 @@ def test_the_drive_report_counts_the_controls_at_the_bar():
     assert "correlation ≥ 0.9: **1** of 2 (ground truth 2)." in text
     del res["drive"]["ground_truth"]
     assert "correlation ≥ 0.9: **1** of 2." in eval_markdown(res)
+
+
+def test_the_table_counts_controls_following_only_where_the_frames_show_them():
+    from flamenerf.evaluation.report import compare_markdown
+
+    def res(n: int, truth: int) -> dict:
+        return {"heldout": {"psnr": 30.0},
+                "driven": {"retracked": {"responding": n, "truth": {"responding": truth}}}}
+
+    head, _, a, b = compare_markdown([res(24, 27), res(2, 27)], ["fast", "nerfies"]).split("\n")[:4]
+    assert head.endswith("| Controls following ↑ |")
+    assert a.endswith("| **24** |") and b.endswith("| 2 |")
+    # the built-in head: the tracker reads none of its val expressions, frames included
+    assert "Controls following" not in compare_markdown([res(0, 0), res(0, 0)])

@@ -47,6 +47,17 @@ class Column:
     path: tuple[str, ...]
     format: Callable[[float | None], str]
     higher_is_better: bool
+    shown: Callable[[dict], bool] = lambda res: True
+    """Whether a run's value means something (else the cell is empty)."""
+
+    def get(self, res: dict) -> float | None:
+        return _get(res, *self.path) if self.shown(res) else None
+
+
+def _frames_respond(res: dict) -> bool:
+    # the tracker reads none of the built-in head's val expressions even from the frames
+    # themselves, so there every run reads 0 and the count says nothing about the model
+    return bool(_get(res, "driven", "retracked", "truth", "responding"))
 
 
 COLUMNS = [
@@ -64,10 +75,14 @@ COLUMNS = [
     Column("Driven PSNR scene ↑", ("driven", "psnr_scene"), fmt, True),
     Column("Driven PSNR expr. ↑", ("driven", "psnr_expressive"), fmt, True),
     Column("Control gain ↑", ("control", "mean_gain"), fmt, True),
+    Column("Controls following ↑", ("driven", "retracked", "responding"), lambda x: fmt(x, 0),
+           True, _frames_respond),
     Column("Leakage ↓", ("leakage", "mean"), fmt, False),
 ]
 """Table columns: the paper's two first (held-out MSE and PSNR), then ours. Leakage is
-the mean absolute background change on the 0-255 scale."""
+the mean absolute background change on the 0-255 scale. Controls following: of the controls
+the driven held-out renders are re-tracked for, how many meet issue 11's bar (`driven` →
+`retracked`), where the frames themselves show any."""
 
 
 def _best(values: list[float | None], higher: bool) -> float | None:
@@ -81,15 +96,15 @@ def compare_markdown(results: list[dict[str, Any]], labels: list[str] | None = N
     """A Markdown table of several runs' eval results, best value per column in bold.
     Columns no run has are left out."""
     labels = labels or [r.get("method", "?") for r in results]
-    cols = [c for c in COLUMNS if any(_get(r, *c.path) is not None for r in results)]
+    cols = [c for c in COLUMNS if any(c.get(r) is not None for r in results)]
     head = ["Method", "Preset", "Steps", *[c.title for c in cols]]
     rule = "|" + "|".join(["---"] * 3 + ["--:"] * len(cols)) + "|"
     lines = ["| " + " | ".join(head) + " |", rule]
-    bests = [_best([_get(r, *c.path) for r in results], c.higher_is_better) for c in cols]
+    bests = [_best([c.get(r) for r in results], c.higher_is_better) for c in cols]
     for lab, r in zip(labels, results):
         cells = [lab, str(r.get("preset", "")), str(r.get("step", ""))]
         for c, b in zip(cols, bests):
-            v = _get(r, *c.path)
+            v = c.get(r)
             s = c.format(v)
             if b is not None and v is not None and c.format(v) == c.format(b):
                 s = f"**{s}**"
@@ -101,8 +116,8 @@ def compare_markdown(results: list[dict[str, Any]], labels: list[str] | None = N
 def compare_latex(results: list[dict[str, Any]], labels: list[str] | None = None) -> str:
     """The same table as LaTeX (booktabs), best values in bold."""
     labels = labels or [r.get("method", "?") for r in results]
-    cols = [c for c in COLUMNS if any(_get(r, *c.path) is not None for r in results)]
-    bests = [_best([_get(r, *c.path) for r in results], c.higher_is_better) for c in cols]
+    cols = [c for c in COLUMNS if any(c.get(r) is not None for r in results)]
+    bests = [_best([c.get(r) for r in results], c.higher_is_better) for c in cols]
 
     def tex(s: str) -> str:
         return s.replace("↓", r"(\(\downarrow\))").replace("↑", r"(\(\uparrow\))")
@@ -112,7 +127,7 @@ def compare_latex(results: list[dict[str, Any]], labels: list[str] | None = None
     for lab, r in zip(labels, results):
         cells = [lab]
         for c, b in zip(cols, bests):
-            v = _get(r, *c.path)
+            v = c.get(r)
             s = c.format(v).replace("–", "--")
             if b is not None and v is not None and c.format(v) == c.format(b):
                 s = rf"\textbf{{{s}}}"
