@@ -222,3 +222,30 @@ def test_stale_synth_folders_are_removed_on_the_next_start(tmp_path, capsys):
     assert run_cli(capsys, "synth", tmp_path / "sk", *SYNTH)[0] == 0
     assert not stale.exists()
     assert other.exists() and theirs.exists()
+
+
+# ----------------------------------------------------------------------------- numbers
+
+
+@pytest.mark.parametrize("args, words", [
+    (["render", "{run}", "--fps", "nan"], ["--fps: must be a finite number"]),
+    (["render", "{run}", "--camera", "orbit", "--amplitude", "inf"], ["--amplitude: must be"]),
+    (["train", "{data}", "--out", "{tmp}/r", "--downscale", "nan"], ["--downscale: must be"]),
+    (["eval", "{run}", "--fit-lr", "-1"], ["--fit-lr -1.0: must be positive"]),
+    (["synth", "{tmp}/s", "--seed", "-1"], ["--seed -1"]),
+    (["demo", "--out", "{tmp}/d", "--train-size", "0"], ["--train-size 0", "--size"]),
+    (["demo", "--out", "{tmp}/d", "--steps", "0"], ["--steps 0"]),
+    (["bench", "--out", "{tmp}/afile", "--work", "{tmp}/w"], ["afile", "not a folder"]),
+    (["render", "{run}", "--camera", "{tmp}/flat.json"], ["flat.json", "pose 0 is not rigid"]),
+])
+def test_bad_numbers_are_one_line_before_any_work(args, words, toy_run, toy_dataset, tmp_path,
+                                                  capsys):
+    (tmp_path / "afile").write_text("mine")
+    (tmp_path / "flat.json").write_text(json.dumps([[[1, 0, 0, 0], [0, 1, 0, 0],
+                                                     [0, 0, 0, 0], [0, 0, 0, 1]]]))
+    args = [a.format(run=toy_run, data=toy_dataset, tmp=tmp_path) for a in args]
+    rc, err = run_cli(capsys, *args)
+    assert rc == 2
+    one_line(err, "flamenerf: error:", *words)
+    # nothing was made: no scene for the demo or the synth, no run, no bench work
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["afile", "flat.json"]

@@ -32,8 +32,49 @@ def available_commands() -> dict:
             if e.name == f"flamenerf.commands.{name}":
                 continue  # not built yet
             raise
-        cmds[name] = getattr(mod, name)
+        cmds[name] = _finite_floats(getattr(mod, name))
     return cmds
+
+
+def _non_finite(value, flag: str) -> str | None:
+    """The flag of the first float in `value` (an argument, an options dataclass's fields,
+    a list's items) that is NaN or infinite, else None."""
+    import dataclasses
+    import math
+
+    if isinstance(value, float):
+        return flag if not math.isfinite(value) else None
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        for f in dataclasses.fields(value):
+            bad = _non_finite(getattr(value, f.name), "--" + f.name.replace("_", "-"))
+            if bad:
+                return bad
+    if isinstance(value, (list, tuple)):
+        return next(filter(None, (_non_finite(v, flag) for v in value)), None)
+    return None
+
+
+def _finite_floats(command):
+    """`command`, refusing NaN and infinite numbers in any of its float options with one
+    line (tyro parses "nan" and "inf" as floats; no option here means either)."""
+    import functools
+    import inspect
+
+    sig = inspect.signature(command)
+
+    @functools.wraps(command)
+    def checked(*args, **kwargs):
+        from flamenerf.errors import UserError
+
+        bound = sig.bind(*args, **kwargs)
+        for name, value in bound.arguments.items():
+            # an options dataclass's fields are flags of their own (OmitArgPrefixes)
+            bad = _non_finite(value, "--" + name.replace("_", "-"))
+            if bad:
+                raise UserError(f"{bad}: must be a finite number")
+        return command(*args, **kwargs)
+
+    return checked
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -156,6 +156,15 @@ def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.eye(3) + K + K @ K * ((1 - float(a @ b)) / s2 if s2 > 1e-24 else 0.5)
 
 
+def is_rigid(m: np.ndarray, tol: float) -> np.ndarray:
+    """Whether 4x4 matrices m (..., 4, 4) are rigid transforms: an orthonormal rotation with
+    det +1 and a last row 0 0 0 1, each within `tol`. -> (...) bool."""
+    R = m[..., :3, :3]
+    off = np.abs(np.swapaxes(R, -1, -2) @ R - np.eye(3)).max((-1, -2))
+    last = np.abs(m[..., 3, :] - [0, 0, 0, 1]).max(-1)
+    return (off <= tol) & (last <= tol) & (np.linalg.det(R) > 0)
+
+
 def umeyama(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
     """Similarity (s, R, t) minimising Σ |s R src + t - dst|² over points src, dst (N, 3)
     (Umeyama 1991)."""

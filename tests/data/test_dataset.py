@@ -49,6 +49,43 @@ def test_corrupted_transforms_is_a_dataset_error_naming_the_file(dataset_dir, tm
         load_dataset(bad)
 
 
+def test_cameras_expressions_and_frame_indices_are_validated(dataset_dir, tmp_path):
+    import shutil
+
+    bad = tmp_path / "bad"
+    shutil.copytree(dataset_dir, bad)
+    tj = bad / "transforms.json"
+    meta = json.loads(tj.read_text())
+    for field, value, msg in (
+            ("transform_matrix", [[0, 0, 0, 0], [0, 0, 0, 0], [0, 0, 0, 0.5], [0, 0, 0, 1]],
+             "transform_matrix must be rigid"),
+            ("transform_matrix", np.diag([1.0, 1, -1, 1]).tolist(), "must be rigid"),
+            ("expression", [float("nan")] * len(CONTROLS), "not a finite number"),
+            ("frame_index", 10 ** 6, "frame_index 1000000 must be below")):
+        m = json.loads(json.dumps(meta))
+        m["frames"][1][field] = value
+        tj.write_text(json.dumps(m))
+        with pytest.raises(DatasetError, match=f"frames\\[1\\]: .*{msg}"):
+            load_dataset(bad)
+
+
+def test_sixteen_bit_images_read_on_the_same_scale(dataset_dir, tmp_path):
+    import shutil
+
+    import imageio.v3 as iio
+
+    wide = tmp_path / "wide"
+    shutil.copytree(dataset_dir, wide)
+    ds = load_dataset(wide)
+    f = ds.frames[0]
+    grey = iio.imread(wide / f.file_path)[..., 1]  # PNG writers take 16 bits as grey only
+    iio.imwrite(wide / f.file_path, grey)
+    eight = ds.load_image(f)
+    iio.imwrite(wide / f.file_path, grey.astype(np.uint16) * 257)  # the same picture
+    sixteen = load_dataset(wide).load_image(f)
+    assert np.allclose(sixteen, eight, atol=1e-6) and 0.2 < eight.mean() < 0.9
+
+
 def test_head_pose_is_optional_validated_and_all_or_none(toy_dataset, tmp_path):
     import shutil
 

@@ -36,6 +36,11 @@ def bench(opts: Annotated[BenchOptions, tyro.conf.OmitArgPrefixes, tyro.conf.arg
         raise UserError(f"--scene-size {opts.scene_size}: must be at least 16")
     if opts.fit_steps is not None and opts.fit_steps < 0:
         raise UserError(f"--fit-steps {opts.fit_steps}: must be >= 0")
+    if not 0 <= opts.seed < 2 ** 63:
+        raise UserError(f"--seed {opts.seed}: must be in 0..2^63-1")
+    # checked before the slow work: the report is written only at the end
+    if opts.out.exists() and not opts.out.is_dir():
+        raise UserError(f"--out {opts.out}: is a file, not a folder")
     rep = run_bench(opts)
     print()
     print(compare_markdown(list(rep["results"].values())), end="")

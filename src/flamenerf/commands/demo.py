@@ -34,6 +34,14 @@ def demo(
     """
     from flamenerf.commands.render import render
     from flamenerf.commands.synth import synth
+    from flamenerf.errors import UserError
+
+    # before the scene is made: a bad training option would otherwise stop the demo later
+    for flag, v in (("--steps", steps), ("--batch-rays", batch_rays)):
+        if v < 1:
+            raise UserError(f"{flag} {v}: must be at least 1")
+    if not 1 <= train_size <= size:
+        raise UserError(f"--train-size {train_size}: must be in 1..{size} (--size)")
     from flamenerf.rendering.videos import RenderOptions
     from flamenerf.config import preset
     from flamenerf.training.checkpoint import latest_checkpoint

@@ -81,6 +81,8 @@ def eval(  # noqa: A001 - the subcommand's name
     set_threads(threads)
     if fit_batch_rays <= 0:
         raise UserError(f"--fit-batch-rays {fit_batch_rays}: must be positive")
+    if not fit_lr > 0:
+        raise UserError(f"--fit-lr {fit_lr}: must be positive")
     if drive is not None and not Path(drive).is_file():
         raise UserError(f"--drive {drive}: no such file")
     if drive_frames < 3:

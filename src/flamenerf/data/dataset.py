@@ -38,6 +38,7 @@ from typing import Any
 import numpy as np
 
 from flamenerf.errors import UserError
+from flamenerf.geometry import is_rigid
 
 FORMAT_VERSION = 1
 
@@ -136,7 +137,9 @@ class Dataset:
         img = _read_png(self.root / frame.file_path, self.intrinsics)
         if img.ndim == 2:
             img = np.repeat(img[..., None], 3, axis=-1)
-        return img[..., :3].astype(np.float32) / 255.0
+        # 8- or 16-bit integers (a 16-bit PNG read as 8-bit would train on garbage)
+        top = np.iinfo(img.dtype).max if np.issubdtype(img.dtype, np.integer) else 1.0
+        return img[..., :3].astype(np.float32) / np.float32(top)
 
     def load_mask(self, frame: Frame) -> np.ndarray:
         """(H, W) bool, True on the face-model silhouette."""
@@ -271,6 +274,7 @@ def _flat(values):
 
 
 HEAD_POSE_TOL = 1e-4  # how far a head pose's rotation may be from orthonormal
+CAMERA_TOL = 1e-3  # ... and a camera's (files written by other tools in single precision)
 
 
 def _face_landmarks(meta: dict, where: str, num_vertices: int) -> dict[str, list[int]] | None:
@@ -303,9 +307,7 @@ def _head_pose(fr: dict, w: str) -> np.ndarray | None:
     m = _numbers(raw, np.float64) if isinstance(raw, list) else None
     if m is None or m.shape != (4, 4) or not np.all(np.isfinite(m)):
         raise DatasetError(f"{w}: head_pose must be a finite 4x4 matrix of numbers")
-    R = m[:3, :3]
-    if (np.abs(R.T @ R - np.eye(3)).max() > HEAD_POSE_TOL or np.linalg.det(R) < 0
-            or np.abs(m[3] - [0, 0, 0, 1]).max() > HEAD_POSE_TOL):
+    if not is_rigid(m, HEAD_POSE_TOL):
         raise DatasetError(f"{w}: head_pose must be rigid (a rotation, a translation and a "
                            "last row 0 0 0 1)")
     return m
@@ -361,16 +363,24 @@ def load_dataset(root: str | os.PathLike, check_files: bool = True) -> Dataset:
         c2w = _numbers(_require(fr, "transform_matrix", w, list), np.float64)
         if c2w is None or c2w.shape != (4, 4) or not np.all(np.isfinite(c2w)):
             raise DatasetError(f"{w}: transform_matrix must be a finite 4x4 matrix of numbers")
+        if not is_rigid(c2w, CAMERA_TOL):
+            raise DatasetError(f"{w}: transform_matrix must be rigid (a rotation, a "
+                               "translation and a last row 0 0 0 1)")
         expr = _numbers(_require(fr, "expression", w, list), np.float32)
         if expr is None:
             raise DatasetError(f"{w}: expression must be a flat list of numbers")
-        if expr.shape != (dim,) or not np.all(np.isfinite(expr)):
+        if expr.shape != (dim,):
             raise DatasetError(
                 f"{w}: expression has {expr.size} values, expression_model names {dim}"
             )
+        if not np.all(np.isfinite(expr)):
+            raise DatasetError(f"{w}: expression holds a value that is not a finite number")
         fi = fr.get("frame_index")
         if fi is not None and (not isinstance(fi, int) or fi < 0):
             raise DatasetError(f"{w}: frame_index must be a non-negative integer or null")
+        if fi is not None and fi >= len(raw_frames):  # it sizes the per-frame code tables
+            raise DatasetError(f"{w}: frame_index {fi} must be below the number of frames "
+                               f"({len(raw_frames)})")
         known = {"file_path", "mask_path", "depth_path", "transform_matrix", "expression",
                  "frame_index", "head_pose"}
         frames.append(

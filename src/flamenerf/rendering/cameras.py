@@ -43,10 +43,10 @@ from pathlib import Path
 
 import numpy as np
 
-from flamenerf.data.dataset import Dataset, reference_position
+from flamenerf.data.dataset import CAMERA_TOL, Dataset, reference_position
 from flamenerf.data.head_pose import canonical_from_world, transform_points
 from flamenerf.errors import UserError
-from flamenerf.geometry import rotation_between
+from flamenerf.geometry import is_rigid, rotation_between
 from flamenerf.io import read_json
 
 PATH_KINDS = ("static", "orbit", "spiral", "dolly")
@@ -304,6 +304,10 @@ def load_poses(path: str | Path) -> np.ndarray:
         raise UserError(f"{path}: poses contain non-finite values")
     if poses.shape[1] == 3:
         poses = np.concatenate([poses, np.tile([[[0, 0, 0, 1.0]]], (len(poses), 1, 1))], 1)
+    bad = np.flatnonzero(~is_rigid(poses, CAMERA_TOL))
+    if len(bad):
+        raise UserError(f"{path}: pose {bad[0]} is not rigid (a rotation, a translation and a "
+                        "last row 0 0 0 1)")
     return poses
 
 
