@@ -249,3 +249,14 @@ def test_bad_numbers_are_one_line_before_any_work(args, words, toy_run, toy_data
     one_line(err, "flamenerf: error:", *words)
     # nothing was made: no scene for the demo or the synth, no run, no bench work
     assert sorted(p.name for p in tmp_path.iterdir()) == ["afile", "flat.json"]
+
+
+def test_resume_says_which_settings_it_ignores(toy_dataset, tmp_path, capsys):
+    run = tmp_path / "run"
+    assert main(["train", str(toy_dataset), "--out", str(run), "--steps", "1"]) == 0
+    capsys.readouterr()
+    assert main(["train", str(toy_dataset), "--out", str(run), "--steps", "2", "--resume",
+                 "--preset", "nerfies", "--batch-rays", "64"]) == 0
+    out = capsys.readouterr().out
+    assert "ignored: --preset nerfies, --batch-rays 64" in out
+    assert json.loads((run / "config.json").read_text())["preset"] == "fast"

@@ -109,6 +109,12 @@ def test_compare_prints_a_table(evaluated, tmp_path, capsys):
     assert out.read_text() == text.split("wrote")[0]
     compare([evaluated / "metrics.json"], latex=True)
     assert r"\toprule" in capsys.readouterr().out
+    # as every command: an existing output is replaced only when asked
+    with pytest.raises(UserError, match="table.md: already exists.*--overwrite"):
+        compare([evaluated / "metrics.json"], out=out)
+    assert out.read_text() == text.split("wrote")[0]
+    compare([evaluated / "metrics.json"], labels=["C"], out=out, overwrite=True)
+    assert "| C |" in out.read_text()
 
 
 def test_compare_names_a_missing_eval(tmp_path):

@@ -292,3 +292,46 @@ def test_corrupt_latest_checkpoint_falls_back_to_the_previous(tiny_scene, tmp_pa
     t.fit()
     assert [p.name for p in checkpoints(run)] == ["step-000000004.ckpt", "step-000000006.ckpt"]
     assert load_run(run).step == 6
+
+
+# ----------------------------------------------------------------------------- damaged runs
+
+
+def test_a_damaged_config_json_is_one_line_naming_it(tiny_scene, tmp_path):
+    import json
+    import shutil
+
+    run = tmp_path / "run"
+    trainer(tiny_scene, run, 2).fit()
+    meta = json.loads((run / "config.json").read_text())
+    bad = tmp_path / "bad"
+    for edit, msg in ((lambda m: [], "no 'config' object"),
+                      (lambda m: {**m, "dataset": None}, "'dataset' missing"),
+                      (lambda m: {**m, "config": {**m["config"], "model": None}}, "damaged"),
+                      (lambda m: {**m, "config": {**m["config"], "train": {
+                          **m["config"]["train"], "downscale": 0}}}, "downscale 0")):
+        shutil.rmtree(bad, ignore_errors=True)
+        shutil.copytree(run, bad)
+        (bad / "config.json").write_text(json.dumps(edit(meta)))
+        with pytest.raises(UserError, match=f"bad/config.json: .*{msg}"):
+            load_run(bad)
+        with pytest.raises(UserError, match=f"bad/config.json: .*{msg}"):
+            trainer(tiny_scene, bad, 3, resume=True)
+
+
+def test_a_checkpoint_of_another_run_is_refused(tiny_scene, toy_dataset, tmp_path):
+    run, other = tmp_path / "run", tmp_path / "other"
+    trainer(tiny_scene, run, 2).fit()
+    trainer(toy_dataset, other, 2).fit()  # another dataset: other frame and mesh counts
+    stray = checkpoints(other)[-1]
+    (run / "checkpoints" / "step-000000009.ckpt").write_bytes(stray.read_bytes())
+    with pytest.raises(UserError, match="step-000000009.ckpt: not this run's checkpoint"):
+        load_run(run)
+
+
+def test_resume_with_another_dataset_is_refused(tiny_scene, toy_dataset, tmp_path):
+    run = tmp_path / "run"
+    trainer(tiny_scene, run, 2).fit()
+    with pytest.raises(UserError, match="was trained on .*, not .*resume it with that dataset"):
+        trainer(toy_dataset, run, 3, resume=True)
+    assert trainer(tiny_scene, run, 3, resume=True).step == 2

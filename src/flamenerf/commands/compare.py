@@ -13,6 +13,7 @@ def compare(
     labels: list[str] | None = None,
     out: Path | None = None,
     latex: bool = False,
+    overwrite: bool = False,
 ) -> None:
     """Compare evaluated runs side by side, in the layout of the paper's Table 1.
 
@@ -29,6 +30,7 @@ def compare(
         labels: One label per run, replacing the method names.
         out: Also write the table to this file (Markdown, or LaTeX with --latex).
         latex: Print a LaTeX (booktabs) table instead of Markdown.
+        overwrite: Replace --out if it exists.
     """
     from flamenerf.errors import UserError
     from flamenerf.evaluation.report import compare_latex, compare_markdown, load_eval
@@ -38,6 +40,10 @@ def compare(
         raise UserError("give at least one run directory")
     if labels is not None and len(labels) != len(runs):
         raise UserError(f"--labels: got {len(labels)} labels for {len(runs)} runs")
+    if out is not None and out.is_dir():
+        raise UserError(f"--out {out}: is a folder; give a file name")
+    if out is not None and out.exists() and not overwrite:
+        raise UserError(f"{out}: already exists (pass --overwrite to replace it)")
     results = [load_eval(r) for r in runs]
     table = (compare_latex if latex else compare_markdown)(results, labels)
     print(table, end="")

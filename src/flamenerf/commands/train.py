@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import inspect
+import json
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -151,6 +152,14 @@ def train(
               "step in fewer steps (docs/presets.md)")
     if ranks.main and not resume:
         note_missing_landmarks(dataset)
+    if ranks.main and resume:
+        _note_ignored(out, preset, {
+            "--size": size, "--downscale": downscale, "--batch-rays": batch_rays,
+            "--accumulate": accumulate, "--face-reg-weight": face_reg_weight,
+            "--face-depth-weight": face_depth_weight, "--expression-mode": expression_mode,
+            "--head-region-scale": head_region_scale, "--head-band": head_band,
+            "--detail-levels": detail_levels, "--random-background": random_background,
+            "--view-dependent": view_dependent, "--bf16": bf16, "--seed": seed})
     res = run_train(dataset, out, cfg, resume=resume, device=device, steps=steps)
     if not ranks.main:  # rank 0 speaks for the job
         if res.interrupted:
@@ -197,3 +206,23 @@ def note_missing_landmarks(dataset) -> None:
         print(f"note: {dataset} names no face landmarks (made by an older `flamenerf synth`): "
               "its controls are fitted without face parts and the mesh guide stays off; "
               "make it again with `flamenerf synth` for both (docs/synthetic_scene.md)")
+
+
+def _note_ignored(out: Path, preset: str, flags: dict[str, Any]) -> None:
+    """On --resume the run keeps its own settings: say which of the given ones it ignores."""
+    from flamenerf.training.checkpoint import latest_checkpoint
+
+    if latest_checkpoint(out) is None:
+        return  # nothing to resume: the flags make the run
+    try:
+        kept = json.loads((out / "config.json").read_text()).get("preset")
+    except (OSError, ValueError, AttributeError):
+        return  # the trainer reports a damaged config.json
+    ignored = [f"{k} {v}" for k, v in flags.items() if v is not None]
+    # (the default preset cannot be told from one given: only another one is named)
+    if kept is not None and preset not in (kept, inspect.signature(train).parameters["preset"]
+                                           .default):
+        ignored.insert(0, f"--preset {preset}")
+    if ignored:
+        print(f"note: --resume continues {out} with its own settings; ignored: "
+              f"{', '.join(ignored)} (only --steps changes a resumed run)")

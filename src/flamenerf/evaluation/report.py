@@ -95,7 +95,7 @@ def _best(values: list[float | None], higher: bool) -> float | None:
 def compare_markdown(results: list[dict[str, Any]], labels: list[str] | None = None) -> str:
     """A Markdown table of several runs' eval results, best value per column in bold.
     Columns no run has are left out."""
-    labels = labels or [r.get("method", "?") for r in results]
+    labels = labels or [str(r.get("method", "?")) for r in results]
     cols = [c for c in COLUMNS if any(c.get(r) is not None for r in results)]
     head = ["Method", "Preset", "Steps", *[c.title for c in cols]]
     rule = "|" + "|".join(["---"] * 3 + ["--:"] * len(cols)) + "|"
@@ -115,7 +115,7 @@ def compare_markdown(results: list[dict[str, Any]], labels: list[str] | None = N
 
 def compare_latex(results: list[dict[str, Any]], labels: list[str] | None = None) -> str:
     """The same table as LaTeX (booktabs), best values in bold."""
-    labels = labels or [r.get("method", "?") for r in results]
+    labels = labels or [str(r.get("method", "?")) for r in results]
     cols = [c for c in COLUMNS if any(c.get(r) is not None for r in results)]
     bests = [_best([c.get(r) for r in results], c.higher_is_better) for c in cols]
 

@@ -213,8 +213,12 @@ def convert_legacy(path: Path) -> bool:
     except LegacyCheckpoint:
         pass
     st = torch.load(path, map_location="cpu", weights_only=False)
-    kind, keys, pos, has_gauss, gauss = st["numpy_rng"]
-    version, mt, gauss_next = st["python_rng"]
+    try:
+        kind, keys, pos, has_gauss, gauss = st["numpy_rng"]
+        version, mt, gauss_next = st["python_rng"]
+    except (TypeError, KeyError, ValueError):
+        raise UserError(f"{path}: not a flamenerf checkpoint (no random-number states of "
+                        "flamenerf 0.1)") from None
     st["numpy_rng"] = {"kind": str(kind), "keys": torch.from_numpy(keys.astype(np.int64)),
                        "pos": int(pos), "has_gauss": int(has_gauss), "gauss": float(gauss)}
     st["python_rng"] = {"version": int(version), "state": torch.tensor(mt, dtype=torch.int64),
@@ -232,5 +236,8 @@ def load_model_state(model: torch.nn.Module, state: dict[str, Any], path: Path) 
         model.load_state_dict(state)
     except RuntimeError as e:
         first = next((ln.strip() for ln in str(e).splitlines()[1:] if ln.strip()), str(e))
-        raise UserError(f"{path}: checkpoint does not fit this version's model ({first}); "
-                        "it was written by an older flamenerf: train the run again") from None
+        if len(first) > 160:
+            first = first[:157] + "..."
+        raise UserError(f"{path}: checkpoint does not fit the run's model ({first}); it was "
+                        "copied from another run, or written by an older flamenerf (then "
+                        "train the run again)") from None

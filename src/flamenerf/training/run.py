@@ -60,6 +60,23 @@ class Run:
         return w[0].detach(), a[0].detach()
 
 
+def run_config(meta: Any, where: Path) -> Config:
+    """The configuration a run's config.json (`meta`, as read from `where`) holds, checked
+    as far as loading the run needs; a one-line UserError naming the file otherwise."""
+    if not isinstance(meta, dict) or not isinstance(meta.get("config"), dict):
+        raise UserError(f"{where}: damaged (no 'config' object)")
+    for key, kind in (("dataset", str), ("expression_names", list)):
+        if not isinstance(meta.get(key), kind):
+            raise UserError(f"{where}: damaged ('{key}' missing or not a {kind.__name__})")
+    try:
+        cfg = from_dict(meta["config"])
+        if not cfg.train.downscale > 0:
+            raise ValueError(f"train.downscale {cfg.train.downscale!r} is not positive")
+    except (TypeError, ValueError, KeyError, AttributeError) as e:
+        raise UserError(f"{where}: damaged ({e})") from None
+    return cfg
+
+
 def load_run(run_dir: str | Path, device: str = "auto") -> Run:
 
     run_dir = Path(run_dir)
@@ -71,14 +88,25 @@ def load_run(run_dir: str | Path, device: str = "auto") -> Run:
     if not (run_dir / "config.json").is_file():
         raise UserError(f"{run_dir}: not a run directory (no config.json; give the folder "
                         "`flamenerf train --out` made)")
-    meta = read_json(run_dir / "config.json")
+    where = run_dir / "config.json"
+    meta = read_json(where)
+    cfg = run_config(meta, where)
     found = load_latest(run_dir)  # skips an unreadable newest checkpoint, with a warning
     if found is None:
         raise UserError(f"{run_dir}: no checkpoint in {run_dir / 'checkpoints'} (not a trained run?)")
     ck, state = found
-    cfg = from_dict(meta["config"])
+    mine, theirs = meta.get("model_args") or {}, state["model_args"]
+    differ = [k for k in ("num_codes", "expr_dim", "mesh_vertices", "mesh_faces")
+              if k in mine and mine[k] != theirs.get(k)]
+    if differ:
+        raise UserError(f"{ck}: not this run's checkpoint ({differ[0]} {theirs.get(differ[0])}, "
+                        f"{where.name} says {mine[differ[0]]}; copied from another run?)")
     dev = pick_device(device)
-    model = FlameNeRF(cfg.model, **state["model_args"], background=cfg.train.render_background)
+    try:
+        model = FlameNeRF(cfg.model, **theirs, background=cfg.train.render_background)
+    except (TypeError, ValueError) as e:
+        raise UserError(f"{ck}: does not fit the model {where.name} describes ({e}; copied "
+                        "from another run?)") from None
     load_model_state(model, state["model"], ck)
     model.to(dev).eval()
     model.update_to_step(int(state["step"]), cfg.train.steps)

@@ -13,7 +13,7 @@ from pathlib import Path
 import torch
 
 from flamenerf import __version__
-from flamenerf.config import Config, from_dict
+from flamenerf.config import Config
 from flamenerf.data.dataset import Dataset, load_dataset
 from flamenerf.data.scene import (FrameSet, expression_model_residual, face_pixel_resolution,
                                   fit_dataset_expression_model,
@@ -24,6 +24,7 @@ from flamenerf.io import atomic_write_text, read_json
 from flamenerf.model.flame_nerf import FlameNeRF
 from flamenerf.model.mlp import bf16_pays, bf16_training
 from flamenerf.outdir import clean_stale_temps, writable_dir
+from flamenerf.training.run import run_config
 from flamenerf.training.checkpoint import (LEGACY_TEMP, latest_checkpoint, load_latest,
                                            load_model_state, rng_states, save_checkpoint,
                                            set_rng_states)
@@ -198,8 +199,14 @@ class Trainer:
                 raise UserError(f"{self.run_dir}: already holds a run (pass --resume to "
                                 "continue it, or choose another --out)")
             if resume and ck is not None:
-                saved = read_json(self.run_dir / "config.json")
-                return from_dict(saved["config"]), True  # a resumed run keeps its own config
+                where = self.run_dir / "config.json"
+                saved = read_json(where)
+                cfg_saved = run_config(saved, where)  # a resumed run keeps its own config
+                before, given = Path(saved["dataset"]), Path(dataset).resolve()
+                if before.exists() and before.resolve() != given:  # (a moved one is fine)
+                    raise UserError(f"{self.run_dir}: was trained on {before}, not {given}; "
+                                    "resume it with that dataset (or train a new run)")
+                return cfg_saved, True
             # decided once, here, and stored: a measurement must not change a run's numbers
             cfg.train.bf16 = cfg.train.bf16 and self.device.type == "cpu" and bf16_pays()
             return cfg, False
