@@ -237,6 +237,11 @@ def test_stale_synth_folders_are_removed_on_the_next_start(tmp_path, capsys):
     (["demo", "--out", "{tmp}/d", "--steps", "0"], ["--steps 0"]),
     (["bench", "--out", "{tmp}/afile", "--work", "{tmp}/w"], ["afile", "not a folder"]),
     (["render", "{run}", "--camera", "{tmp}/flat.json"], ["flat.json", "pose 0 is not rigid"]),
+    (["render", "{run}", "--camera", "{tmp}"], ["is a folder; give the camera path file"]),
+    (["render", "{run}", "--expressions", "jawOpen=1,jawOpen=0"], ["jawOpen is given twice"]),
+    (["train", "{tmp}/afile", "--out", "{tmp}/r"], ["afile: is a file"]),
+    (["train", "{data}", "--out", "{tmp}/r", "--face-reg-weight", "-1"], ["--face-reg-weight"]),
+    (["convert", "{tmp}/nope"], ["nope: run directory does not exist"]),
 ])
 def test_bad_numbers_are_one_line_before_any_work(args, words, toy_run, toy_dataset, tmp_path,
                                                   capsys):

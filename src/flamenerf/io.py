@@ -81,6 +81,8 @@ def read_json(path: str | os.PathLike, what: str | None = None) -> Any:
     """Parse a JSON file; a missing, unreadable or malformed file is a one-line UserError
     naming it (`what`: the kind of file, for the message)."""
     path = Path(path)
+    if path.is_dir():
+        raise UserError(f"{path}: is a folder; give the {what or 'file'} itself")
     if not path.is_file():
         raise UserError(f"{path}: {what} does not exist" if what else f"{path}: file is missing")
     try:

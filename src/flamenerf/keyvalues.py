@@ -37,5 +37,7 @@ def parse_assignments(item: str, names: list[str], where: str, kind: str = "name
             raise UserError(f"{where} {item!r}: {val!r} is not a number") from None
         if not math.isfinite(v):
             raise UserError(f"{where} {item!r}: {name} must be finite")
+        if name in out:
+            raise UserError(f"{where} {item!r}: {name} is given twice")
         out[name] = v
     return out

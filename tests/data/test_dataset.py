@@ -47,6 +47,10 @@ def test_corrupted_transforms_is_a_dataset_error_naming_the_file(dataset_dir, tm
     tj.write_text(json.dumps(meta))
     with pytest.raises(DatasetError, match="transforms.json"):
         load_dataset(bad)
+    meta = json.loads((dataset_dir / "transforms.json").read_text())
+    tj.write_text(json.dumps({**meta, "format_version": 99}))
+    with pytest.raises(DatasetError, match="transforms.json: format_version 99 is newer"):
+        load_dataset(bad)
 
 
 def test_cameras_expressions_and_frame_indices_are_validated(dataset_dir, tmp_path):

@@ -30,6 +30,8 @@ def convert(
 
     if run.exists() and not run.is_dir():
         raise UserError(f"{run}: is a file; give the run directory made by `flamenerf train`")
+    if not run.exists():
+        raise UserError(f"{run}: run directory does not exist")
     cks = checkpoints(run)
     if not cks:
         raise UserError(f"{run}: no checkpoints in {run / 'checkpoints'}")

@@ -64,6 +64,8 @@ def synth(
         raise UserError(f"--size {size}: must be between 16 and 4096")
     if frames < 1:
         raise UserError(f"--frames {frames}: must be at least 1")
+    if workers < 0:
+        raise UserError(f"--workers {workers}: must be 0 (one per core) or more")
     if not 0 <= seed < 2 ** 63:
         raise UserError(f"--seed {seed}: must be in 0..2^63-1")
     if reanimate is not None and reanimate < 0:

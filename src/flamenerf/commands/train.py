@@ -136,6 +136,8 @@ def train(
         raise UserError(f"--seed {seed}: must be in 0..2^63-1")
     if detail_levels is not None and detail_levels < 0:
         raise UserError(f"--detail-levels {detail_levels}: must be 0 or more")
+    if face_reg_weight is not None and not face_reg_weight >= 0:
+        raise UserError(f"--face-reg-weight {face_reg_weight}: must be 0 or more")
     if face_depth_weight is not None and not face_depth_weight >= 0:
         raise UserError(f"--face-depth-weight {face_depth_weight}: must be 0 or more")
     override(cfg, {"train.batch_rays": batch_rays, "train.face_reg_weight": face_reg_weight,

@@ -317,6 +317,9 @@ def load_dataset(root: str | os.PathLike, check_files: bool = True) -> Dataset:
     """Read and validate a dataset; any problem becomes one DatasetError naming the file."""
     root = Path(root)
     tj = root / "transforms.json"
+    if root.exists() and not root.is_dir():
+        raise DatasetError(f"{root}: is a file; give the dataset directory (the folder "
+                           "holding transforms.json)")
     if not root.is_dir():
         raise DatasetError(f"{root}: dataset directory does not exist")
     if not tj.exists():
@@ -328,6 +331,10 @@ def load_dataset(root: str | os.PathLike, check_files: bool = True) -> Dataset:
     if not isinstance(meta, dict):
         raise DatasetError(f"{tj}: top level must be a JSON object")
     where = str(tj)
+    version = meta.get("format_version", FORMAT_VERSION)
+    if not isinstance(version, int) or version > FORMAT_VERSION:
+        raise DatasetError(f"{where}: format_version {version!r} is newer than this "
+                           f"flamenerf reads ({FORMAT_VERSION}); update flamenerf")
     num = (int, float)
     intr = Intrinsics(
         w=int(_require(meta, "w", where, int)),
