@@ -93,13 +93,12 @@ def eval(  # noqa: A001 - the subcommand's name
                     ("--leakage-dilate-px", leakage_dilate_px)):
         if v is not None and v < 0:
             raise UserError(f"{name} {v}: must be >= 0")
-    out_dir = out if out is not None else Path(run) / "eval"
-    if Path(run).is_dir():  # else load_run says what is wrong with RUN
-        from flamenerf.outdir import writable_dir
+    from flamenerf.outdir import writable_dir
 
-        writable_dir(out_dir, "evaluation")  # before minutes of fitting, not after
-    r = load_run(run, device)
+    out_dir = out if out is not None else Path(run) / "eval"
+    r = load_run(run, device)  # first: a folder that is no run gets no eval/ folder
     ds = r.dataset(dataset, captured_directions)
+    writable_dir(out_dir, "evaluation")  # before minutes of fitting, not after
     if fit_steps is None:
         fit_steps = 2000 if r.device.type == "cuda" else 300
     opts = EvalOptions(split=split, fit_steps=fit_steps, fit_batch_rays=fit_batch_rays,
