@@ -96,7 +96,7 @@ def load_run(run_dir: str | Path, device: str = "auto") -> Run:
         raise UserError(f"{run_dir}: no checkpoint in {run_dir / 'checkpoints'} (not a trained run?)")
     ck, state = found
     mine, theirs = meta.get("model_args"), state["model_args"]
-    mine = mine if isinstance(mine, dict) else {}  # runs of flamenerf 0.1 have none
+    mine = mine if isinstance(mine, dict) else {}  # absent or damaged: nothing to compare
     differ = [k for k in ("num_codes", "expr_dim", "mesh_vertices", "mesh_faces")
               if k in mine and mine[k] != theirs.get(k)]
     if differ:
