@@ -229,6 +229,7 @@ def test_stale_synth_folders_are_removed_on_the_next_start(tmp_path, capsys):
 
 @pytest.mark.parametrize("args, words", [
     (["render", "{run}", "--fps", "nan"], ["--fps: must be a finite number"]),
+    (["render", "{run}", "--fps", "0"], ["--fps 0.0: must be positive"]),
     (["render", "{run}", "--camera", "orbit", "--amplitude", "inf"], ["--amplitude: must be"]),
     (["train", "{data}", "--out", "{tmp}/r", "--downscale", "nan"], ["--downscale: must be"]),
     (["eval", "{run}", "--fit-lr", "-1"], ["--fit-lr -1.0: must be positive"]),

@@ -123,6 +123,8 @@ class RenderOptions:
             raise UserError(f"--max-frames {self.max_frames}: must be at least 1")
         if self.chunk < 0:
             raise UserError(f"--chunk {self.chunk}: must be positive (or 0: automatic)")
+        if self.fps is not None and not self.fps > 0:
+            raise UserError(f"--fps {self.fps}: must be positive")
         if self.dilate_px is not None and self.dilate_px < 0:
             raise UserError(f"--dilate-px {self.dilate_px}: must be >= 0")
 
