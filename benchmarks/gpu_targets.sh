@@ -13,8 +13,9 @@
 #
 #   on the GPU machine (its python3 has torch and Triton; nothing is installed):
 #       bash benchmarks/gpu_targets.sh
-#   a variant of the preset, timed as the preset is (bench_train.py --set):
-#       SET=model.warp.still_head_only=true bash benchmarks/gpu_targets.sh
+#   a variant of the preset, timed as the preset is (bench_train.py --set; first see on a
+#   CPU whether it keeps the quality per step: docs/presets.md, fast-gpu on a CPU):
+#       SET=train.lr_final=2e-3 bash benchmarks/gpu_targets.sh
 #   here, to check the script itself on a CPU in a few minutes (tiny sizes):
 #       SMOKE=1 OUT=/tmp/gpu_targets bash benchmarks/gpu_targets.sh
 set -euo pipefail
