@@ -15,7 +15,7 @@
 #       bash benchmarks/gpu_targets.sh
 #   a variant of the preset, timed as the preset is (bench_train.py --set; first see on a
 #   CPU whether it keeps the quality per step: docs/presets.md, fast-gpu on a CPU):
-#       SET=train.lr_final=2e-3 bash benchmarks/gpu_targets.sh
+#       SET=KEY=VALUE,KEY=VALUE bash benchmarks/gpu_targets.sh
 #   here, to check the script itself on a CPU in a few minutes (tiny sizes):
 #       SMOKE=1 OUT=/tmp/gpu_targets bash benchmarks/gpu_targets.sh
 set -euo pipefail
