@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import inspect
-import json
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -212,14 +211,17 @@ def note_missing_landmarks(dataset) -> None:
 
 def _note_ignored(out: Path, preset: str, flags: dict[str, Any]) -> None:
     """On --resume the run keeps its own settings: say which of the given ones it ignores."""
+    from flamenerf.errors import UserError
+    from flamenerf.io import read_json
     from flamenerf.training.checkpoint import latest_checkpoint
 
     if latest_checkpoint(out) is None:
         return  # nothing to resume: the flags make the run
     try:
-        kept = json.loads((out / "config.json").read_text()).get("preset")
-    except (OSError, ValueError, AttributeError):
+        meta = read_json(out / "config.json")
+    except UserError:
         return  # the trainer reports a damaged config.json
+    kept = meta.get("preset") if isinstance(meta, dict) else None
     ignored = [f"{k} {v}" for k, v in flags.items() if v is not None]
     # (the default preset cannot be told from one given: only another one is named)
     if kept is not None and preset not in (kept, inspect.signature(train).parameters["preset"]
