@@ -57,6 +57,20 @@ def test_train_bad_option_or_output_is_one_line(args, words, toy_dataset, tmp_pa
     assert not (tmp_path / "run" / "checkpoints").exists()
 
 
+def test_a_train_that_fails_to_start_leaves_no_empty_output(toy_dataset, tmp_path, capsys):
+    ds = tmp_path / "ds"
+    shutil.copytree(toy_dataset, ds)
+    image = sorted((ds / "images").iterdir())[0]
+    image.write_bytes(image.read_bytes()[:40])  # read when the frames load, after the check
+    (tmp_path / "kept").mkdir()
+    for out in (tmp_path / "new" / "run", tmp_path / "kept"):
+        rc, err = run_cli(capsys, "train", ds, "--out", out)
+        assert rc == 2
+        one_line(err, image.name, "not a readable image")
+    assert not (tmp_path / "new").exists()  # made by the command: removed with its parent
+    assert (tmp_path / "kept").is_dir()  # the user's own (empty) folder stays
+
+
 # ----------------------------------------------------------------------------- datasets
 
 
@@ -86,6 +100,16 @@ def _frame0(key, value):
     (_frame0("transform_matrix", [["1", 0, 0, 0]] * 4), ["frames[0]", "transform_matrix"]),
     (_frame0("expression", ["x"] * 14), ["frames[0]", "expression", "numbers"]),
     (_frame0("expression", [[0.0, 1.0], [0.0]]), ["frames[0]", "expression", "numbers"]),
+    # finite but absurd: 1e30 trained on garbage, 1e308 overflowed into a traceback
+    (_set("far", 1e308), ["far=1e+308", "metres"]),
+    (_set("fl_x", 1e308), ["fl_x=1e+308", "times the image size"]),
+    (lambda m: m["frames"][0]["transform_matrix"][0].__setitem__(3, 1e30),
+     ["frames[0]", "transform_matrix", "1e+30 m"]),
+    (lambda m: m["frames"][0]["expression"].__setitem__(0, 1e308),
+     ["frames[0]", "expression holds 1e+308"]),
+    (lambda m: m["frames"][0].__setitem__(
+        "head_pose", [[1, 0, 0, 0], [0, 1, 0, -3e4], [0, 0, 1, 0], [0, 0, 0, 1]]),
+     ["frames[0]", "head_pose", "3e+04 m"]),
 ])
 def test_bad_numbers_in_transforms_json_are_one_line(edit, words, toy_dataset, tmp_path):
     ds = edited(toy_dataset, tmp_path, edit)

@@ -83,6 +83,25 @@ def writable_dir(path: Path, what: str) -> Path:
     return path
 
 
+def missing_folders(path: Path) -> list[Path]:
+    """The folders that making `path` would create, deepest first (none if it exists)."""
+    path, out = Path(path).absolute(), []
+    while not path.exists() and path != path.parent:
+        out.append(path)
+        path = path.parent
+    return out
+
+
+def remove_if_empty(folders: list[Path]) -> None:
+    """Remove those of `folders` (deepest first) that hold nothing: what a command made for
+    an output it then failed to write."""
+    for f in folders:
+        try:
+            f.rmdir()
+        except OSError:
+            return  # not empty, or not ours to remove: the folders above it stay too
+
+
 def _is_dataset(path: Path) -> bool:
     try:
         meta = json.loads((path / "transforms.json").read_text())

@@ -90,6 +90,33 @@ def test_sixteen_bit_images_read_on_the_same_scale(dataset_dir, tmp_path):
     assert np.allclose(sixteen, eight, atol=1e-6) and 0.2 < eight.mean() < 0.9
 
 
+def test_alpha_is_composited_over_black_and_said_once(dataset_dir, tmp_path, capsys):
+    import shutil
+
+    import imageio.v3 as iio
+
+    cut = tmp_path / "cut"
+    shutil.copytree(dataset_dir, cut)
+    ds = load_dataset(cut)
+    f, g = ds.frames[:2]
+    rgb = iio.imread(cut / f.file_path)[..., :3]
+    alpha = np.zeros(rgb.shape[:2], np.uint8)
+    alpha[:, : rgb.shape[1] // 2] = 255  # the left half kept, the right half cut away
+    for frame in (f, g):
+        iio.imwrite(cut / frame.file_path, np.dstack([rgb, alpha]))
+    img = ds.load_image(f)
+    assert img.shape == rgb.shape
+    assert np.allclose(img[:, : rgb.shape[1] // 2], rgb[:, : rgb.shape[1] // 2] / 255)
+    assert img[:, rgb.shape[1] // 2:].max() == 0 and rgb[:, rgb.shape[1] // 2:].max() > 0
+    ds.load_image(g)
+    err = capsys.readouterr().err
+    assert err.count("alpha channel") == 1 and f.file_path in err
+    iio.imwrite(cut / f.file_path, np.dstack([rgb[..., 0], alpha]))  # grey with alpha
+    grey = ds.load_image(f)
+    assert grey.shape == rgb.shape and np.allclose(grey[..., 0], grey[..., 2])
+    assert np.allclose(grey[:, 0, 0], rgb[:, 0, 0] / 255)
+
+
 def test_head_pose_is_optional_validated_and_all_or_none(toy_dataset, tmp_path):
     import shutil
 
@@ -137,3 +164,18 @@ def test_face_landmarks_are_validated(dataset_dir, tmp_path):
     del meta["face_landmarks"]  # optional
     tj.write_text(json.dumps(meta))
     assert load_dataset(copy).face_landmarks is None
+
+
+def test_face_mesh_vertices_must_be_finite_and_in_range(dataset_dir, tmp_path):
+    import shutil
+
+    copy = tmp_path / "copy"
+    shutil.copytree(dataset_dir, copy)
+    with np.load(copy / "face_mesh.npz") as z:
+        faces, verts = z["faces"], z["vertices"].astype(np.float64)
+    for bad in (np.nan, 1e308):
+        v = verts.copy()
+        v[0, 0, 0] = bad
+        np.savez(copy / "face_mesh.npz", faces=faces, vertices=v)
+        with pytest.raises(DatasetError, match="face_mesh.npz: 'vertices' must be finite"):
+            load_dataset(copy)

@@ -37,7 +37,7 @@ from typing import Any
 
 import numpy as np
 
-from flamenerf.errors import UserError
+from flamenerf.errors import UserError, warn
 from flamenerf.geometry import is_rigid
 
 FORMAT_VERSION = 1
@@ -134,12 +134,20 @@ class Dataset:
 
     def load_image(self, frame: Frame) -> np.ndarray:
         """(H, W, 3) float32 in [0, 1]."""
-        img = _read_png(self.root / frame.file_path, self.intrinsics)
+        path = self.root / frame.file_path
+        img = _read_png(path, self.intrinsics)
         if img.ndim == 2:
-            img = np.repeat(img[..., None], 3, axis=-1)
+            img = img[..., None]
         # 8- or 16-bit integers (a 16-bit PNG read as 8-bit would train on garbage)
         top = np.iinfo(img.dtype).max if np.issubdtype(img.dtype, np.integer) else 1.0
-        return img[..., :3].astype(np.float32) / np.float32(top)
+        img = img.astype(np.float32) / np.float32(top)
+        if img.shape[-1] in (2, 4):  # grey or RGB with alpha
+            # what a cut-out hides is often leftover colour: over black it is nothing
+            if self.root not in _ALPHA_NOTED:
+                _ALPHA_NOTED.add(self.root)
+                warn(f"{path}: has an alpha channel; frames are composited over black")
+            img = img[..., :-1] * img[..., -1:]
+        return np.repeat(img, 3, axis=-1) if img.shape[-1] == 1 else img[..., :3]
 
     def load_mask(self, frame: Frame) -> np.ndarray:
         """(H, W) bool, True on the face-model silhouette."""
@@ -225,6 +233,9 @@ def reference_position(ds: Dataset) -> int:
     return ds.splits["train"][0]
 
 
+_ALPHA_NOTED: set[Path] = set()  # datasets whose alpha was announced (once each)
+
+
 def _read_png(path: Path, intr: Intrinsics) -> np.ndarray:
     import imageio.v3 as iio
 
@@ -275,6 +286,12 @@ def _flat(values):
 
 HEAD_POSE_TOL = 1e-4  # how far a head pose's rotation may be from orthonormal
 CAMERA_TOL = 1e-3  # ... and a camera's (files written by other tools in single precision)
+# Beyond these a value is a broken file, not a scene: positions and depths are metres, a
+# control is about 0..1 (blendshapes) or a few units (FLAME), and a focal length a thousand
+# image widths is a 0.06-degree view. (1e30 trained silently on garbage; 1e308 overflowed.)
+MAX_METRES = 1e4
+MAX_CONTROL = 1e3
+MAX_FOCAL_WIDTHS = 1e3
 
 
 def _face_landmarks(meta: dict, where: str, num_vertices: int) -> dict[str, list[int]] | None:
@@ -310,7 +327,14 @@ def _head_pose(fr: dict, w: str) -> np.ndarray | None:
     if not is_rigid(m, HEAD_POSE_TOL):
         raise DatasetError(f"{w}: head_pose must be rigid (a rotation, a translation and a "
                            "last row 0 0 0 1)")
+    _check_position(m, w, "head_pose")
     return m
+
+
+def _check_position(m: np.ndarray, w: str, field: str) -> None:
+    if np.abs(m[:3, 3]).max() > MAX_METRES:
+        raise DatasetError(f"{w}: {field} puts it {np.abs(m[:3, 3]).max():.3g} m from the "
+                           f"origin (more than {MAX_METRES:g} m: positions are metres)")
 
 
 def load_dataset(root: str | os.PathLike, check_files: bool = True) -> Dataset:
@@ -349,12 +373,16 @@ def load_dataset(root: str | os.PathLike, check_files: bool = True) -> Dataset:
     if not (np.isfinite([intr.fx, intr.fy]).all() and intr.fx > 0 and intr.fy > 0):
         raise DatasetError(f"{where}: focal lengths fl_x={intr.fx}, fl_y={intr.fy} must be "
                            "positive")
+    if max(intr.fx / intr.w, intr.fy / intr.h) > MAX_FOCAL_WIDTHS:
+        raise DatasetError(f"{where}: focal lengths fl_x={intr.fx:.3g}, fl_y={intr.fy:.3g} are "
+                           f"more than {MAX_FOCAL_WIDTHS:g} times the image size")
     if not np.isfinite([intr.cx, intr.cy]).all():
         raise DatasetError(f"{where}: principal point cx={intr.cx}, cy={intr.cy} must be finite")
     near = float(_require(meta, "near", where, num))
     far = float(_require(meta, "far", where, num))
-    if not (0 <= near < far < np.inf):
-        raise DatasetError(f"{where}: need 0 <= near < far, got near={near}, far={far}")
+    if not (0 <= near < far <= MAX_METRES):
+        raise DatasetError(f"{where}: need 0 <= near < far <= {MAX_METRES:g} (metres), got "
+                           f"near={near:g}, far={far:g}")
     em = _require(meta, "expression_model", where, dict)
     names = _require(em, "names", f"{where} expression_model", list)
     kind = str(em.get("kind", "unknown"))
@@ -373,7 +401,9 @@ def load_dataset(root: str | os.PathLike, check_files: bool = True) -> Dataset:
         if not is_rigid(c2w, CAMERA_TOL):
             raise DatasetError(f"{w}: transform_matrix must be rigid (a rotation, a "
                                "translation and a last row 0 0 0 1)")
-        expr = _numbers(_require(fr, "expression", w, list), np.float32)
+        _check_position(c2w, w, "transform_matrix")
+        # read in double: a float32 cast would turn 1e308 into inf with a numpy warning
+        expr = _numbers(_require(fr, "expression", w, list), np.float64)
         if expr is None:
             raise DatasetError(f"{w}: expression must be a flat list of numbers")
         if expr.shape != (dim,):
@@ -382,6 +412,10 @@ def load_dataset(root: str | os.PathLike, check_files: bool = True) -> Dataset:
             )
         if not np.all(np.isfinite(expr)):
             raise DatasetError(f"{w}: expression holds a value that is not a finite number")
+        if np.abs(expr).max(initial=0) > MAX_CONTROL:
+            raise DatasetError(f"{w}: expression holds {expr[np.abs(expr).argmax()]:.3g}, "
+                               f"beyond the +-{MAX_CONTROL:g} any control is taken to mean")
+        expr = expr.astype(np.float32)
         fi = fr.get("frame_index")
         if fi is not None and (not isinstance(fi, int) or fi < 0):
             raise DatasetError(f"{w}: frame_index must be a non-negative integer or null")
@@ -431,7 +465,8 @@ def load_dataset(root: str | os.PathLike, check_files: bool = True) -> Dataset:
     try:
         with np.load(mesh_path, allow_pickle=False) as z:
             faces = z["faces"].astype(np.int32)
-            verts = z["vertices"].astype(np.float32)
+            with np.errstate(over="ignore", invalid="ignore"):  # too large: refused below
+                verts = z["vertices"].astype(np.float32)
     except KeyError as e:
         raise DatasetError(f"{mesh_path}: missing array {e}") from None
     except Exception as e:  # noqa: BLE001
@@ -444,6 +479,9 @@ def load_dataset(root: str | os.PathLike, check_files: bool = True) -> Dataset:
         )
     if faces.size and (faces.min() < 0 or faces.max() >= verts.shape[1]):
         raise DatasetError(f"{mesh_path}: 'faces' index vertices out of range")
+    if not (np.isfinite(verts).all() and np.abs(verts).max(initial=0) <= MAX_METRES):
+        raise DatasetError(f"{mesh_path}: 'vertices' must be finite and within {MAX_METRES:g} m "
+                           "of the origin")
 
     landmarks = _face_landmarks(meta, where, verts.shape[1])
     ds = Dataset(
