@@ -100,6 +100,7 @@ def _frame0(key, value):
     (_frame0("transform_matrix", [["1", 0, 0, 0]] * 4), ["frames[0]", "transform_matrix"]),
     (_frame0("expression", ["x"] * 14), ["frames[0]", "expression", "numbers"]),
     (_frame0("expression", [[0.0, 1.0], [0.0]]), ["frames[0]", "expression", "numbers"]),
+    (lambda m: m["expression_model"].__setitem__("dim", 5), ["dim 5 but 3 names"]),
     # finite but absurd: 1e30 trained on garbage, 1e308 overflowed into a traceback
     (_set("far", 1e308), ["far=1e+308", "metres"]),
     (_set("fl_x", 1e308), ["fl_x=1e+308", "times the image size"]),

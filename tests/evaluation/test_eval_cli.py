@@ -122,6 +122,16 @@ def test_compare_names_a_missing_eval(tmp_path):
         compare([tmp_path])
 
 
+def test_compare_refuses_a_newer_metrics_format(evaluated, tmp_path):
+    import json
+
+    d = json.loads((evaluated / "metrics.json").read_text())
+    d["version"] = 99
+    (tmp_path / "metrics.json").write_text(json.dumps(d))
+    with pytest.raises(UserError, match="metrics.json: version 99 is newer"):
+        compare([tmp_path / "metrics.json"])
+
+
 def test_eval_of_a_missing_run_names_it(tmp_path):
     with pytest.raises(UserError, match="nope: run directory does not exist"):
         eval_cmd(tmp_path / "nope")

@@ -49,7 +49,7 @@ def test_control_transform_turns_the_head_about_its_centre():
     assert (M[:3, :3] @ nose + M[:3, 3])[0] > 0.04  # yaw > 0 turns the face towards +x
     rows, keyframes = head_pose_items(["yaw=20,pitch=-5", "roll=3"])
     assert keyframes and np.allclose(rows, [[20, -5, 0, 0, 0, 0], [0, 0, 3, 0, 0, 0]])
-    for bad in ("yaw", "yaw=x", "tilt=3"):
+    for bad in ("yaw", "yaw=x", "tilt=3", "yaw=1e9", "x=2"):
         with pytest.raises(UserError, match="--head-pose"):
             head_pose_items([bad])
 

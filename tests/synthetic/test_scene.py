@@ -258,6 +258,9 @@ def test_cli_synth(tmp_path):
     assert (out / "transforms.json").exists()
     assert main(["synth", str(out), "--size", "24", "--frames", "2"]) == 2  # exists
     assert main(["synth", str(tmp_path / "h"), "--head-motion", "--sway", "1"]) == 2
+    for sway in ("-5", "90"):
+        assert main(["synth", str(tmp_path / "s"), "--sway", sway]) == 2
+    assert not (tmp_path / "s").exists()
 
 
 def test_intrinsics_frame_the_head():

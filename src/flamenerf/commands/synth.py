@@ -60,6 +60,8 @@ def synth(
     elif head_motion and sway != 0:
         raise UserError(f"--sway {sway}: with --head-motion the room is the static world; "
                         "leave --sway out (or give 0)")
+    if not 0 <= sway <= 10:  # a few degrees is the scene's idea; 90 turns the room away
+        raise UserError(f"--sway {sway:g}: must be in 0..10 (degrees)")
     if size < 16 or size > 4096:
         raise UserError(f"--size {size}: must be between 16 and 4096")
     if frames < 1:

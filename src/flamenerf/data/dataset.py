@@ -387,6 +387,8 @@ def load_dataset(root: str | os.PathLike, check_files: bool = True) -> Dataset:
     names = _require(em, "names", f"{where} expression_model", list)
     kind = str(em.get("kind", "unknown"))
     dim = len(names)
+    if em.get("dim", dim) != dim:  # one of them was edited: which the frames follow is a guess
+        raise DatasetError(f"{where}: expression_model dim {em['dim']!r} but {dim} names")
     raw_frames = _require(meta, "frames", where, list)
     if not raw_frames:
         raise DatasetError(f"{where}: 'frames' is empty")

@@ -135,8 +135,14 @@ def parse_head_key(item: str, where: str = "--head-pose") -> HeadPoseKey:
     """`yaw=20,pitch=-5` (degrees; x, y, z in metres) -> a HeadPoseKey."""
     from flamenerf.keyvalues import parse_assignments
 
-    return HeadPoseKey(**parse_assignments(item, list(HeadPoseKey.__dataclass_fields__),
-                                           where))
+    key = HeadPoseKey(**parse_assignments(item, list(HeadPoseKey.__dataclass_fields__),
+                                          where))
+    # a head turned more than a full turn or moved a metre has left the scene it was filmed in
+    for name, v in vars(key).items():
+        top, unit = (360, "degrees") if name in ("yaw", "pitch", "roll") else (1, "m")
+        if not abs(v) <= top:
+            raise UserError(f"{where}: {name}={v:g} is beyond +-{top} {unit}")
+    return key
 
 
 def key_array(key: HeadPoseKey) -> np.ndarray:

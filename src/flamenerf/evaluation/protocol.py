@@ -39,11 +39,10 @@ import torch
 from flamenerf.data.dataset import Dataset
 from flamenerf.data.scene import FrameSet
 from flamenerf.evaluation import metrics as M
+from flamenerf.evaluation.report import FORMAT, VERSION
 from flamenerf.model.flame_nerf import FlameNeRF
 from flamenerf.model.render_image import render_image
 
-FORMAT = "flamenerf-eval"
-VERSION = 1
 
 METHOD_NAMES = {"masked": "FLAME-in-NeRF", "none": "Nerfies", "everywhere": "No prior"}
 """Method label of a run, from its model's `expression_mode`."""

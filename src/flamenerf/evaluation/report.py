@@ -12,6 +12,9 @@ from typing import Any, Callable
 from flamenerf.data.captured_views import MAX_ANGLE_DEG
 from flamenerf.errors import UserError
 
+FORMAT = "flamenerf-eval"  # metrics.json, written by evaluation/protocol.py
+VERSION = 1
+
 
 def fmt_mse(x: float | None) -> str:
     """The paper's style: 2.045e-3."""
@@ -152,8 +155,12 @@ def load_eval(path: str | Path) -> dict[str, Any]:
         d = json.loads(p.read_text())
     except json.JSONDecodeError as e:
         raise UserError(f"{p}: invalid JSON at line {e.lineno} ({e.msg})") from None
-    if not isinstance(d, dict) or d.get("format") != "flamenerf-eval":
-        raise UserError(f"{p}: not a flamenerf eval result (no \"format\": \"flamenerf-eval\")")
+    if not isinstance(d, dict) or d.get("format") != FORMAT:
+        raise UserError(f"{p}: not a flamenerf eval result (no \"format\": \"{FORMAT}\")")
+    version = d.get("version", VERSION)
+    if not isinstance(version, int) or version > VERSION:
+        raise UserError(f"{p}: version {version!r} is newer than this flamenerf reads "
+                        f"({VERSION}); update flamenerf")
     return d
 
 
