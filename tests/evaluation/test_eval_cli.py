@@ -126,10 +126,11 @@ def test_compare_refuses_a_newer_metrics_format(evaluated, tmp_path):
     import json
 
     d = json.loads((evaluated / "metrics.json").read_text())
-    d["version"] = 99
-    (tmp_path / "metrics.json").write_text(json.dumps(d))
-    with pytest.raises(UserError, match="metrics.json: version 99 is newer"):
-        compare([tmp_path / "metrics.json"])
+    for version, words in ((99, "version 99 is newer"), ("1", "version '1' is not a version")):
+        d["version"] = version
+        (tmp_path / "metrics.json").write_text(json.dumps(d))
+        with pytest.raises(UserError, match=f"metrics.json: {words}"):
+            compare([tmp_path / "metrics.json"])
 
 
 def test_eval_of_a_missing_run_names_it(tmp_path):

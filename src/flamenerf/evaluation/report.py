@@ -158,8 +158,10 @@ def load_eval(path: str | Path) -> dict[str, Any]:
     if not isinstance(d, dict) or d.get("format") != FORMAT:
         raise UserError(f"{p}: not a flamenerf eval result (no \"format\": \"{FORMAT}\")")
     version = d.get("version", VERSION)
-    if not isinstance(version, int) or version > VERSION:
-        raise UserError(f"{p}: version {version!r} is newer than this flamenerf reads "
+    if not isinstance(version, int) or isinstance(version, bool):
+        raise UserError(f"{p}: version {version!r} is not a version number")
+    if version > VERSION:
+        raise UserError(f"{p}: version {version} is newer than this flamenerf reads "
                         f"({VERSION}); update flamenerf")
     return d
 
