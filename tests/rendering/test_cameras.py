@@ -152,6 +152,11 @@ def test_load_poses_formats_and_errors(tmp_path):
     (tmp_path / "bad.json").write_text(json.dumps([[1, 2, 3]]))
     with pytest.raises(UserError, match="bad.json: poses must be"):
         C.load_poses(tmp_path / "bad.json")
+    away = eye.copy()
+    away[2, 3] = 1e30  # finite, rigid, and nowhere near the scene
+    (tmp_path / "far.json").write_text(json.dumps([eye.tolist(), away.tolist()]))
+    with pytest.raises(UserError, match="far.json: pose 1 is more than 10000 m"):
+        C.load_poses(tmp_path / "far.json")
     with pytest.raises(UserError, match="missing.json: camera path file does not exist"):
         C.load_poses(tmp_path / "missing.json")
     assert len(C.resample(np.zeros((3, 4, 4)), 7)) == 7

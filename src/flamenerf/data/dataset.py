@@ -331,8 +331,14 @@ def _head_pose(fr: dict, w: str) -> np.ndarray | None:
     return m
 
 
+def too_far(m: np.ndarray) -> np.ndarray:
+    """Whether poses m (..., 4, 4) put their origin more than MAX_METRES (along an axis) from
+    the world's: a broken file, not a scene. -> (...) bool."""
+    return np.abs(m[..., :3, 3]).max(-1) > MAX_METRES
+
+
 def _check_position(m: np.ndarray, w: str, field: str) -> None:
-    if np.abs(m[:3, 3]).max() > MAX_METRES:
+    if too_far(m):
         raise DatasetError(f"{w}: {field} puts it {np.abs(m[:3, 3]).max():.3g} m from the "
                            f"origin (more than {MAX_METRES:g} m: positions are metres)")
 

@@ -43,7 +43,7 @@ from pathlib import Path
 
 import numpy as np
 
-from flamenerf.data.dataset import CAMERA_TOL, Dataset, reference_position
+from flamenerf.data.dataset import CAMERA_TOL, MAX_METRES, Dataset, reference_position, too_far
 from flamenerf.data.head_pose import canonical_from_world, transform_points
 from flamenerf.errors import UserError
 from flamenerf.geometry import is_rigid, rotation_between
@@ -308,6 +308,10 @@ def load_poses(path: str | Path) -> np.ndarray:
     if len(bad):
         raise UserError(f"{path}: pose {bad[0]} is not rigid (a rotation, a translation and a "
                         "last row 0 0 0 1)")
+    far = np.flatnonzero(too_far(poses))
+    if len(far):
+        raise UserError(f"{path}: pose {far[0]} is more than {MAX_METRES:g} m from the origin "
+                        "(positions are metres)")
     return poses
 
 
