@@ -36,8 +36,27 @@ CHECK = textwrap.dedent("""
         gk.hashgrid_forward(grid, x, buf[:, 3:3 + L * F])
         assert (buf[:, 3:3 + L * F] - ref).abs().max() < 1e-6
         assert bool((buf[:, :3] == 5).all() and (buf[:, 3 + L * F:] == 5).all())
+        # half precision stored by the kernel itself (the GPU inference path's features)
+        half = torch.full((700, L * F + 2), 5.0, dtype=torch.float16)
+        grid.encode_into(x, half[:, 1:1 + L * F])
+        assert (half[:, 1:1 + L * F].float() - ref).abs().max() < 2e-3 * ref.abs().max()
+        assert bool((half[:, 0] == 5).all() and (half[:, -1] == 5).all())
         grid.tables[0].data.add_(0.5)  # a table changed between calls (a training step)
         assert (gk.hashgrid_forward(grid, x) - grid.forward_grouped(x)).abs().max() < 1e-6
+
+    # the expression fields' contraction inside the kernel: Σ_r z_r G_r(x) per level,
+    # ranks and widths with and without padding
+    for L, R, Fe in ((3, 8, 2), (2, 3, 2), (2, 4, 1)):
+        grid = HashGrid(L, R * Fe, 10, 4, 32)
+        for t in grid.tables:
+            t.data.uniform_(-1, 1)
+        x, z = torch.rand(300, 3), torch.randn(300, R)
+        z = z.half()  # as autocast gives it
+        ref = torch.matmul(z.float()[:, None, None, :],
+                           grid.forward_grouped(x).view(-1, L, R, Fe)).reshape(-1, L * Fe)
+        got = gk.hashgrid_contract(grid, x, z, Fe)
+        assert got.shape == ref.shape and got.dtype == torch.float32
+        assert (got - ref).abs().max() < 1e-5 * max(1.0, float(ref.abs().max()))
 
     # k nearest vertices of each point's own mesh: the k-d tree's answer
     g = torch.Generator().manual_seed(1)

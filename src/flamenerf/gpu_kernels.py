@@ -1,5 +1,6 @@
 """Triton kernels for GPUs: the hash grid's encoding without autograd (every level in one
-kernel), and the k nearest mesh vertices of many points.
+kernel; for the expression feature fields contracted with each point's projected β in the
+same kernel), and the k nearest mesh vertices of many points.
 
 On a GPU, `HashGrid.forward_grouped` builds each corner's index and weight as separate
 PyTorch tensors (G, N) and gathers them with `index_select`: an H100 spent most of a
@@ -75,8 +76,9 @@ def _define() -> dict:
 
     @triton.jit
     def hashgrid_fwd(x_ptr, table_ptr, res_ptr, dense_ptr, offset_ptr, out_ptr, n,
-                     out_stride, hash_mask, col0,
-                     F: tl.constexpr, FP: tl.constexpr, BLOCK: tl.constexpr):
+                     out_stride, hash_mask, col0, z_ptr,
+                     F: tl.constexpr, FP: tl.constexpr, BLOCK: tl.constexpr,
+                     RANK: tl.constexpr, FE: tl.constexpr):
         lv = tl.program_id(1)
         rows = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
         ok = rows < n
@@ -112,8 +114,19 @@ def _define() -> dict:
             f = tl.load(table_ptr + idx[:, None] * F + feats[None, :],
                         mask=ok[:, None] & fok[None, :], other=0.0)
             acc += f.to(tl.float32) * w[:, None]
-        dst = out_ptr + rows[:, None] * out_stride + col0 + lv * F + feats[None, :]
-        tl.store(dst, acc.to(out_ptr.dtype.element_ty), mask=ok[:, None] & fok[None, :])
+        if RANK == 0:
+            dst = out_ptr + rows[:, None] * out_stride + col0 + lv * F + feats[None, :]
+            tl.store(dst, acc.to(out_ptr.dtype.element_ty), mask=ok[:, None] & fok[None, :])
+        else:
+            # a level's F = RANK·FE features as (RANK, FE), contracted with the point's
+            # z (RANK,): out[lv·FE + e] = Σ_r z_r acc[r·FE + e]
+            z = tl.load(z_ptr + rows[:, None] * RANK + feats[None, :] // FE,
+                        mask=ok[:, None] & fok[None, :], other=0.0).to(tl.float32)
+            acc = acc * z
+            for e in tl.static_range(FE):
+                col = tl.sum(tl.where((feats % FE == e)[None, :], acc, 0.0), 1)
+                tl.store(out_ptr + rows * out_stride + col0 + lv * FE + e,
+                         col.to(out_ptr.dtype.element_ty), mask=ok)
 
     @triton.jit
     def knn(p_ptr, v_ptr, which_ptr, d_ptr, i_ptr, n, V: tl.constexpr,
@@ -175,14 +188,38 @@ def hashgrid_forward(grid, x: Tensor, out: Tensor | None = None, col0: int = 0
         col0 = 0
     if n == 0:
         return out
-    table, res, dense, offsets = _flat_layout(grid)
-    block = 128 if F <= 4 else 32
-    fp = 1 << (F - 1).bit_length()
-    if not _launch("hashgrid", (triton_cdiv(n, block), L), x.detach().float().contiguous(),
-                   table, res, dense, offsets, out, n, out.stride(0), grid.size - 1, col0,
-                   F=F, FP=fp, BLOCK=block):
+    if not _hashgrid(grid, x, out, col0, None, 0):
         return None
     return out
+
+
+def hashgrid_contract(grid, x: Tensor, z: Tensor, features: int) -> Tensor | None:
+    """Σ_r z_r G_r(x) at each level of `grid`, whose F = rank·features features per level
+    are read as (rank, features) (the expression feature fields, model/field.py):
+    x (N, 3) in [0, 1]^3, z (N, rank) -> (N, L·features) float32; None where the kernel
+    failed. The grid's (N, L·F) features are never written: for the expression fields that
+    is 8x the contracted output, and the small batched product over them was ~5 % of an
+    H100's 512 px frame (aten::bmm in docs/bench/gpu_h100_20261126_prof512.txt)."""
+    n, L = x.shape[0], grid.levels
+    rank = grid.features // features
+    assert rank * features == grid.features and z.shape == (n, rank), (z.shape, grid.features)
+    out = torch.empty(n, L * features, dtype=torch.float32, device=x.device)
+    if n and not _hashgrid(grid, x, out, 0, z.contiguous(), features):
+        return None
+    return out
+
+
+def _hashgrid(grid, x: Tensor, out: Tensor, col0: int, z: Tensor | None, fe: int) -> bool:
+    table, res, dense, offsets = _flat_layout(grid)
+    F = grid.features
+    block = 128 if F <= 4 else 32
+    fp = 1 << (F - 1).bit_length()
+    rank = F // fe if z is not None else 0
+    return _launch("hashgrid", (triton_cdiv(x.shape[0], block), grid.levels),
+                   x.detach().float().contiguous(), table, res, dense, offsets, out,
+                   x.shape[0], out.stride(0), grid.size - 1, col0,
+                   out if z is None else z,  # z_ptr: unused without a contraction
+                   F=F, FP=fp, BLOCK=block, RANK=rank, FE=max(fe, 1))
 
 
 def triton_cdiv(a: int, b: int) -> int:

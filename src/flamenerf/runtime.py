@@ -59,6 +59,15 @@ def pick_device(device: str = "auto") -> torch.device:
     return dev
 
 
+def gpu_inference(device: torch.device) -> bool:
+    """Whether inference (torch's inference mode) on `device` takes the GPU's layers: the
+    features written side by side in the autocast dtype, the expression fields contracted
+    in the Triton kernel, the MLPs' lean layers (model/field.py, model/mlp.py). One place
+    for the decision, so that a test can send a CPU run down that path under Triton's
+    interpreter (tests/model/test_gpu_path.py): no GPU is needed to check its wiring."""
+    return device.type == "cuda"
+
+
 def set_threads(threads: int) -> None:
     """Use `threads` CPU threads for torch; 0 (or less) keeps torch's default."""
     if threads > 0:

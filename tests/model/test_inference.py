@@ -11,6 +11,7 @@ from flamenerf.geometry import look_at
 from flamenerf.model.baked import baked_proposal_logits, baked_warp
 from flamenerf.model.flame_nerf import FlameNeRF
 from flamenerf.model.inference import FAST, REFERENCE, VIEWER, RenderSettings, march
+from flamenerf.model.field import HashField
 from flamenerf.model.mlp import MLP, fused_cpu_inference
 from flamenerf.model.render import render_weights
 from flamenerf.model.render_image import render_image
@@ -274,6 +275,60 @@ def test_fused_mlp_equals_plain():
         with fused_cpu_inference():
             fused = m(x, cond)
     assert torch.allclose(plain, fused, atol=1e-5)
+
+
+def test_lean_mlp_equals_plain():
+    """The GPU's inference layers (fused bias and ReLU, conditioning added in place) give
+    the plain path's outputs, for every shape of MLP a model builds; under autocast they
+    run in its dtype."""
+    torch.manual_seed(0)
+    x, cond = torch.randn(6, 7, 10), torch.randn(6, 1, 4)
+    cases = [(MLP(10 + 4, 32, 3, (1,), out_dim=5), [x, cond]),  # skip, per-ray conditioning
+             (MLP(10, 16, 1, (), out_dim=4), [x]),  # a density head: one input
+             (MLP(10 + 4, 16, 0, (), out_dim=2), [x, cond]),  # depth 0: one linear map
+             (MLP(10 + 4, 16, 2, ()), [x.reshape(42, 10), cond.expand(6, 7, 4).reshape(42, 4)])]
+    with torch.no_grad():
+        for m, inputs in cases:
+            plain = m(*inputs)
+            lean = m.forward_lean(inputs)
+            assert lean.shape == plain.shape and lean.dtype == plain.dtype
+            assert torch.allclose(lean, plain, atol=1e-5), (lean - plain).abs().max()
+        m, inputs = cases[0]
+        plain = m(*inputs)
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            half = m.forward_lean(inputs)
+        assert half.dtype == torch.bfloat16
+        err = (half.float() - plain).abs().max() / plain.abs().max()
+        assert 0 < err < 0.05, err
+
+
+def test_features_in_one_buffer_in_the_autocast_dtype():
+    """The inference path's features (grid, detail levels, expression fields written side
+    by side) equal the training path's `cat`, in the autocast dtype where autocast is on (a
+    GPU's half precision; bfloat16 on this CPU stands in for it)."""
+    from toy import toy_config
+
+    cfg = toy_config("masked").model.field
+    cfg.detail_levels, cfg.detail_max_res, cfg.detail_log2_size = 2, 128, 10
+    torch.manual_seed(0)
+    field = HashField(cfg, E, (torch.zeros(3), torch.eye(3), torch.full((3,), 0.3)))
+    for p in field.parameters():
+        torch.nn.init.uniform_(p, -0.5, 0.5)
+    assert field.detail is not None and field.expr_grid is not None
+    x = torch.rand(50, 3) * 2 - 1
+    x[:10] = 0.05 * torch.randn(10, 3)  # inside the detail levels' region
+    expr = torch.randn(50, field.expr_dim)
+    expr[20:] = 0
+    with torch.no_grad():
+        ref = torch.cat([field.grid((x + 1) * 0.5), field._detail_features(x),
+                         field._expression_features(x, expr)], -1)
+        assert ref[:10, field.grid.out_dim:].abs().max() > 0
+        plain = field._features_in_place(x, expr)
+        assert plain.dtype == torch.float32 and torch.allclose(plain, ref, atol=1e-6)
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            half = field._features_in_place(x, expr)
+    assert half.dtype == torch.bfloat16
+    assert (half.float() - ref).abs().max() < 0.02 * ref.abs().max()
 
 
 def test_bf16_mlp_stays_close_to_float32(monkeypatch):

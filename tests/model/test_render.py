@@ -54,6 +54,21 @@ def test_stratified_sample_pdf_puts_one_sample_in_each_equal_probability_stratum
     assert torch.allclose(mid, torch.tensor([[0.125, 0.375, 0.625, 0.875]]), atol=1e-4)
 
 
+def test_stratified_samples_without_jitter_come_out_sorted():
+    """The inference path takes the main samples unsorted (model/inference.py): proposal
+    weights as they come (mostly ~0, a few spikes, rays seen through) over real depths."""
+    g = torch.Generator().manual_seed(0)
+    R, P = 20000, 48
+    bins = torch.linspace(0.5, 1.6, P + 1).expand(R, P + 1)
+    w = torch.rand(R, P, generator=g) ** 8 * (torch.rand(R, P, generator=g) < 0.1)
+    w[:100] = 0  # empty rays
+    w[100:200, 7] = 1.0  # one opaque sample
+    w[200:300] *= 1e-9  # nearly empty
+    s = sample_pdf(bins, w, 33, jitter=False, stratified=True)
+    assert torch.all(s[:, 1:] >= s[:, :-1])
+    assert torch.all(s >= 0.5) and torch.all(s <= 1.6)
+
+
 def test_interlevel_loss_zero_when_proposal_bounds_main():
     from flamenerf.model.render import interlevel_loss
 

@@ -97,9 +97,10 @@ class HashGrid(nn.Module):
     @torch.no_grad()
     def encode_into(self, x: Tensor, out: Tensor) -> None:
         """out[:] = self(x) without autograd: x (N, 3) in [0, 1]^3, out (N, L·F) a view
-        whose rows may lie in a wider buffer (unit column stride). On a CPU the kernel writes
-        there directly, so that the features of several grids end up side by side without a
-        `cat` (at inference, that copy was ~5 % of a 256 px frame)."""
+        whose rows may lie in a wider buffer (unit column stride). The CPU's kernel and the
+        GPU's Triton kernel write there directly, so that the features of several grids end
+        up side by side without a `cat` (at inference on a CPU, that copy was ~5 % of a
+        256 px frame; on a GPU the kernel also stores half precision, without a cast)."""
         if (x.device.type == "cpu" and x.dtype == torch.float32 and out.dtype == torch.float32
                 and self.tables[0].dtype == torch.float32 and out.stride(-1) == 1
                 and out.shape == (x.shape[0], self.out_dim)):
@@ -109,6 +110,13 @@ class HashGrid(nn.Module):
             if lib is not None:
                 _kernel_forward(lib, self, x.contiguous(),
                                 [t.detach().contiguous() for t in self.tables], out)
+                return
+        if out.stride(-1) == 1 and out.shape == (x.shape[0], self.out_dim):
+            from flamenerf import gpu_kernels
+
+            # the Triton kernel stores in out's dtype (half on the GPU's inference path)
+            if (gpu_kernels.available(x.device)
+                    and gpu_kernels.hashgrid_forward(self, x, out=out) is not None):
                 return
         out.copy_(self(x))
 

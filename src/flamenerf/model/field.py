@@ -6,6 +6,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
+from flamenerf import runtime
 from flamenerf.config import FieldConfig
 from flamenerf.geometry import ellipsoid_weight
 from flamenerf.model.encodings import HashGrid, pe_dim, positional_encoding
@@ -113,7 +114,8 @@ class HashField(nn.Module):
                        cfg.head_width, 2, (), out_dim=3)
 
     def _geo(self, x: Tensor, expr: Tensor | None) -> Tensor:
-        if x.device.type == "cpu" and x.dtype == torch.float32 and not torch.is_grad_enabled():
+        if (x.device.type == "cpu" and x.dtype == torch.float32 and not torch.is_grad_enabled()
+                or runtime.gpu_inference(x.device) and torch.is_inference_mode_enabled()):
             h = self._features_in_place(x, expr)
         else:
             h = self.grid((x.reshape(-1, 3) + 1) * 0.5).view(*x.shape[:-1], -1)
@@ -126,14 +128,19 @@ class HashField(nn.Module):
     @torch.no_grad()
     def _features_in_place(self, x: Tensor, expr: Tensor | None) -> Tensor:
         """`_geo`'s concatenated features without the `cat`: every part written into its
-        columns of one buffer (the CPU inference path). x (*bs, 3) -> (*bs, width)."""
+        columns of one buffer (the inference path). x (*bs, 3) -> (*bs, width), in the
+        autocast dtype where autocast is on (the GPU's half precision: the density head
+        reads it without a cast), else x's."""
         flat = x.reshape(-1, 3)
+        dev = x.device.type
+        dtype = torch.get_autocast_dtype(dev) if torch.is_autocast_enabled(dev) else x.dtype
         a = self.grid.out_dim
         width = (a + (self.detail.out_dim if self.detail is not None else 0)
                  + (self.expr_grid_width if self.expr_grid is not None else 0))
         # zeros: the detail and expression columns are written only where they are not 0
         # (one contiguous fill costs less than filling those columns of every row)
-        buf = flat.new_zeros(len(flat), width) if width > a else flat.new_empty(len(flat), a)
+        buf = (flat.new_zeros(len(flat), width, dtype=dtype) if width > a
+               else flat.new_empty(len(flat), a, dtype=dtype))
         self.grid.encode_into((flat + 1) * 0.5, buf[:, :a])
         if self.detail is not None:
             self._detail_features(x, out=buf[:, a:a + self.detail.out_dim])
@@ -181,10 +188,18 @@ class HashField(nn.Module):
             idx = live.expand(bs).reshape(-1).nonzero()[:, 0]
             z = self.expr_proj(expr.expand(*bs, E).reshape(-1, E)[idx]) if len(idx) else None
         if len(idx):
-            g = self.expr_grid((x.reshape(-1, 3)[idx] + 1) * 0.5).view(-1, L, R, Fe)
-            # (n, 1, 1, R) @ (n, L, R, F): a batched product, ~1.6x faster than the
-            # equivalent einsum on a CPU
-            f = torch.matmul(z[:, None, None, :], g).reshape(-1, L * Fe)
+            xs = (x.reshape(-1, 3)[idx] + 1) * 0.5
+            f = None
+            if runtime.gpu_inference(x.device) and torch.is_inference_mode_enabled():
+                from flamenerf import gpu_kernels
+
+                if gpu_kernels.available(x.device):  # the contraction inside the kernel
+                    f = gpu_kernels.hashgrid_contract(self.expr_grid, xs, z, Fe)
+            if f is None:
+                g = self.expr_grid(xs).view(-1, L, R, Fe)
+                # (n, 1, 1, R) @ (n, L, R, F): a batched product, ~1.6x faster than the
+                # equivalent einsum on a CPU
+                f = torch.matmul(z[:, None, None, :], g).reshape(-1, L * Fe)
         else:
             f = x.new_zeros(0, L * Fe)
         return _scatter_rows(f, idx, x.numel() // 3, bs, out)

@@ -17,6 +17,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from flamenerf import runtime
+
 _fusing = threading.local()
 
 
@@ -149,16 +151,56 @@ def _fused_linear(layer: nn.Linear, parts: list[Tensor], relu: bool, bf16: bool 
 
 
 def _bf16_params(layer: nn.Linear) -> tuple[Tensor, Tensor | None]:
-    """The layer's weight and bias in bfloat16, cached until the parameters change (an
-    optimiser step bumps their version)."""
-    key = (layer.weight._version, layer.weight.data_ptr(),
+    """The layer's weight and bias in bfloat16 (`params_in`)."""
+    return params_in(layer, torch.bfloat16)
+
+
+def params_in(layer: nn.Linear, dtype: torch.dtype) -> tuple[Tensor, Tensor | None]:
+    """The layer's weight and bias in `dtype`, cached until the parameters change (an
+    optimiser step bumps their version) or move."""
+    if layer.weight.dtype == dtype:
+        return layer.weight, layer.bias
+    key = (dtype, layer.weight._version, layer.weight.data_ptr(),
            None if layer.bias is None else layer.bias._version)
-    cached = getattr(layer, "_flamenerf_bf16", None)
+    cached = getattr(layer, "_flamenerf_cast", None)
     if cached is None or cached[0] != key:
-        cached = (key, layer.weight.detach().bfloat16(),
-                  None if layer.bias is None else layer.bias.detach().bfloat16())
-        layer._flamenerf_bf16 = cached
+        cached = (key, layer.weight.detach().to(dtype),
+                  None if layer.bias is None else layer.bias.detach().to(dtype))
+        layer._flamenerf_cast = cached
     return cached[1], cached[2]
+
+
+def _lean_linear(layer: nn.Linear, parts: list[Tensor], relu: bool) -> Tensor:
+    """relu?(layer(cat(parts, -1))) without autograd, as `MLP.forward_lean` describes:
+    parts holding one row per sample (parts[0]'s leading shape) are multiplied into one
+    output, later parts with fewer rows (per ray, broadcastable) are summed with the bias
+    into one small term added in place. All parts in the weights' dtype."""
+    weight, bias = params_in(layer, parts[0].dtype)
+    lead = parts[0].shape[:-1]
+    out, small, start = None, None, 0
+    for p in parts:
+        k = p.shape[-1]
+        w = weight[:, start:start + k]
+        start += k
+        if p.shape[:-1] != lead:
+            y = F.linear(p, w)
+            small = y if small is None else small.add_(y)
+            continue
+        flat = p.reshape(-1, k)
+        if out is not None:
+            out.addmm_(flat, w.t())
+        elif len(parts) == 1 and bias is not None:
+            act = torch._addmm_activation if relu else torch.addmm
+            return act(bias, flat, w.t()).view(*lead, -1)
+        else:
+            out = flat @ w.t()
+    assert start == layer.in_features, (start, layer.in_features)
+    if bias is not None:
+        small = bias if small is None else small.add_(bias)
+    out = out.view(*lead, -1)
+    if small is not None:
+        out.add_(small)
+    return out.relu_() if relu else out
 
 
 def linear_of_concat(layer: nn.Linear, parts: list[Tensor],
@@ -205,6 +247,10 @@ class MLP(nn.Module):
         if getattr(_fusing, "train_bf16", False) and x.device.type == "cpu" \
                 and x.dtype == torch.float32:
             return self._forward_bf16(inputs)
+        # inference mode: the inference path's (model/inference.py); the reference renderer
+        # (no_grad) stays the training forward exactly
+        if runtime.gpu_inference(x.device) and torch.is_inference_mode_enabled():
+            return self.forward_lean(inputs)
         h = None
         for i, layer in enumerate(self.layers):
             if h is None:
@@ -219,6 +265,31 @@ class MLP(nn.Module):
         if h is None:  # depth 0: a single linear map of the input
             return linear_of_concat(self.out, inputs)
         return self.out(h)
+
+    def forward_lean(self, inputs: list[Tensor]) -> Tensor:
+        """The forward pass without autograd in as few passes over the activations as
+        PyTorch ops allow: the GPU's inference path (any device runs it; the tests compare
+        it with the plain path on a CPU). Each layer over per-sample inputs alone is one
+        matmul with its bias and ReLU in the epilogue (`_addmm_activation`, cuBLASLt's
+        fused ReLU-bias); a layer with per-ray conditioning adds the conditioning's share
+        and the bias (one (rays, width) term) in place and applies ReLU in place. The plain
+        path makes a new activation for the bias, one for each conditioning term and one
+        for the ReLU: at a 512 px frame's ~8 M samples a 64-wide half-precision activation
+        is 1 GB, and those passes were most of an H100's `add` and `clamp_min` time
+        (docs/bench/gpu_h100_20261126_prof512.txt: 7.3 and 3.8 of 50 ms). Runs in the
+        autocast dtype where autocast is on (the weights cast once and kept)."""
+        dev = inputs[0].device.type
+        dtype = (torch.get_autocast_dtype(dev) if torch.is_autocast_enabled(dev)
+                 else inputs[0].dtype)
+        inputs = [p.to(dtype) for p in inputs]
+        with torch.autocast(dev, enabled=False):
+            h = None
+            for i, layer in enumerate(self.layers):
+                parts = inputs if h is None else [h, *inputs] if i in self.skips else [h]
+                h = _lean_linear(layer, parts, relu=True)
+            if self.out is not None:
+                h = _lean_linear(self.out, inputs if h is None else [h], relu=False)
+        return h
 
     def _forward_bf16(self, inputs: list[Tensor]) -> Tensor:
         inputs = [p.to(torch.bfloat16) for p in inputs]
