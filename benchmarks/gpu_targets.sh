@@ -8,14 +8,22 @@
 #   3. the seed-0 run's frames per second at 128 / 256 / 512 px (bench_render.py), with
 #      the second pass over unfinished rays and without it: the targets are 60 fps at
 #      256 px and 20 fps at 512 px, within 0.2 dB of the reference renderer.
+#   4. with OLD_SRC set (a source tree of an earlier commit): the same run's frames at
+#      256 and 512 px with OLD_SRC and with this checkout's src, alternated in fresh
+#      processes (bench_render_ab.py), so that a change to the GPU's inference path is
+#      measured against what it replaced on one warm machine.
 # Everything it prints is also in $OUT/log.txt; the figures are JSON and Markdown in $OUT
-# (eight files: what one call brings back).
+# (seven files, eight with OLD_SRC: what one call brings back).
 #
 #   on the GPU machine (its python3 has torch and Triton; nothing is installed):
 #       bash benchmarks/gpu_targets.sh
 #   a variant of the preset, timed as the preset is (bench_train.py --set; first see on a
 #   CPU whether it keeps the quality per step: docs/presets.md, fast-gpu on a CPU):
 #       SET=KEY=VALUE,KEY=VALUE bash benchmarks/gpu_targets.sh
+#   the GPU inference path of commit C beside this one (a plain copy of its src inside the
+#   checkout, so that it travels: a git worktree would travel without its files):
+#       here:   git archive C src | tar -x -C gpu_old   (mkdir gpu_old first)
+#       there:  OLD_SRC=gpu_old/src bash benchmarks/gpu_targets.sh
 #   here, to check the script itself on a CPU in a few minutes (tiny sizes):
 #       SMOKE=1 OUT=/tmp/gpu_targets bash benchmarks/gpu_targets.sh
 set -euo pipefail
@@ -60,5 +68,12 @@ for refine in -1 0; do
     --device "$DEVICE" --sizes $SIZES --presets fast --repeats "$REPEATS" \
     --refine-main "$refine" --out "$OUT/$name" 2>&1 | tee -a "$LOG"
 done
+if [[ -n "${OLD_SRC:-}" ]]; then
+  say "render A/B: $OLD_SRC against src (seed $first's run)"
+  # shellcheck disable=SC2086
+  "$PY" benchmarks/bench_render_ab.py --run "$WORK/run_s$first" --dataset "$SCENE" \
+    --device "$DEVICE" --src "$OLD_SRC" src --sizes ${SIZES#* } --rounds 3 \
+    --repeats "$REPEATS" --json "$OUT/render_ab.json" 2>&1 | tee -a "$LOG"
+fi
 rm -rf "$WORK"
 say "done: $(ls "$OUT" | tr '\n' ' ')"
