@@ -51,7 +51,11 @@ def sample_pdf(bins: Tensor, weights: Tensor, num: int, jitter: bool,
     """
     w = weights.detach() + 1e-5
     pdf = w / w.sum(-1, keepdim=True)
-    cdf = torch.cat([torch.zeros_like(pdf[:, :1]), torch.cumsum(pdf, -1)], -1)
+    # (0, p0, p0 + p1, ..., Σp) through exclusive_cumsum: on a CPU the same sums in the same
+    # order as cat(0, cumsum(pdf)); on a GPU one product instead of CUDA's scan over short
+    # rows, which took 1.5 ms of an H100's 512 px frame (cumsum in
+    # docs/bench/gpu_h100_20261126_prof512.txt)
+    cdf = exclusive_cumsum(torch.cat([pdf, torch.zeros_like(pdf[:, :1])], -1))
     if stratified:
         k = torch.arange(num, device=cdf.device, dtype=cdf.dtype)
         off = (torch.rand(cdf.shape[0], num, device=cdf.device, generator=generator)
