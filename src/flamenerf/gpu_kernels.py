@@ -54,17 +54,17 @@ def _load() -> dict | None:
 
 
 def _launch(name: str, grid: tuple, *args, **meta) -> bool:
-    """Run kernel `name`; False (with one warning, and the kernels off from then on) where
-    Triton cannot build it for this GPU or driver: the callers then take PyTorch ops."""
-    global _kernels
+    """Run kernel `name`; False (with one warning, and that kernel off from then on) where
+    Triton cannot build it for this GPU or driver: its callers then take PyTorch ops, and
+    the other kernels go on."""
     kernels = _load()
-    if kernels is None:
+    if kernels is None or name not in kernels:
         return False
     try:
         kernels[name][grid](*args, **meta)
         return True
     except Exception as e:  # noqa: BLE001 - any build or launch failure means: do without
-        _kernels = None
+        del kernels[name]
         warnings.warn(f"flamenerf: the Triton kernel {name} failed ({type(e).__name__}: "
                       f"{str(e)[:200]}); using PyTorch ops instead", stacklevel=3)
         return False
@@ -158,7 +158,42 @@ def _define() -> dict:
         tl.store(d_ptr + rows[:, None] * K + cols[None, :], best, mask=keep)
         tl.store(i_ptr + rows[:, None] * K + cols[None, :], besti, mask=keep)
 
-    return {"hashgrid": hashgrid_fwd, "knn": knn}
+    @triton.jit
+    def field_heads(f_ptr, f_stride, term_ptr, per, n,
+                    w1_ptr, b1_ptr, w2_ptr, b2_ptr, wc1_ptr, wc2_ptr, bc2_ptr, wc3_ptr,
+                    bc3_ptr, sigma_ptr, rgb_ptr,
+                    CIN: tl.constexpr, CP: tl.constexpr, H: tl.constexpr, G: tl.constexpr,
+                    OUT: tl.constexpr, BLOCK: tl.constexpr, PREC: tl.constexpr):
+        rows = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
+        ok = rows < n
+        kin, hc, gc, oc = tl.arange(0, CP), tl.arange(0, H), tl.arange(0, G), tl.arange(0, OUT)
+        dt = w1_ptr.dtype.element_ty
+        f = tl.load(f_ptr + rows[:, None] * f_stride + kin[None, :],
+                    mask=ok[:, None] & (kin < CIN)[None, :], other=0.0).to(dt)
+        # the density head: features -> H (ReLU) -> G = σ's logit and the geometry features
+        w1 = tl.load(w1_ptr + kin[:, None] * H + hc[None, :])
+        h = tl.dot(f, w1, input_precision=PREC) + tl.load(b1_ptr + hc)[None, :]
+        h = tl.maximum(h, 0.0).to(dt)
+        w2 = tl.load(w2_ptr + hc[:, None] * G + gc[None, :])
+        g = tl.dot(h, w2, input_precision=PREC) + tl.load(b2_ptr + gc)[None, :]
+        logit = tl.sum(tl.where((gc == 0)[None, :], g, 0.0), 1)
+        tl.store(sigma_ptr + rows, tl.exp(tl.minimum(logit, 15.0)), mask=ok)  # trunc_exp
+        # the colour head: geometry features (wc1's row 0, σ's, is zero) plus the ray's
+        # conditioning term -> H -> H -> RGB
+        wc1 = tl.load(wc1_ptr + gc[:, None] * H + hc[None, :])
+        term = tl.load(term_ptr + (rows // per)[:, None] * H + hc[None, :], mask=ok[:, None],
+                       other=0.0).to(tl.float32)
+        c = tl.maximum(tl.dot(g.to(dt), wc1, input_precision=PREC) + term, 0.0).to(dt)
+        wc2 = tl.load(wc2_ptr + hc[:, None] * H + hc[None, :])
+        c = tl.dot(c, wc2, input_precision=PREC) + tl.load(bc2_ptr + hc)[None, :]
+        c = tl.maximum(c, 0.0).to(dt)
+        wc3 = tl.load(wc3_ptr + hc[:, None] * OUT + oc[None, :])
+        o = tl.dot(c, wc3, input_precision=PREC) + tl.load(bc3_ptr + oc)[None, :]
+        rgb = 1.0 / (1.0 + tl.exp(-o))
+        tl.store(rgb_ptr + rows[:, None] * 3 + oc[None, :], rgb,
+                 mask=ok[:, None] & (oc < 3)[None, :])
+
+    return {"hashgrid": hashgrid_fwd, "knn": knn, "field_heads": field_heads}
 
 
 def knn(pts: Tensor, meshes: Tensor, which: Tensor, k: int) -> tuple[Tensor, Tensor] | None:
@@ -220,6 +255,86 @@ def _hashgrid(grid, x: Tensor, out: Tensor, col0: int, z: Tensor | None, fe: int
                    x.shape[0], out.stride(0), grid.size - 1, col0,
                    out if z is None else z,  # z_ptr: unused without a contraction
                    F=F, FP=fp, BLOCK=block, RANK=rank, FE=max(fe, 1))
+
+
+def field_heads(feats: Tensor, term: Tensor, per: int, density_head, rgb_head
+                ) -> tuple[Tensor, Tensor] | None:
+    """A hash field's density and colour heads (model/field.HashField, one hidden layer
+    and two) in one kernel: each block of points goes from its features to σ and RGB in
+    registers, so that none of the heads' activations (64 numbers a point, written and
+    read again between the layers and their bias, ReLU and casts) touch the GPU's memory;
+    those passes and the small matmuls were most of an H100's 512 px frame
+    (docs/bench/gpu_h100_20261126_prof512.txt).
+
+    feats (N, C) the density head's input (unit column stride; half precision on the
+    GPU's inference path, float32 elsewhere: the layers run in its dtype, float32 exactly);
+    term (M, H) the colour head's first layer applied to the per-ray conditioning (γ(d),
+    φ), bias included, point i taking row i // per -> σ (N,) (trunc_exp of the logit) and
+    RGB (N, 3), float32; None where the heads are not of that shape or the kernel failed.
+    """
+    if len(density_head.layers) != 1 or len(rgb_head.layers) != 2 or density_head.skips \
+            or rgb_head.skips or density_head.out is None or rgb_head.out is None:
+        return None
+    N, C = feats.shape
+    H = density_head.layers[0].out_features
+    geo = density_head.out.out_features - 1
+    if (H & (H - 1) or not 16 <= H <= 128 or C > 128 or rgb_head.out.out_features != 3
+            or rgb_head.layers[0].out_features != H or rgb_head.layers[1].out_features != H
+            or feats.stride(-1) != 1 or term.shape[-1] != H):
+        return None
+    w = _head_weights(density_head, rgb_head, geo, feats.dtype)
+    sigma = torch.empty(N, dtype=torch.float32, device=feats.device)
+    rgb = torch.empty(N, 3, dtype=torch.float32, device=feats.device)
+    if N == 0:
+        return sigma, rgb
+    cp, g = w[0].shape[0], w[2].shape[1]
+    block = 64
+    if not _launch("field_heads", (triton_cdiv(N, block),), feats, feats.stride(0),
+                   term.contiguous(), per, N, *w, sigma, rgb, CIN=C, CP=cp, H=H, G=g,
+                   OUT=16, BLOCK=block,
+                   # float32 exactly (tf32 is ignored for half-precision operands)
+                   PREC="ieee" if feats.dtype == torch.float32 else "tf32"):
+        return None
+    return sigma, rgb
+
+
+def _head_weights(density_head, rgb_head, geo: int, dtype: torch.dtype) -> tuple:
+    """`field_heads`' weights: transposed, zero-padded to powers of two (at least 16, what
+    `tl.dot` takes), in `dtype` (biases float32); cached on the density head until a
+    parameter changes (an optimiser step bumps its version) or moves."""
+    params = [*density_head.parameters(), *rgb_head.parameters()]
+    key = (dtype, tuple((p._version, p.data_ptr()) for p in params))
+    kept = getattr(density_head, "_flamenerf_field_heads", None)
+    if kept is not None and kept[0] == key:
+        return kept[1]
+    l1, l2 = density_head.layers[0], density_head.out
+    c1, c2, c3 = rgb_head.layers[0], rgb_head.layers[1], rgb_head.out
+    H, C = l1.out_features, l1.in_features
+    cp, g = _pow2(C), _pow2(geo + 1)
+
+    def padded(m: Tensor, rows: int, cols: int, at: int = 0) -> Tensor:
+        out = m.new_zeros(rows, cols)
+        out[at:at + m.shape[0], :m.shape[1]] = m
+        return out.to(dtype).contiguous()
+
+    def vec(b: Tensor, size: int) -> Tensor:
+        out = b.new_zeros(size)
+        out[:len(b)] = b
+        return out.float().contiguous()
+
+    with torch.no_grad():
+        w = (padded(l1.weight.t(), cp, H), vec(l1.bias, H),
+             padded(l2.weight.t(), H, g), vec(l2.bias, g),
+             # the geometry features are columns 1.. of the density head's output
+             padded(c1.weight[:, :geo].t(), g, H, at=1),
+             padded(c2.weight.t(), H, H), vec(c2.bias, H),
+             padded(c3.weight.t(), H, 16), vec(c3.bias, 16))
+    density_head._flamenerf_field_heads = (key, w)
+    return w
+
+
+def _pow2(n: int) -> int:
+    return max(16, 1 << (n - 1).bit_length())
 
 
 def triton_cdiv(a: int, b: int) -> int:

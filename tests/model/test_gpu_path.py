@@ -34,14 +34,16 @@ CHECK = textwrap.dedent("""
     settings = dataclasses.replace(FAST, half=False)
     cpu = render(m, settings)
 
-    calls = {"contract": 0, "lean": 0, "encode": 0}
+    calls = {"contract": 0, "lean": 0, "encode": 0, "heads": 0}
     def counted(name, fn):
         def wrapper(*a, **k):
-            calls[name] += 1
-            return fn(*a, **k)
+            out = fn(*a, **k)
+            calls[name] += out is not None  # the kernel ran (None: the caller's fallback)
+            return out
         return wrapper
     gpu_kernels.hashgrid_contract = counted("contract", gpu_kernels.hashgrid_contract)
     gpu_kernels.hashgrid_forward = counted("encode", gpu_kernels.hashgrid_forward)
+    gpu_kernels.field_heads = counted("heads", gpu_kernels.field_heads)
     mlp.MLP.forward_lean = counted("lean", mlp.MLP.forward_lean)
     runtime.gpu_inference = lambda device: True
     mlp._oneDNN_linear = lambda: None  # the CPU's fused layers off: the lean ones instead

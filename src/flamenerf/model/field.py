@@ -4,6 +4,7 @@ hash-grid field with the same inputs and outputs."""
 from __future__ import annotations
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor, nn
 
 from flamenerf import runtime
@@ -209,10 +210,42 @@ class HashField(nn.Module):
 
     def forward(self, x: Tensor, d: Tensor, app: Tensor, expr: Tensor | None):
         """As NeRFField.forward."""
+        if runtime.gpu_inference(x.device) and torch.is_inference_mode_enabled():
+            fused = self._forward_fused(x, d, app, expr)
+            if fused is not None:
+                return fused
         g = self._geo(x, expr)
         sigma = trunc_exp(g[..., 0])
         c = self.rgb(g[..., 1:], _view_conditioning(d, app, self.cfg))
         return sigma, torch.sigmoid(c)
+
+
+    def _forward_fused(self, x: Tensor, d: Tensor, app: Tensor, expr: Tensor | None
+                       ) -> tuple[Tensor, Tensor] | None:
+        """`forward` on the GPU's inference path: the features in one buffer, then both
+        heads in one Triton kernel (gpu_kernels.field_heads), the colour head's per-ray
+        conditioning applied once per ray. None where the kernel does not apply (β fed to
+        the density head directly, per-sample conditioning of another shape, no Triton)."""
+        from flamenerf import gpu_kernels
+
+        if self.direct or not gpu_kernels.available(x.device):
+            return None
+        bs, geo = x.shape[:-1], self.cfg.geo_features
+        cond = _view_conditioning(d, app, self.cfg)
+        if cond.shape[:-1] == bs:
+            per = 1
+        elif len(bs) == 2 and cond.shape[:-1] == (bs[0], 1):
+            per = bs[1]  # one row per ray, its samples share it
+        else:
+            return None
+        first = self.rgb.layers[0]
+        term = F.linear(cond.reshape(-1, cond.shape[-1]), first.weight[:, geo:], first.bias)
+        feats = self._features_in_place(x, expr)
+        out = gpu_kernels.field_heads(feats.reshape(-1, feats.shape[-1]), term.float(), per,
+                                      self.density_head, self.rgb)
+        if out is None:
+            return None
+        return out[0].view(bs), out[1].view(*bs, 3)
 
 
 class ProposalField(nn.Module):
