@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
-# Issue 15's GPU targets in one call of a lent GPU machine (~6 minutes on one H100, so a
+# Issue 15's GPU targets in one call of a lent GPU machine (~6 minutes on one H100 by earlier
+# timings, ~8 with the profile and OLD_SRC's A/B: estimates; a
 # 15-minute lease leaves room to rerun it or try a variant):
 #   1. the built-in scene at 256 px;
 #   2. `fast-gpu` under bench_train.py's 70 s budget on seeds 0 and 1: the held-out curve
@@ -8,7 +9,9 @@
 #   3. the seed-0 run's frames per second at 128 / 256 / 512 px (bench_render.py), with
 #      the second pass over unfinished rays and without it: the targets are 60 fps at
 #      256 px and 20 fps at 512 px, within 0.2 dB of the reference renderer.
-#   4. with OLD_SRC set (a source tree of an earlier commit): the same run's frames at
+#   4. a profile of one 512 px frame (profile_render.py: where the GPU's time goes), in
+#      the log;
+#   5. with OLD_SRC set (a source tree of an earlier commit): the same run's frames at
 #      256 and 512 px with OLD_SRC and with this checkout's src, alternated in fresh
 #      processes (bench_render_ab.py), so that a change to the GPU's inference path is
 #      measured against what it replaced on one warm machine.
@@ -68,6 +71,9 @@ for refine in -1 0; do
     --device "$DEVICE" --sizes $SIZES --presets fast --repeats "$REPEATS" \
     --refine-main "$refine" --out "$OUT/$name" 2>&1 | tee -a "$LOG"
 done
+say "profile of a ${SIZES##* } px frame (seed $first's run)"
+"$PY" benchmarks/profile_render.py --run "$WORK/run_s$first" --dataset "$SCENE" \
+  --device "$DEVICE" --size "${SIZES##* }" --frames 3 --rows 45 2>&1 | grep -v "^\(STAGE\|USDT\)" | tee -a "$LOG"
 if [[ -n "${OLD_SRC:-}" ]]; then
   say "render A/B: $OLD_SRC against src (seed $first's run)"
   # shellcheck disable=SC2086
