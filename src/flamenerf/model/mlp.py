@@ -184,7 +184,7 @@ def _lean_linear(layer: nn.Linear, parts: list[Tensor], relu: bool) -> Tensor:
         start += k
         if p.shape[:-1] != lead:
             y = F.linear(p, w)
-            small = y if small is None else small.add_(y)
+            small = y if small is None else small + y  # shapes may broadcast either way
             continue
         flat = p.reshape(-1, k)
         if out is not None:
@@ -196,7 +196,7 @@ def _lean_linear(layer: nn.Linear, parts: list[Tensor], relu: bool) -> Tensor:
             out = flat @ w.t()
     assert start == layer.in_features, (start, layer.in_features)
     if bias is not None:
-        small = bias if small is None else small.add_(bias)
+        small = bias if small is None else small.add_(bias)  # small: a new tensor
     out = out.view(*lead, -1)
     if small is not None:
         out.add_(small)
