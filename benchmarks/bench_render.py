@@ -192,7 +192,45 @@ def viewer_latency(run, ds, height: int, steps: int) -> dict:
             out[f"{path}_{h}px_updates_per_s"] = round(1 / s, 2)
             print(f"viewer {path:>9s} {h:4d}px: {1000 * s:7.1f} ms per update "
                   f"({1 / s:5.1f}/s)", flush=True)
+    out.update(slider_latency(run, ds, masker, fr, fov, height, steps))
     return out
+
+
+def slider_latency(run, ds, masker, fr, fov: float, height: int, steps: int) -> dict:
+    """Time per full-height update of the viewer's worker while one slider moves and the
+    camera stays (frame 0's): after one whole image, each update renders only the pixels
+    inside the prior's silhouette before or after the change (viewer/renderer.py). The
+    slider: the control whose range in the training frames is widest, swept across it."""
+    from flamenerf.viewer.renderer import RenderWorker, View
+
+    omega, phi = run.frame_codes(0)
+    exprs = np.stack([f.expression for f in ds.frames]).astype(np.float32)
+    k = int(np.argmax(exprs.max(0) - exprs.min(0)))
+    lo, hi = float(exprs[:, k].min()), float(exprs[:, k].max())
+    w = RenderWorker(run.model, omega, phi, masker, fr.expression, lambda *a: None,
+                     height=height)
+    top = len(w.levels(height, True)) - 1
+    w.views[0] = View(fr.c2w.copy(), fov, 1.0)
+    times, rays = [], []
+    for i in range(steps + 2):
+        e = np.asarray(fr.expression, np.float32).copy()
+        if i:
+            e[k] = lo + (hi - lo) * (i - 1) / max(steps, 1)
+        snap = dict(key=0, state=(0, i), c2w=w.views[0].c2w, fov_y=fov, aspect=1.0,
+                    expression=e, mode="RGB", height=height, final=True, depth_range=None,
+                    head=None)
+        t = time.perf_counter()
+        frame = w._render(snap, top, cancellable=False)
+        if i:  # the first one: the whole image
+            times.append(time.perf_counter() - t)
+            rays.append(frame.extras["rays"])
+    s = float(np.median(times))
+    name = run.expression_names[k] if k < len(run.expression_names) else str(k)
+    print(f"viewer slider {name} {height}px: {1000 * s:7.1f} ms per update ({1 / s:5.1f}/s), "
+          f"{int(np.median(rays))} of {height * height} rays", flush=True)
+    return {f"slider_{height}px_s": round(s, 4),
+            f"slider_{height}px_updates_per_s": round(1 / s, 2),
+            f"slider_{height}px_rays": int(np.median(rays)), "slider_control": name}
 
 
 def markdown(res: dict) -> str:

@@ -93,10 +93,25 @@ def test_worker_renders_coarse_to_fine_and_follows_changes(tiny_run):
         wk.set_expression(e)
         assert wk.wait_idle(30)
         new = frames[n:]
-        assert [f.intr.h for f in new] == [8, 16]
-        diff = np.abs(new[-1].image.astype(int) - frames[n - 1].image.astype(int)).max(-1)
+        # the camera is that of the last full image: only the silhouette's pixels again,
+        # at the full height at once
+        assert [f.intr.h for f in new] == [16] and new[0].final
         mask = new[-1].extras["mask"]
+        assert 0 < new[-1].extras["rays"] < 16 * 24 and mask.sum() <= new[-1].extras["rays"]
+        diff = np.abs(new[-1].image.astype(int) - frames[n - 1].image.astype(int)).max(-1)
         assert diff[~mask].max() <= 1 and diff[mask].max() > 3
+        wk.refresh("a")  # the whole image again, coarse to fine: what the pixels reused match
+        assert wk.wait_idle(30)
+        assert [f.intr.h for f in frames[n + 1:]] == [8, 16]
+        assert frames[-1].extras["rays"] == 16 * 24
+        assert np.abs(frames[-1].image.astype(int) - new[-1].image.astype(int)).max() <= 1
+        wk.partial_max = 0.0  # as for a face that fills the view: coarse to fine, and the
+        n = len(frames)       # last level renders the silhouette's pixels alone
+        e[0] = 0.5
+        wk.set_expression(e)
+        assert wk.wait_idle(30)
+        assert [f.intr.h for f in frames[n:]] == [8, 16]
+        assert 0 < frames[-1].extras["rays"] < 16 * 24
         wk.set_mode("Depth")
         wk.set_quality(progressive=False)
         assert wk.wait_idle(30)

@@ -30,11 +30,32 @@ def render_image(model: FlameNeRF, intr: Intrinsics, c2w: np.ndarray | torch.Ten
     frame's canonical-from-world head transform (data/head_pose.py), or None. `chunk` (rays
     per forward pass) overrides the settings' chunk.
     """
+    out = render_pixels(model, intr, c2w, deform_code, appearance_code, expression,
+                        face_mask, None, chunk, head, settings)
+    return {"rgb": out["rgb"].view(intr.h, intr.w, 3).clamp(0, 1),
+            "depth": out["depth"].view(intr.h, intr.w),
+            "acc": out["acc"].view(intr.h, intr.w)}
+
+
+@torch.no_grad()
+def render_pixels(model: FlameNeRF, intr: Intrinsics, c2w: np.ndarray | torch.Tensor,
+                  deform_code: torch.Tensor, appearance_code: torch.Tensor,
+                  expression: torch.Tensor, face_mask: np.ndarray | torch.Tensor,
+                  pixels: np.ndarray | torch.Tensor | None, chunk: int | None = None,
+                  head: torch.Tensor | None = None, settings: RenderSettings = REFERENCE
+                  ) -> dict[str, torch.Tensor]:
+    """`render_image`'s rays of some pixels only: pixels (n,) flat indices into the
+    (H, W) image (None: all) -> rgb (n, 3) (not clamped), depth (n,), acc (n,) on CPU. Each
+    ray is rendered as in the whole image (the viewer re-renders only the face's pixels
+    when a slider alone moves: viewer/renderer.py)."""
     dev = next(model.parameters()).device
     chunk = chunk or settings.rays_per_chunk(dev, model)
     origins, dirs = camera_rays(intr, c2w, dev)
     o, d = origins.reshape(-1, 3), dirs.reshape(-1, 3)
     mask = torch.as_tensor(np.asarray(face_mask), device=dev).reshape(-1).bool()
+    if pixels is not None:
+        sel = torch.as_tensor(np.asarray(pixels), dtype=torch.long, device=dev)
+        o, d, mask = o[sel], d[sel], mask[sel]
     n = o.shape[0]
 
     def chunk_out(s: int) -> dict[str, torch.Tensor]:
@@ -49,13 +70,11 @@ def render_image(model: FlameNeRF, intr: Intrinsics, c2w: np.ndarray | torch.Ten
         host = torch.cat([out["rgb"], out["depth"][:, None], out["acc"][:, None]], 1).cpu()
         return {"rgb": host[:, :3], "depth": host[:, 3], "acc": host[:, 4]}
 
+    if n == 0:
+        return {"rgb": torch.zeros(0, 3), "depth": torch.zeros(0), "acc": torch.zeros(0)}
     threads = settings.render_threads(dev)
     if threads > 1:  # pieces enough for every thread to stay busy to the end
         chunk = min(chunk, max(512, -(-n // (2 * threads))))
         prepare(model, deform_code.to(dev), settings)
     outs = map_single_threaded(chunk_out, list(range(0, n, chunk)), threads)
-    return {
-        "rgb": torch.cat([part["rgb"] for part in outs]).view(intr.h, intr.w, 3).clamp(0, 1),
-        "depth": torch.cat([part["depth"] for part in outs]).view(intr.h, intr.w),
-        "acc": torch.cat([part["acc"] for part in outs]).view(intr.h, intr.w),
-    }
+    return {k: torch.cat([part[k] for part in outs]) for k in ("rgb", "depth", "acc")}

@@ -3,9 +3,14 @@
 Every browser (view) has a camera; all views share the expression, the display mode and
 the quality. Whenever any of these changes the view's *key* changes and the worker renders
 it again, coarse to fine: first at 1/4 of the chosen height (fast, so dragging the camera
-or a slider stays interactive), then - once nothing has changed for `settle_s` - at 1/2
-and at the full height. A refinement is rendered in bands of rows and abandoned as soon
-as the key changes again, so the worker never sits on a stale image.
+stays interactive), then - once nothing has changed for `settle_s` - at 1/2 and at the
+full height. A refinement is rendered in bands of rows and abandoned as soon as the key
+changes again, so the worker never sits on a stale image.
+
+When only the expression changes (a slider, a track playing) and the view's camera, head
+pose and height are those of its last full-height image, only the pixels inside the
+spatial prior's silhouette before or after the change are rendered again, at the full
+height at once: β reaches no other ray (the prior), so every other pixel is the one shown.
 """
 
 from __future__ import annotations
@@ -20,7 +25,7 @@ import torch
 
 from flamenerf.data.dataset import Intrinsics
 from flamenerf.model.inference import VIEWER, RenderSettings
-from flamenerf.model.render_image import render_image
+from flamenerf.model.render_image import render_image, render_pixels
 from flamenerf.viewer.camera import view_intrinsics
 
 
@@ -51,6 +56,9 @@ class View:
     shown_level: int = -1
     depth_range: tuple[float, float] | None = None
     renders: int = 0
+    # the last full-height image's rays and what made them: {"scene", "expression",
+    # "mask", "rgb", "depth"} (the worker thread's alone)
+    cache: dict | None = None
 
 
 @dataclass
@@ -93,6 +101,14 @@ class RenderWorker:
         # 2-core CPU (8192 before, 4096 before that), still abandoning a stale image within
         # ~0.25 s
         self.band_rays = band_rays
+        # the full-height image at once after a change of expression alone when the face's
+        # silhouette covers at most this share of it: an expression is invisible in the
+        # coarse level's 32 px, and the silhouette's rays alone cost less than a whole
+        # image (at 128 px on the 2-core CPU, 14 % of the pixels: 78 against 204 ms, 37 %:
+        # 147 against 238 ms; benchmarks/bench_render.py's viewer rows). A face that fills
+        # more of the view goes coarse to fine, as a camera move does, and its last level
+        # still renders only the silhouette again.
+        self.partial_max = 0.5
         self.shared = Shared(expression=np.asarray(expression, np.float32).copy(),
                              height=int(height))
         self.views: dict[object, View] = {}
@@ -185,6 +201,7 @@ class RenderWorker:
             if v is not None:
                 v.version += 1
                 v.changed_at = time.monotonic()
+                v.cache = None
                 self._cv.notify_all()
 
     def remove_view(self, key: object) -> None:
@@ -232,9 +249,23 @@ class RenderWorker:
         v = self.views[key]
         snap = dict(key=key, state=(v.version, s.version), c2w=v.c2w.copy(), fov_y=v.fov_y,
                     aspect=v.aspect, expression=s.expression.copy(), mode=s.mode,
-                    height=heights[level], final=level == len(heights) - 1,
-                    depth_range=v.depth_range, head=s.head)
+                    height=heights[-1], final=True, depth_range=v.depth_range, head=s.head)
+        if level < len(heights) - 1 and not (self._reusable(v, snap)
+                                             and v.cache["mask"].mean() <= self.partial_max):
+            snap.update(height=heights[level], final=False)
+        else:  # the whole image at once, or only the pixels a new expression reaches
+            level = len(heights) - 1
         return (key, level, heights, snap), None
+
+    @staticmethod
+    def _scene(snap) -> tuple:
+        """What a pixel's ray depends on besides the expression."""
+        head = snap["head"]
+        return (snap["height"], snap["c2w"].tobytes(), snap["fov_y"], snap["aspect"],
+                None if head is None else np.asarray(head).tobytes())
+
+    def _reusable(self, v: View, snap) -> bool:
+        return v.cache is not None and v.cache["scene"] == self._scene(snap)
 
     def _loop(self) -> None:
         while True:
@@ -305,19 +336,44 @@ class RenderWorker:
 
             head = torch.from_numpy(se3_log(snap["head"]).astype(np.float32))
         expr = torch.from_numpy(snap["expression"])
-        rows = max(1, self.band_rays // intr.w)
-        rgb = np.zeros((intr.h, intr.w, 3), np.float32)
-        depth = np.zeros((intr.h, intr.w), np.float32)
-        for y0 in range(0, intr.h, rows):
-            if cancellable and self._stale(snap):
-                raise _Stale
-            r = min(rows, intr.h - y0)
-            band = Intrinsics(intr.w, r, intr.fx, intr.fy, intr.cx, intr.cy - y0)
-            out = render_image(self.model, band, c2w, self.omega, self.phi, expr,
-                               mask[y0:y0 + r], head=head, settings=self.settings)
-            rgb[y0:y0 + r] = out["rgb"].numpy()
-            depth[y0:y0 + r] = out["depth"].numpy()
-        extras: dict = {"mask": mask}
+        with self._cv:
+            v = self.views.get(snap["key"])
+        cache = v.cache if v is not None and snap["final"] and self._reusable(v, snap) else None
+        if cache is None:
+            rays = intr.h * intr.w
+            rgb = np.zeros((intr.h, intr.w, 3), np.float32)
+            depth = np.zeros((intr.h, intr.w), np.float32)
+            rows = max(1, self.band_rays // intr.w)
+            for y0 in range(0, intr.h, rows):
+                if cancellable and self._stale(snap):
+                    raise _Stale
+                r = min(rows, intr.h - y0)
+                band = Intrinsics(intr.w, r, intr.fx, intr.fy, intr.cx, intr.cy - y0)
+                out = render_image(self.model, band, c2w, self.omega, self.phi, expr,
+                                   mask[y0:y0 + r], head=head, settings=self.settings)
+                rgb[y0:y0 + r] = out["rgb"].numpy()
+                depth[y0:y0 + r] = out["depth"].numpy()
+        else:
+            # the pixels the old or the new expression reaches; none for the same one (a
+            # new display mode)
+            same = np.array_equal(cache["expression"], snap["expression"])
+            pixels = np.flatnonzero(np.zeros_like(mask) if same else mask | cache["mask"])
+            rays = len(pixels)
+            rgb, depth = cache["rgb"].copy(), cache["depth"].copy()
+            flat_rgb, flat_depth = rgb.reshape(-1, 3), depth.reshape(-1)
+            for s in range(0, len(pixels), self.band_rays):
+                if cancellable and self._stale(snap):
+                    raise _Stale
+                part = pixels[s:s + self.band_rays]
+                out = render_pixels(self.model, intr, c2w, self.omega, self.phi, expr, mask,
+                                    part, head=head, settings=self.settings)
+                flat_rgb[part] = out["rgb"].clamp(0, 1).numpy()
+                flat_depth[part] = out["depth"].numpy()
+        if snap["final"] and v is not None:
+            with self._cv:
+                v.cache = {"scene": self._scene(snap), "expression": snap["expression"].copy(),
+                           "mask": mask, "rgb": rgb, "depth": depth}
+        extras: dict = {"mask": mask, "rays": rays}
         if snap["mode"] == "Depth":
             rng = snap["depth_range"]
             if rng is None:
