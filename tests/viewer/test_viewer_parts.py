@@ -112,6 +112,14 @@ def test_worker_renders_coarse_to_fine_and_follows_changes(tiny_run):
         assert wk.wait_idle(30)
         assert [f.intr.h for f in frames[n:]] == [8, 16]
         assert 0 < frames[-1].extras["rays"] < 16 * 24
+        run.model.cfg.expression_mode = "everywhere"  # the no-prior ablation: β reaches
+        n = len(frames)                               # every ray, nothing is kept
+        e[0] = 0.0
+        wk.set_expression(e)
+        assert wk.wait_idle(30)
+        assert [f.intr.h for f in frames[n:]] == [8, 16]
+        assert frames[-1].extras["rays"] == 16 * 24
+        run.model.cfg.expression_mode = "masked"
         wk.set_mode("Depth")
         wk.set_quality(progressive=False)
         assert wk.wait_idle(30)

@@ -337,6 +337,14 @@ class FlameNeRF(nn.Module):
             e = e * face_ray[:, None].to(e)
         return e
 
+    @property
+    def expression_confined(self) -> bool:
+        """Whether β changes only rays through the prior's silhouette (the spatial prior,
+        or no β at all): where only β changes, a renderer may keep every other pixel
+        (the viewer's slider, a re-animation from a still camera). Not so for the no-prior
+        ablation, whose β reaches every ray."""
+        return self.cfg.expression_mode in ("masked", "none")
+
     def expression_inside(self, face_ray: Tensor) -> Tensor | None:
         """Which rays' β passes the prior: (R,) bool -> (R,) bool (every ray for the
         no-prior ablation), None for `nerfies`."""

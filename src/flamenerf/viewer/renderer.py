@@ -265,7 +265,8 @@ class RenderWorker:
                 None if head is None else np.asarray(head).tobytes())
 
     def _reusable(self, v: View, snap) -> bool:
-        return v.cache is not None and v.cache["scene"] == self._scene(snap)
+        return (v.cache is not None and v.cache["scene"] == self._scene(snap)
+                and self.model.expression_confined)
 
     def _loop(self) -> None:
         while True:
