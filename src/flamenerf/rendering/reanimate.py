@@ -1,6 +1,7 @@
 """Render a re-animation: frame 0's codes (ω_0, φ_0), a sequence of expressions β_t,
 cameras and (optionally) head poses, the prior's mask from the face mesh for each camera. Frames are produced one at a
-time (each in chunks of rays, `render_image`), so memory does not grow with the length."""
+time (each in chunks of rays, `render_image`), so memory does not grow with the length; from a
+still camera only the face's pixels are rendered again."""
 
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ import torch
 from flamenerf.data.dataset import Dataset, Intrinsics
 from flamenerf.model.flame_nerf import FlameNeRF
 from flamenerf.model.inference import FAST, RenderSettings
-from flamenerf.model.render_image import render_image
+from flamenerf.model.render_image import render_image, render_pixels
 from flamenerf.data.prior import prior_mask
 
 
@@ -34,16 +35,36 @@ def render_sequence(model: FlameNeRF, ds: Dataset, intr: Intrinsics, cameras: np
     frame's head pose), or (V, 3) for one mesh for every frame (frame 0's); ω (code_dim,),
     φ (appearance_dim,); heads (T, 6): each frame's head twist (data/head_pose.py), or
     None for the head at frame 0's pose. The inference path by default: ω is fixed, so the
-    warp's bake serves every frame."""
+    warp's bake serves every frame.
+
+    A frame whose camera and head pose are the previous frame's (a still camera: `render`'s
+    default for a drive or keyframes) renders only the pixels inside the prior's silhouette
+    of either frame and keeps the others, which β does not reach (`expression_confined`)."""
     T = len(cameras)
+    prev: tuple | None = None  # (camera, head, frame) of the last frame
     for i in range(T):
         verts = vertices[i] if vertices.ndim == 3 else vertices
         mask = prior_mask(ds, verts, cameras[i], intr, dilate_px)
         beta = torch.as_tensor(np.asarray(expressions[i], np.float32))
-        head = None if heads is None else torch.as_tensor(np.asarray(heads[i], np.float32))
-        out = render_image(model, intr, cameras[i], omega, phi, beta, mask, chunk=chunk,
-                           head=head, settings=settings)
-        yield RenderedFrame(out["rgb"].numpy(), out["depth"].numpy(), out["acc"].numpy(), mask)
+        head_i = None if heads is None else np.asarray(heads[i], np.float32)
+        head = None if head_i is None else torch.as_tensor(head_i)
+        args = (model, intr, cameras[i], omega, phi, beta, mask)
+        if (prev is not None and model.expression_confined
+                and np.array_equal(prev[0], cameras[i])
+                and (head_i is None if prev[1] is None else np.array_equal(prev[1], head_i))):
+            last = prev[2]
+            pixels = np.flatnonzero(mask | last.mask)
+            out = render_pixels(*args, pixels, chunk=chunk, head=head, settings=settings)
+            frame = RenderedFrame(last.rgb.copy(), last.depth.copy(), last.acc.copy(), mask)
+            frame.rgb.reshape(-1, 3)[pixels] = out["rgb"].clamp(0, 1).numpy()
+            frame.depth.reshape(-1)[pixels] = out["depth"].numpy()
+            frame.acc.reshape(-1)[pixels] = out["acc"].numpy()
+        else:
+            out = render_image(*args, chunk=chunk, head=head, settings=settings)
+            frame = RenderedFrame(out["rgb"].numpy(), out["depth"].numpy(),
+                                  out["acc"].numpy(), mask)
+        prev = (np.asarray(cameras[i]).copy(), head_i, frame)
+        yield frame
 
 
 def depth_range(frame: RenderedFrame, near: float, far: float) -> tuple[float, float]:
