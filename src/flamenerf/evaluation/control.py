@@ -512,14 +512,16 @@ def model_renderer(model: FlameNeRF, ds: Dataset, intr: Intrinsics, c2w: np.ndar
                    dilate_px: int) -> RenderFn:
     """β -> the model's render at camera c2w, with the prior's mask from β's mesh, by the
     inference path that `flamenerf render` and the viewer use (what a user sees; within
-    0.01 dB of the training forward and 2-3x faster on a CPU), in its own chunks."""
+    0.01 dB of the training forward and 2-3x faster on a CPU), in its own chunks; after the
+    first β only the silhouettes' pixels again (`StillCamera`)."""
     from flamenerf.model.inference import FAST
+    from flamenerf.model.render_image import StillCamera
+
+    still = StillCamera(model, intr, c2w, omega, phi, settings=FAST)
 
     def render(beta: np.ndarray) -> np.ndarray:
         mask = prior_mask(ds, mesh_of(beta), c2w, intr, dilate_px)
-        b = torch.as_tensor(np.asarray(beta, np.float32))
-        return render_image(model, intr, c2w, omega, phi, b, mask, settings=FAST
-                            )["rgb"].numpy()
+        return still(torch.as_tensor(np.asarray(beta, np.float32)), mask)["rgb"].numpy()
 
     return render
 

@@ -14,7 +14,7 @@ import torch
 from flamenerf.data.dataset import Dataset, Intrinsics
 from flamenerf.model.flame_nerf import FlameNeRF
 from flamenerf.model.inference import FAST, RenderSettings
-from flamenerf.model.render_image import render_image, render_pixels
+from flamenerf.model.render_image import StillCamera
 from flamenerf.data.prior import prior_mask
 
 
@@ -41,30 +41,20 @@ def render_sequence(model: FlameNeRF, ds: Dataset, intr: Intrinsics, cameras: np
     default for a drive or keyframes) renders only the pixels inside the prior's silhouette
     of either frame and keeps the others, which β does not reach (`expression_confined`)."""
     T = len(cameras)
-    prev: tuple | None = None  # (camera, head, frame) of the last frame
+    still, view = None, None  # the renderer of the current camera and head pose
     for i in range(T):
         verts = vertices[i] if vertices.ndim == 3 else vertices
         mask = prior_mask(ds, verts, cameras[i], intr, dilate_px)
         beta = torch.as_tensor(np.asarray(expressions[i], np.float32))
         head_i = None if heads is None else np.asarray(heads[i], np.float32)
-        head = None if head_i is None else torch.as_tensor(head_i)
-        args = (model, intr, cameras[i], omega, phi, beta, mask)
-        if (prev is not None and model.expression_confined
-                and np.array_equal(prev[0], cameras[i])
-                and (head_i is None if prev[1] is None else np.array_equal(prev[1], head_i))):
-            last = prev[2]
-            pixels = np.flatnonzero(mask | last.mask)
-            out = render_pixels(*args, pixels, chunk=chunk, head=head, settings=settings)
-            frame = RenderedFrame(last.rgb.copy(), last.depth.copy(), last.acc.copy(), mask)
-            frame.rgb.reshape(-1, 3)[pixels] = out["rgb"].clamp(0, 1).numpy()
-            frame.depth.reshape(-1)[pixels] = out["depth"].numpy()
-            frame.acc.reshape(-1)[pixels] = out["acc"].numpy()
-        else:
-            out = render_image(*args, chunk=chunk, head=head, settings=settings)
-            frame = RenderedFrame(out["rgb"].numpy(), out["depth"].numpy(),
-                                  out["acc"].numpy(), mask)
-        prev = (np.asarray(cameras[i]).copy(), head_i, frame)
-        yield frame
+        if still is None or not (np.array_equal(view[0], cameras[i]) and (
+                head_i is None if view[1] is None else np.array_equal(view[1], head_i))):
+            view = (np.asarray(cameras[i]).copy(), head_i)
+            still = StillCamera(model, intr, cameras[i], omega, phi,
+                                None if head_i is None else torch.as_tensor(head_i), chunk,
+                                settings)
+        out = still(beta, mask)
+        yield RenderedFrame(out["rgb"].numpy(), out["depth"].numpy(), out["acc"].numpy(), mask)
 
 
 def depth_range(frame: RenderedFrame, near: float, far: float) -> tuple[float, float]:
