@@ -6,6 +6,8 @@ threads with one torch thread each (`RenderSettings.threads`, runtime.map_single
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 import torch
 
@@ -85,8 +87,8 @@ class StillCamera:
     only the pixels inside the prior's silhouette of the new or the last expression are
     rendered again, the others kept (β reaches no other ray where the model confines it,
     `FlameNeRF.expression_confined`; otherwise every image is rendered whole). What a
-    re-animation from a still camera and eval's sweeps and drives render: ~3x faster
-    per frame on a CPU, the same pixels (docs/results.md)."""
+    re-animation from a still camera, eval's sweeps and drives and the viewer's sliders
+    render: ~3x faster per frame on a CPU, the same pixels (docs/results.md)."""
 
     def __init__(self, model: FlameNeRF, intr: Intrinsics, c2w: np.ndarray | torch.Tensor,
                  deform_code: torch.Tensor, appearance_code: torch.Tensor,
@@ -94,28 +96,46 @@ class StillCamera:
                  settings: RenderSettings = REFERENCE):
         self.args = (model, intr, c2w, deform_code, appearance_code)
         self.head, self.chunk, self.settings = head, chunk, settings
-        self.last: tuple[np.ndarray, dict[str, torch.Tensor]] | None = None
+        # the last image: its expression, mask and outputs (H·W rows)
+        self.last: tuple[torch.Tensor, np.ndarray, dict[str, torch.Tensor]] | None = None
         self.rays = 0  # rays rendered by the last call
 
-    def __call__(self, expression: torch.Tensor, face_mask: np.ndarray
-                 ) -> dict[str, torch.Tensor]:
-        """expression (E,), face_mask (H, W) bool -> as `render_image`."""
-        model, intr = self.args[0], self.args[1]
+    def pixels(self, expression: torch.Tensor, face_mask: np.ndarray) -> np.ndarray | None:
+        """The flat pixels the next image must render; None: all of them."""
+        if self.last is None or not self.args[0].expression_confined:
+            return None
+        last_expr, last_mask, _ = self.last
+        if torch.equal(last_expr, expression):
+            return np.zeros(0, np.int64)
+        return np.flatnonzero(np.asarray(face_mask, bool) | last_mask)
+
+    def __call__(self, expression: torch.Tensor, face_mask: np.ndarray, band: int = 0,
+                 check: Callable[[], None] | None = None) -> dict[str, torch.Tensor]:
+        """expression (E,), face_mask (H, W) bool -> as `render_image`. `band`: rays per
+        call of the renderer (0: all at once), with `check()` before each (the viewer's,
+        which raises to abandon a stale image)."""
+        intr = self.args[1]
+        expression = torch.as_tensor(expression).float()
         mask = np.asarray(face_mask, bool)
-        if self.last is None or not model.expression_confined:
-            out = render_image(*self.args, expression, mask, self.chunk, self.head,
-                               self.settings)
-            self.rays = intr.h * intr.w
+        pixels = self.pixels(expression, mask)
+        if pixels is None:
+            n = intr.h * intr.w
+            out = {"rgb": torch.zeros(n, 3), "depth": torch.zeros(n), "acc": torch.zeros(n)}
+            pixels = np.arange(intr.h * intr.w)
         else:
-            last_mask, last = self.last
-            pixels = np.flatnonzero(mask | last_mask)
-            part = render_pixels(*self.args, expression, mask, pixels, self.chunk, self.head,
+            out = {k: v.clone() for k, v in self.last[2].items()}
+        step = band if band > 0 else max(len(pixels), 1)
+        for s in range(0, len(pixels), step):
+            if check is not None:
+                check()
+            part_px = pixels[s:s + step]
+            part = render_pixels(*self.args, expression, mask, part_px, self.chunk, self.head,
                                  self.settings)
-            out = {k: v.clone() for k, v in last.items()}
-            idx = torch.from_numpy(pixels)
-            out["rgb"].view(-1, 3)[idx] = part["rgb"].clamp(0, 1)
-            out["depth"].view(-1)[idx] = part["depth"]
-            out["acc"].view(-1)[idx] = part["acc"]
-            self.rays = len(pixels)
-        self.last = (mask, out)
-        return out
+            idx = torch.from_numpy(part_px)
+            out["rgb"][idx] = part["rgb"].clamp(0, 1)
+            out["depth"][idx] = part["depth"]
+            out["acc"][idx] = part["acc"]
+        self.rays = len(pixels)
+        self.last = (expression.clone(), mask, out)
+        return {"rgb": out["rgb"].view(intr.h, intr.w, 3),
+                "depth": out["depth"].view(intr.h, intr.w), "acc": out["acc"].view(intr.h, intr.w)}

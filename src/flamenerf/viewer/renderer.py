@@ -25,7 +25,7 @@ import torch
 
 from flamenerf.data.dataset import Intrinsics
 from flamenerf.model.inference import VIEWER, RenderSettings
-from flamenerf.model.render_image import render_image, render_pixels
+from flamenerf.model.render_image import StillCamera
 from flamenerf.viewer.camera import view_intrinsics
 
 
@@ -56,8 +56,8 @@ class View:
     shown_level: int = -1
     depth_range: tuple[float, float] | None = None
     renders: int = 0
-    # the last full-height image's rays and what made them: {"scene", "expression",
-    # "mask", "rgb", "depth"} (the worker thread's alone)
+    # the renderer of the last full-height image and what it depends on besides the
+    # expression: {"scene": RenderWorker._scene, "still": StillCamera}
     cache: dict | None = None
 
 
@@ -250,8 +250,8 @@ class RenderWorker:
         snap = dict(key=key, state=(v.version, s.version), c2w=v.c2w.copy(), fov_y=v.fov_y,
                     aspect=v.aspect, expression=s.expression.copy(), mode=s.mode,
                     height=heights[-1], final=True, depth_range=v.depth_range, head=s.head)
-        if level < len(heights) - 1 and not (self._reusable(v, snap)
-                                             and v.cache["mask"].mean() <= self.partial_max):
+        if level < len(heights) - 1 and not (self._reusable(v, snap) and
+                                             v.cache["still"].last[1].mean() <= self.partial_max):
             snap.update(height=heights[level], final=False)
         else:  # the whole image at once, or only the pixels a new expression reaches
             level = len(heights) - 1
@@ -339,41 +339,21 @@ class RenderWorker:
         expr = torch.from_numpy(snap["expression"])
         with self._cv:
             v = self.views.get(snap["key"])
-        cache = v.cache if v is not None and snap["final"] and self._reusable(v, snap) else None
-        if cache is None:
-            rays = intr.h * intr.w
-            rgb = np.zeros((intr.h, intr.w, 3), np.float32)
-            depth = np.zeros((intr.h, intr.w), np.float32)
-            rows = max(1, self.band_rays // intr.w)
-            for y0 in range(0, intr.h, rows):
-                if cancellable and self._stale(snap):
-                    raise _Stale
-                r = min(rows, intr.h - y0)
-                band = Intrinsics(intr.w, r, intr.fx, intr.fy, intr.cx, intr.cy - y0)
-                out = render_image(self.model, band, c2w, self.omega, self.phi, expr,
-                                   mask[y0:y0 + r], head=head, settings=self.settings)
-                rgb[y0:y0 + r] = out["rgb"].numpy()
-                depth[y0:y0 + r] = out["depth"].numpy()
+        if v is not None and snap["final"] and self._reusable(v, snap):
+            still = v.cache["still"]  # only the pixels a new expression reaches
         else:
-            # the pixels the old or the new expression reaches; none for the same one (a
-            # new display mode)
-            same = np.array_equal(cache["expression"], snap["expression"])
-            pixels = np.flatnonzero(np.zeros_like(mask) if same else mask | cache["mask"])
-            rays = len(pixels)
-            rgb, depth = cache["rgb"].copy(), cache["depth"].copy()
-            flat_rgb, flat_depth = rgb.reshape(-1, 3), depth.reshape(-1)
-            for s in range(0, len(pixels), self.band_rays):
-                if cancellable and self._stale(snap):
-                    raise _Stale
-                part = pixels[s:s + self.band_rays]
-                out = render_pixels(self.model, intr, c2w, self.omega, self.phi, expr, mask,
-                                    part, head=head, settings=self.settings)
-                flat_rgb[part] = out["rgb"].clamp(0, 1).numpy()
-                flat_depth[part] = out["depth"].numpy()
+            still = StillCamera(self.model, intr, c2w, self.omega, self.phi, head=head,
+                                settings=self.settings)
+
+        def check() -> None:
+            if cancellable and self._stale(snap):
+                raise _Stale
+
+        out = still(expr, mask, band=self.band_rays, check=check)
+        rgb, depth, rays = out["rgb"].numpy(), out["depth"].numpy(), still.rays
         if snap["final"] and v is not None:
             with self._cv:
-                v.cache = {"scene": self._scene(snap), "expression": snap["expression"].copy(),
-                           "mask": mask, "rgb": rgb, "depth": depth}
+                v.cache = {"scene": self._scene(snap), "still": still}
         extras: dict = {"mask": mask, "rays": rays}
         if snap["mode"] == "Depth":
             rng = snap["depth_range"]
