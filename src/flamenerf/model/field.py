@@ -219,7 +219,6 @@ class HashField(nn.Module):
         c = self.rgb(g[..., 1:], _view_conditioning(d, app, self.cfg))
         return sigma, torch.sigmoid(c)
 
-
     def _forward_fused(self, x: Tensor, d: Tensor, app: Tensor, expr: Tensor | None
                        ) -> tuple[Tensor, Tensor] | None:
         """`forward` on the GPU's inference path: the features in one buffer, then both
