@@ -130,7 +130,7 @@ def _define() -> dict:
 
     @triton.jit
     def knn(p_ptr, v_ptr, which_ptr, d_ptr, i_ptr, n, V: tl.constexpr,
-            K: tl.constexpr, KP: tl.constexpr, BLOCK: tl.constexpr):
+            K: tl.constexpr, KP: tl.constexpr, BLOCK: tl.constexpr, TILE: tl.constexpr):
         rows = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
         ok = rows < n
         px = tl.load(p_ptr + rows * 3, mask=ok, other=0.0)
@@ -142,18 +142,31 @@ def _define() -> dict:
         best = tl.where(cols[None, :] < K, float("inf"), float("-inf")) + tl.zeros(
             (BLOCK, KP), dtype=tl.float32)
         besti = tl.zeros((BLOCK, KP), dtype=tl.int64)
-        for j in range(V):
-            v = (base + j) * 3
-            dx = px - tl.load(v_ptr + v, mask=ok, other=0.0)
-            dy = py - tl.load(v_ptr + v + 1, mask=ok, other=0.0)
-            dz = pz - tl.load(v_ptr + v + 2, mask=ok, other=0.0)
-            d = dx * dx + dy * dy + dz * dz
-            worst = tl.max(best, 1)
-            # the first column holding the worst: replaced where this vertex is nearer
-            at = tl.min(tl.where(best == worst[:, None], cols[None, :], KP), 1)
-            put = (cols[None, :] == at[:, None]) & (d < worst)[:, None]
-            best = tl.where(put, d[:, None], best)
-            besti = tl.where(put, base[:, None] + j, besti)
+        # the vertices in tiles of TILE: each tile's distances in one vectorised step, and
+        # the insertions (vertex by vertex, in order) only where some point of the block
+        # has one of them nearer than its k-th best so far. Once the nearby vertices are
+        # in, most tiles are skipped whole; skipping one changes nothing, since no
+        # insertion would have happened in it
+        tc = tl.arange(0, TILE)
+        for j0 in range(0, V, TILE):
+            jj = j0 + tc
+            live = ok[:, None] & (jj < V)[None, :]
+            v = (base[:, None] + jj[None, :]) * 3
+            dx = px[:, None] - tl.load(v_ptr + v, mask=live, other=0.0)
+            dy = py[:, None] - tl.load(v_ptr + v + 1, mask=live, other=0.0)
+            dz = pz[:, None] - tl.load(v_ptr + v + 2, mask=live, other=0.0)
+            d = tl.where(live, dx * dx + dy * dy + dz * dz, float("inf"))
+            need = tl.sum((tl.min(d, 1) < tl.max(best, 1)).to(tl.int32), 0)
+            if need > 0:
+                for t in tl.static_range(TILE):
+                    dt = tl.sum(tl.where((tc == t)[None, :], d, 0.0), 1)
+                    worst = tl.max(best, 1)
+                    # the first column holding the worst: replaced where this vertex is
+                    # nearer
+                    at = tl.min(tl.where(best == worst[:, None], cols[None, :], KP), 1)
+                    put = (cols[None, :] == at[:, None]) & (dt < worst)[:, None]
+                    best = tl.where(put, dt[:, None], best)
+                    besti = tl.where(put, base[:, None] + j0 + t, besti)
         keep = ok[:, None] & (cols[None, :] < K)
         tl.store(d_ptr + rows[:, None] * K + cols[None, :], best, mask=keep)
         tl.store(i_ptr + rows[:, None] * K + cols[None, :], besti, mask=keep)
@@ -206,7 +219,8 @@ def knn(pts: Tensor, meshes: Tensor, which: Tensor, k: int) -> tuple[Tensor, Ten
     idx = torch.empty(P, k, dtype=torch.long, device=pts.device)
     if P and not _launch("knn", (triton_cdiv(P, 128),), pts.detach().float().contiguous(),
                          meshes.detach().float().contiguous(), which.contiguous(), d2, idx,
-                         P, V, K=k, KP=max(2, 1 << (k - 1).bit_length()), BLOCK=128):
+                         P, V, K=k, KP=max(2, 1 << (k - 1).bit_length()), BLOCK=128,
+                         TILE=16):
         return None
     d2, order = torch.sort(d2, -1)
     return d2, idx.gather(-1, order)
