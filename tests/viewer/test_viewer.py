@@ -4,6 +4,7 @@ moving an expression slider in the page (DOM mouse events via the DevTools proto
 from __future__ import annotations
 
 import json
+import re
 import os
 import socket
 import sys
@@ -75,7 +76,7 @@ def _wait_final(b: Browser, after: int, timeout: float = 40.0) -> int:
     s = b.wait_for(f"""(() => {{ const s = {STATUS_JS};
         const m = s.match(/final · #(\\d+)/); return m && +m[1] > {after} ? s : '' }})()""",
                    timeout)
-    return int(s.rsplit("#", 1)[1])
+    return int(re.search(r"final · #(\d+)", s).group(1))
 
 
 def _rect(b: Browser, js_element: str) -> dict:
