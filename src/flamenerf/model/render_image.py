@@ -121,7 +121,7 @@ class StillCamera:
         if pixels is None:
             n = intr.h * intr.w
             out = {"rgb": torch.zeros(n, 3), "depth": torch.zeros(n), "acc": torch.zeros(n)}
-            pixels = np.arange(intr.h * intr.w)
+            pixels = np.arange(n)
         else:
             out = {k: v.clone() for k, v in self.last[2].items()}
         step = band if band > 0 else max(len(pixels), 1)
@@ -136,6 +136,7 @@ class StillCamera:
             out["depth"][idx] = part["depth"]
             out["acc"][idx] = part["acc"]
         self.rays = len(pixels)
-        self.last = (expression.clone(), mask, out)
+        # a copy kept: what the caller gets may be changed in place without touching it
+        self.last = (expression.clone(), mask, {k: v.clone() for k, v in out.items()})
         return {"rgb": out["rgb"].view(intr.h, intr.w, 3),
                 "depth": out["depth"].view(intr.h, intr.w), "acc": out["acc"].view(intr.h, intr.w)}
