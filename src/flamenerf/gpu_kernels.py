@@ -177,7 +177,8 @@ def _define() -> dict:
                     bc3_ptr, sigma_ptr, rgb_ptr,
                     CIN: tl.constexpr, CP: tl.constexpr, H: tl.constexpr, G: tl.constexpr,
                     OUT: tl.constexpr, BLOCK: tl.constexpr, PREC: tl.constexpr):
-        rows = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
+        # int64 offsets: a refinement pass can hold tens of millions of samples
+        rows = tl.program_id(0).to(tl.int64) * BLOCK + tl.arange(0, BLOCK)
         ok = rows < n
         kin, hc, gc, oc = tl.arange(0, CP), tl.arange(0, H), tl.arange(0, G), tl.arange(0, OUT)
         dt = w1_ptr.dtype.element_ty
@@ -292,7 +293,8 @@ def field_heads(feats: Tensor, term: Tensor, per: int, density_head, rgb_head
     N, C = feats.shape
     H = density_head.layers[0].out_features
     geo = density_head.out.out_features - 1
-    if (H & (H - 1) or not 16 <= H <= 128 or C > 128 or rgb_head.out.out_features != 3
+    if (H & (H - 1) or not 16 <= H <= 128 or C > 128 or not 0 < geo < 64
+            or C != density_head.layers[0].in_features or rgb_head.out.out_features != 3
             or rgb_head.layers[0].out_features != H or rgb_head.layers[1].out_features != H
             or feats.stride(-1) != 1 or term.shape[-1] != H):
         return None
