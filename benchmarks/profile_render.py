@@ -62,8 +62,12 @@ def main() -> int:
             frame()
     key = "self_cuda_time_total" if cuda else "self_cpu_time_total"
     name = torch.cuda.get_device_name(dev) if cuda else "CPU"
+    from flamenerf import gpu_kernels
+
+    kernels = (", Triton kernels on: " + (", ".join(gpu_kernels.working()) or "none")
+               if cuda else "")
     table = (f"# {a.settings} frame, {a.size} px, {a.frames} frames, {name}, "
-             f"torch {torch.__version__}\n"
+             f"torch {torch.__version__}{kernels}\n"
              + prof.key_averages().table(sort_by=key, row_limit=a.rows, max_name_column_width=55))
     print(table)
     if a.out:

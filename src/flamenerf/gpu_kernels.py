@@ -42,6 +42,12 @@ def available(device: torch.device) -> bool:
     return _load() is not None
 
 
+def working() -> list[str]:
+    """The kernels built or not yet tried, by name (one that failed is off: `_launch`)."""
+    kernels = _load()
+    return sorted(kernels) if kernels is not None else []
+
+
 def _load() -> dict | None:
     global _kernels, _tried
     if not _tried:
