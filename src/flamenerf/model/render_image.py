@@ -88,7 +88,8 @@ class StillCamera:
     rendered again, the others kept (β reaches no other ray where the model confines it,
     `FlameNeRF.expression_confined`; otherwise every image is rendered whole). What a
     re-animation from a still camera, eval's sweeps and drives and the viewer's sliders
-    render: ~3x faster per frame on a CPU, the same pixels (docs/results.md)."""
+    render: the same pixels, ~3x faster per frame on a CPU where the face is a small part
+    of the view, ~10 % where it fills a third of it (docs/results.md)."""
 
     def __init__(self, model: FlameNeRF, intr: Intrinsics, c2w: np.ndarray | torch.Tensor,
                  deform_code: torch.Tensor, appearance_code: torch.Tensor,
