@@ -101,7 +101,9 @@ def kernel_library() -> ctypes.CDLL | None:
     p, i64, i32 = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int32
     lib.hashgrid_forward.argtypes = [p, i64, i32, i32, p, p, p, i64, p, i64, i32]
     lib.hashgrid_backward.argtypes = [p, i64, i32, i32, p, p, p, i64, p, p, p, p, i32]
+    lib.hashgrid_contract.argtypes = [p, i64, i32, i32, p, p, p, i64, p, i32, p, i64, i32]
     lib.hashgrid_forward.restype = lib.hashgrid_backward.restype = None
+    lib.hashgrid_contract.restype = None
     lib.knn_forward.argtypes = [p, i64, p, p, i64, i64, i32, ctypes.c_double, p, p, i32]
     lib.knn_forward.restype = lib.knn_vectorised.restype = ctypes.c_int
     lib.knn_vectorised.argtypes = []

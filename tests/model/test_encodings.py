@@ -1,5 +1,6 @@
 import math
 
+import pytest
 import torch
 
 from flamenerf.model.encodings import HashGrid, cosine_easing_window, positional_encoding
@@ -150,6 +151,24 @@ def test_encode_into_writes_the_encoding_beside_other_columns(monkeypatch):
         g.encode_into(x, buf[:, 3:3 + g.out_dim])
         assert torch.allclose(buf[:, 3:3 + g.out_dim], ref, atol=1e-6)
         assert torch.all(buf[:, :3] == 7) and torch.all(buf[:, 3 + g.out_dim:] == 7)
+
+
+@pytest.mark.parametrize("native", [True, False])
+def test_contract_matches_the_batched_product(native, portable_kernels):
+    """`HashGrid.contract` (the expression fields' Σ_r z_r G_r(x) inside the CPU's kernel)
+    gives the batched product over the encoding, for the vectorised counts and others, in
+    the native and the portable build; it declines what the kernel does not take."""
+    if not native:
+        assert portable_kernels() is not None
+    torch.manual_seed(0)
+    for rank, fe in ((8, 2), (3, 2), (4, 1), (12, 2)):  # F = 16, 6, 4, 24 (no vector path)
+        g = _grid_with_features(4, rank * fe, 10, 4, 64)
+        x, z = torch.rand(1100, 3) * 1.2 - 0.1, torch.randn(1100, rank)  # 1100: a part block
+        ref = torch.matmul(z[:, None, None, :], g(x).detach().view(-1, 4, rank, fe))
+        got = g.contract(x, z, fe)
+        assert got is not None and got.shape == (1100, 4 * fe)
+        assert torch.allclose(got, ref.reshape(1100, -1), atol=1e-5), (rank, fe)
+    assert g.contract(x, torch.randn(1100, 5), 2) is None  # rank · features != F
 
 
 def test_cpu_kernel_table_gradient_without_position_gradient_is_deterministic():

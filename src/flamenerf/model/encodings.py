@@ -120,6 +120,39 @@ class HashGrid(nn.Module):
                 return
         out.copy_(self(x))
 
+    @torch.no_grad()
+    def contract(self, x: Tensor, z: Tensor, features: int) -> Tensor | None:
+        """Σ_r z_r G_r(x) at each level, the level's F features read as (rank, features)
+        (the expression feature fields, model/field.py), without writing the (N, L·F)
+        features: x (N, 3) in [0, 1]^3, z (N, rank) -> (N, L·features) float32. By the
+        CPU's compiled kernel or the GPU's Triton kernel; None where neither runs (the
+        caller then multiplies the features itself)."""
+        rank = self.features // features
+        if rank * features != self.features or z.shape != (x.shape[0], rank):
+            return None
+        from flamenerf import runtime
+
+        if runtime.gpu_inference(x.device):
+            from flamenerf import gpu_kernels
+
+            return (gpu_kernels.hashgrid_contract(self, x, z, features)
+                    if gpu_kernels.available(x.device) else None)
+        if x.device.type != "cpu":
+            return None
+        from flamenerf.cpu_kernels import kernel_library
+
+        lib = kernel_library()
+        if lib is None or self.features > 64 or self.tables[0].dtype != torch.float32:
+            return None
+        x, z = x.float().contiguous(), z.float().contiguous()
+        out = torch.empty(x.shape[0], self.levels * features)
+        res, dense = self.kernel_layout()
+        tables = [t.detach().contiguous() for t in self.tables]
+        lib.hashgrid_contract(x.data_ptr(), x.shape[0], self.levels, self.features,
+                              _pointers(tables), res, dense, self.size - 1, z.data_ptr(),
+                              rank, out.data_ptr(), out.stride(0), torch.get_num_threads())
+        return out
+
     def kernel_layout(self) -> tuple:
         """ctypes arrays of the per-level resolutions and dense flags."""
         if getattr(self, "_layout", None) is None:

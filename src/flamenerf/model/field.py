@@ -191,11 +191,12 @@ class HashField(nn.Module):
         if len(idx):
             xs = (x.reshape(-1, 3)[idx] + 1) * 0.5
             f = None
-            if runtime.gpu_inference(x.device) and torch.is_inference_mode_enabled():
-                from flamenerf import gpu_kernels
-
-                if gpu_kernels.available(x.device):  # the contraction inside the kernel
-                    f = gpu_kernels.hashgrid_contract(self.expr_grid, xs, z, Fe)
+            # at inference, the contraction inside the grid's kernel (the CPU's, or the
+            # GPU's on its inference path); the training forward and the reference
+            # renderer keep the product below
+            if torch.is_inference_mode_enabled() and (x.device.type == "cpu"
+                                                      or runtime.gpu_inference(x.device)):
+                f = self.expr_grid.contract(xs, z, Fe)
             if f is None:
                 g = self.expr_grid(xs).view(-1, L, R, Fe)
                 # (n, 1, 1, R) @ (n, L, R, F): a batched product, ~1.6x faster than the
