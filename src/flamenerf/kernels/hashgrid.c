@@ -301,9 +301,9 @@ static void level_block(const float *x, int64_t n, int32_t F, int64_t r, int den
  * contracted with the point's z (R,), out (N, L·Fe) with rows `out_stride` floats apart:
  * Σ_r z_r G_r(x). A block's features of one level go through a small scratch buffer that
  * stays in cache, so that the (N, L·F) features are never written out (8x the output for
- * `fast`'s fields) and no batched product of tiny matrices runs over them (the contraction
- * was ~15 % of a face ray's time at inference on the 2-core CPU). Level-major like the
- * forward pass; each output a fixed-order sum. */
+ * `fast`'s fields) and no batched product of tiny matrices runs over them (together a third
+ * of a face ray's time at inference on the 2-core CPU: docs/results.md). Level-major like
+ * the forward pass; each output a fixed-order sum. F <= CONTRACT_MAX_F (the caller checks). */
 #define CONTRACT_BLOCK 512
 #define CONTRACT_MAX_F 64
 void hashgrid_contract(const float *x, int64_t n, int32_t L, int32_t F,
