@@ -7,7 +7,7 @@ import numpy as np
 import torch
 
 
-def test_still_camera_frames_equal_whole_renders(toy_run, monkeypatch):
+def test_still_camera_frames_equal_whole_renders(toy_run, toy_dataset, monkeypatch, tmp_path):
     from flamenerf.data.prior import dataset_dilation, prior_mask
     from flamenerf.model import render_image as ri
     from flamenerf.model.inference import FAST
@@ -54,3 +54,13 @@ def test_still_camera_frames_equal_whole_renders(toy_run, monkeypatch):
     run.model.cfg.expression_mode = "everywhere"
     list(reanimate.render_sequence(run.model, ds, intr, cams, betas, verts, omega, phi, dil))
     assert rendered == [n] * T
+    # the Nerfies variant: β reaches nothing, the still camera's frames are the first one's
+    from toy import make_toy_run
+
+    nerfies = load_run(make_toy_run(toy_dataset, tmp_path / "nerfies", "none"),
+                       "cpu")
+    rendered.clear()
+    frames = list(reanimate.render_sequence(nerfies.model, ds, intr, cams, betas, verts,
+                                            *nerfies.frame_codes(0), dil))
+    assert rendered == [n, n]
+    assert np.array_equal(frames[1].rgb, frames[0].rgb)

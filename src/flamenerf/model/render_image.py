@@ -106,8 +106,9 @@ class StillCamera:
         if self.last is None or not self.args[0].expression_confined:
             return None
         last_expr, last_mask, _ = self.last
-        if torch.equal(last_expr, expression):
-            return np.zeros(0, np.int64)
+        if torch.equal(last_expr, expression) or self.args[0].cfg.expression_mode == "none":
+            return np.zeros(0, np.int64)  # nothing β reaches changed (the Nerfies variant:
+            # β reaches nothing)
         return np.flatnonzero(np.asarray(face_mask, bool) | last_mask)
 
     def __call__(self, expression: torch.Tensor, face_mask: np.ndarray, band: int = 0,
