@@ -118,41 +118,58 @@ def _oneDNN_linear():
     return op
 
 
-def _fused_linear(layer: nn.Linear, parts: list[Tensor], relu: bool, bf16: bool = False
-                  ) -> Tensor:
-    """relu?(layer(cat(parts, -1))) as linear_of_concat broadcasts them; parts[0] holds one
-    row per sample, later parts may be per ray (broadcastable, added after the matmul).
-    `bf16`: the per-sample matmul in bfloat16 (the result is bfloat16)."""
-    op = torch.ops.mkldnn._linear_pointwise
+def _linear_of_parts(layer: nn.Linear, parts: list[Tensor], relu: bool, dtype: torch.dtype,
+                     dense) -> Tensor:
+    """relu?(layer(cat(parts, -1))) without autograd, as `linear_of_concat` broadcasts the
+    parts, in as few passes over the activations as the kernel `dense` allows. Parts with
+    one row per sample (parts[0]'s leading shape) go through dense(x (n, k), w (out, k),
+    bias or None, relu) -> (n, out) in `dtype` (the weights cast once and kept:
+    `params_in`); a layer over those alone gets its bias and ReLU inside that kernel.
+    Later parts with fewer rows (per ray, broadcastable) are multiplied in the layer's own
+    precision and summed with the bias into one small term, added in place; then ReLU in
+    place. Without it each of those terms, the bias and the ReLU would be a pass of its own
+    over every sample's activation."""
+    weight, bias = params_in(layer, dtype)
     lead = parts[0].shape[:-1]
     rows = parts[0].numel() // parts[0].shape[-1]
-    weight, bias = _bf16_params(layer) if bf16 else (layer.weight, layer.bias)
+    if len(parts) == 1:
+        k = parts[0].shape[-1]
+        return dense(parts[0].to(dtype).reshape(rows, k), weight, bias, relu).view(*lead, -1)
     out, small, start = None, None, 0
     for p in parts:
         k = p.shape[-1]
+        cols = slice(start, start + k)
         start += k
         if p.shape[:-1] == lead:
-            p = p.to(weight.dtype)
-            if len(parts) == 1:  # bias and ReLU inside the matmul
-                return op(p.reshape(rows, k), weight, bias,
-                          "relu" if relu else "none", [], "").view(*lead, -1)
-            w = weight[:, start - k:start].contiguous()
-            y = op(p.reshape(rows, k), w, None, "none", [], "").view(*lead, -1)
+            y = dense(p.to(dtype).reshape(rows, k), weight[:, cols], None, False).view(*lead, -1)
             out = y if out is None else out.add_(y)
-        else:
-            y = F.linear(p, layer.weight[:, start - k:start])
+        else:  # shapes may broadcast either way: summed out of place
+            y = F.linear(p.to(layer.weight.dtype), layer.weight[:, cols])
             small = y if small is None else small + y
-    small = (layer.bias if small is None else small + layer.bias).to(out.dtype)
-    if not relu:
-        return out.add_(small)
-    # _add_relu_ (one pass) is float32-only
-    return torch.ops.aten._add_relu_(out, small) if out.dtype == torch.float32 \
-        else out.add_(small).relu_()
+    assert start == layer.in_features, (start, layer.in_features)
+    if layer.bias is not None:
+        small = layer.bias if small is None else small + layer.bias
+    if small is not None:
+        small = small.to(out.dtype)
+        if relu and out.device.type == "cpu" and out.dtype == torch.float32:
+            return torch.ops.aten._add_relu_(out, small)  # one pass; float32 CPUs only
+        out.add_(small)
+    return out.relu_() if relu else out
 
 
-def _bf16_params(layer: nn.Linear) -> tuple[Tensor, Tensor | None]:
-    """The layer's weight and bias in bfloat16 (`params_in`)."""
-    return params_in(layer, torch.bfloat16)
+def _dense_onednn(x: Tensor, w: Tensor, b: Tensor | None, relu: bool) -> Tensor:
+    """x @ w.T (+ b, ReLU) as one oneDNN matmul with its post-ops (CPUs)."""
+    return torch.ops.mkldnn._linear_pointwise(x, w.contiguous(), b, "relu" if relu else "none",
+                                              [], "")
+
+
+def _dense_blas(x: Tensor, w: Tensor, b: Tensor | None, relu: bool) -> Tensor:
+    """x @ w.T (+ b, ReLU) as one BLAS call; bias and ReLU in cuBLASLt's epilogue on a GPU
+    (`_addmm_activation`)."""
+    if b is None:
+        y = x @ w.t()
+        return y.relu_() if relu else y
+    return (torch._addmm_activation if relu else torch.addmm)(b, x, w.t())
 
 
 def params_in(layer: nn.Linear, dtype: torch.dtype) -> tuple[Tensor, Tensor | None]:
@@ -168,39 +185,6 @@ def params_in(layer: nn.Linear, dtype: torch.dtype) -> tuple[Tensor, Tensor | No
                   None if layer.bias is None else layer.bias.detach().to(dtype))
         layer._flamenerf_cast = cached
     return cached[1], cached[2]
-
-
-def _lean_linear(layer: nn.Linear, parts: list[Tensor], relu: bool) -> Tensor:
-    """relu?(layer(cat(parts, -1))) without autograd, as `MLP.forward_lean` describes:
-    parts holding one row per sample (parts[0]'s leading shape) are multiplied into one
-    output, later parts with fewer rows (per ray, broadcastable) are summed with the bias
-    into one small term added in place. All parts in the weights' dtype."""
-    weight, bias = params_in(layer, parts[0].dtype)
-    lead = parts[0].shape[:-1]
-    out, small, start = None, None, 0
-    for p in parts:
-        k = p.shape[-1]
-        w = weight[:, start:start + k]
-        start += k
-        if p.shape[:-1] != lead:
-            y = F.linear(p, w)
-            small = y if small is None else small + y  # shapes may broadcast either way
-            continue
-        flat = p.reshape(-1, k)
-        if out is not None:
-            out.addmm_(flat, w.t())
-        elif len(parts) == 1 and bias is not None:
-            act = torch._addmm_activation if relu else torch.addmm
-            return act(bias, flat, w.t()).view(*lead, -1)
-        else:
-            out = flat @ w.t()
-    assert start == layer.in_features, (start, layer.in_features)
-    if bias is not None:
-        small = bias if small is None else small.add_(bias)  # small: a new tensor
-    out = out.view(*lead, -1)
-    if small is not None:
-        out.add_(small)
-    return out.relu_() if relu else out
 
 
 def linear_of_concat(layer: nn.Linear, parts: list[Tensor],
@@ -268,45 +252,40 @@ class MLP(nn.Module):
 
     def forward_lean(self, inputs: list[Tensor]) -> Tensor:
         """The forward pass without autograd in as few passes over the activations as
-        PyTorch ops allow: the GPU's inference path (any device runs it; the tests compare
-        it with the plain path on a CPU). Each layer over per-sample inputs alone is one
-        matmul with its bias and ReLU in the epilogue (`_addmm_activation`, cuBLASLt's
-        fused ReLU-bias); a layer with per-ray conditioning adds the conditioning's share
-        and the bias (one (rays, width) term) in place and applies ReLU in place. The plain
-        path makes a new activation for the bias, one for each conditioning term and one
-        for the ReLU: at a 512 px frame's ~8 M samples a 64-wide half-precision activation
-        is 1 GB, and those passes were most of an H100's `add` and `clamp_min` time
-        (docs/bench/gpu_h100_20261126_prof512.txt: 7.3 and 3.8 of 50 ms). Runs in the
-        autocast dtype where autocast is on (the weights cast once and kept)."""
+        PyTorch ops allow (`_linear_of_parts` with one BLAS call a layer): the GPU's
+        inference path (any device runs it; the tests compare it with the plain path on a
+        CPU). The plain path makes a new activation for the bias, one for each
+        conditioning term and one for the ReLU: at a 512 px frame's ~8 M samples a 64-wide
+        half-precision activation is 1 GB, and those passes were most of an H100's `add`
+        and `clamp_min` time (docs/bench/gpu_h100_20261126_prof512.txt: 7.3 and 3.8 of
+        50 ms). Runs in the autocast dtype where autocast is on."""
         dev = inputs[0].device.type
         dtype = (torch.get_autocast_dtype(dev) if torch.is_autocast_enabled(dev)
                  else inputs[0].dtype)
-        inputs = [p.to(dtype) for p in inputs]
         with torch.autocast(dev, enabled=False):
-            h = None
-            for i, layer in enumerate(self.layers):
-                parts = inputs if h is None else [h, *inputs] if i in self.skips else [h]
-                h = _lean_linear(layer, parts, relu=True)
-            if self.out is not None:
-                h = _lean_linear(self.out, inputs if h is None else [h], relu=False)
-        return h
+            return self._layers(inputs, lambda layer, parts, relu: _linear_of_parts(
+                layer, parts, relu, dtype, _dense_blas))
 
     def _forward_bf16(self, inputs: list[Tensor]) -> Tensor:
-        inputs = [p.to(torch.bfloat16) for p in inputs]
-        h = None
-        for i, layer in enumerate(self.layers):
-            parts = inputs if h is None else [h, *inputs] if i in self.skips else [h]
-            h = torch.relu(linear_of_concat(layer, parts, torch.bfloat16))
-        if self.out is not None:
-            h = linear_of_concat(self.out, inputs if h is None else [h], torch.bfloat16)
-        return h.float()
+        def linear(layer, parts, relu):
+            h = linear_of_concat(layer, parts, torch.bfloat16)
+            return torch.relu(h) if relu else h
+
+        return self._layers([p.to(torch.bfloat16) for p in inputs], linear).float()
 
     def _forward_fused(self, inputs: list[Tensor]) -> Tensor:
-        bf16 = getattr(_fusing, "bf16", False)
+        dtype = torch.bfloat16 if getattr(_fusing, "bf16", False) else torch.float32
+        return self._layers(inputs, lambda layer, parts, relu: _linear_of_parts(
+            layer, parts, relu, dtype, _dense_onednn)).float()
+
+    def _layers(self, inputs: list[Tensor], linear) -> Tensor:
+        """The layers in order through linear(layer, parts, relu): parts the inputs for the
+        first layer and at a skip the last activation with the inputs again, else it
+        alone; ReLU on every layer but the output."""
         h = None
         for i, layer in enumerate(self.layers):
             parts = inputs if h is None else [h, *inputs] if i in self.skips else [h]
-            h = _fused_linear(layer, parts, relu=True, bf16=bf16)
+            h = linear(layer, parts, True)
         if self.out is not None:
-            h = _fused_linear(self.out, inputs if h is None else [h], relu=False, bf16=bf16)
-        return h.float()
+            h = linear(self.out, inputs if h is None else [h], False)
+        return h
