@@ -1,6 +1,7 @@
 """Triton kernels for GPUs: the hash grid's encoding without autograd (every level in one
 kernel; for the expression feature fields contracted with each point's projected β in the
-same kernel), and the k nearest mesh vertices of many points.
+same kernel), a hash field's density and colour heads in one kernel (`field_heads`), and
+the k nearest mesh vertices of many points.
 
 On a GPU, `HashGrid.forward_grouped` builds each corner's index and weight as separate
 PyTorch tensors (G, N) and gathers them with `index_select`: an H100 spent most of a
@@ -13,10 +14,12 @@ table rows read and the features written. Forward only, without autograd: traini
 The k nearest vertices: `meshes.nearest_vertices_brute` computes every point's distance to
 every vertex and selects with `topk`; on an H200 that selection was 37 % of a mesh-guided
 256 px frame's GPU time. Here each point keeps its k best in registers while it walks its
-mesh's vertices (V ~ 500-800, k <= 8).
+mesh's vertices (V ~ 500-800, k <= 8), in tiles of vertices that a block of points skips
+where none of them is nearer than a point's k-th best so far.
 
 Triton comes with PyTorch's CUDA builds; without it (or with `FLAMENERF_GPU_KERNELS=0`)
-the callers fall back to PyTorch ops. `TRITON_INTERPRET=1` runs the kernels on a CPU
+the callers fall back to PyTorch ops, and so do a kernel's callers where that kernel
+fails to build (it alone goes off). `TRITON_INTERPRET=1` runs the kernels on a CPU
 (how the tests check them against the references).
 """
 

@@ -191,11 +191,10 @@ class HashField(nn.Module):
         if len(idx):
             xs = (x.reshape(-1, 3)[idx] + 1) * 0.5
             f = None
-            # at inference, the contraction inside the grid's kernel (the CPU's, or the
-            # GPU's on its inference path); the training forward and the reference
-            # renderer keep the product below
-            if torch.is_inference_mode_enabled() and (x.device.type == "cpu"
-                                                      or runtime.gpu_inference(x.device)):
+            # at inference, the contraction inside the grid's kernel (`contract` picks the
+            # CPU's or the GPU's); the training forward and the reference renderer keep the
+            # product below
+            if torch.is_inference_mode_enabled():
                 f = self.expr_grid.contract(xs, z, Fe)
             if f is None:
                 g = self.expr_grid(xs).view(-1, L, R, Fe)

@@ -13,9 +13,14 @@ scene, 256 px, 2-core CPU; docs/bench/render.md):
   trilinear lookup of its bake instead of the MLP per sample, and rays outside the face
   silhouette read the proposal's density from its bake (model/baked.py);
 - on a CPU, each MLP layer is one oneDNN matmul with bias and ReLU fused in (model/mlp.py);
+  the expression fields are contracted with β inside the hash grid's kernel
+  (`HashGrid.contract`);
 - on CUDA the fields run in half precision (autocast; the warp and compositing stay in
-  float32), on a CPU with native bfloat16 the MLP layers run in bfloat16 where that is
-  measured to be faster (`mlp.bf16_pays`);
+  float32), the main field's features go into one half-precision buffer and both its heads
+  run in one Triton kernel (`gpu_kernels.field_heads`), the other layers as one BLAS call
+  each (`MLP.forward_lean`; `runtime.gpu_inference` decides); on a CPU with native bfloat16
+  the MLP layers run in bfloat16 where that is measured to be faster (`mlp.bf16_pays`);
+- the main samples are left in the order the stratified inverse CDF gives them (sorted);
 - the viewer's settings (`VIEWER`) take fewer of the main field's samples than training
   placed (`RenderSettings.main_fraction`); `FAST` takes them all.
 
