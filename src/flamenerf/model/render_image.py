@@ -101,6 +101,17 @@ class StillCamera:
         self.last: tuple[torch.Tensor, np.ndarray, dict[str, torch.Tensor]] | None = None
         self.rays = 0  # rays rendered by the last call
 
+    def same_view(self, intr: Intrinsics, c2w: np.ndarray | torch.Tensor,
+                  head: torch.Tensor | None) -> bool:
+        """Whether a frame with these intrinsics, camera and head twist sees what this one
+        does (then only the expression may differ)."""
+        _, intr0, c2w0 = self.args[:3]
+        if intr0 != intr or not np.array_equal(np.asarray(c2w0), np.asarray(c2w)):
+            return False
+        if self.head is None or head is None:
+            return self.head is None and head is None
+        return torch.equal(self.head, head)
+
     def pixels(self, expression: torch.Tensor, face_mask: np.ndarray) -> np.ndarray | None:
         """The flat pixels the next image must render; None: all of them."""
         if self.last is None or not self.args[0].expression_confined:

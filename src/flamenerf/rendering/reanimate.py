@@ -41,18 +41,15 @@ def render_sequence(model: FlameNeRF, ds: Dataset, intr: Intrinsics, cameras: np
     default for a drive or keyframes) renders only the pixels inside the prior's silhouette
     of either frame and keeps the others, which β does not reach (`expression_confined`)."""
     T = len(cameras)
-    still, view = None, None  # the renderer of the current camera and head pose
+    still = None  # the renderer of the current camera and head pose
     for i in range(T):
         verts = vertices[i] if vertices.ndim == 3 else vertices
         mask = prior_mask(ds, verts, cameras[i], intr, dilate_px)
         beta = torch.as_tensor(np.asarray(expressions[i], np.float32))
-        head_i = None if heads is None else np.asarray(heads[i], np.float32)
-        if still is None or not (np.array_equal(view[0], cameras[i]) and (
-                head_i is None if view[1] is None else np.array_equal(view[1], head_i))):
-            view = (np.asarray(cameras[i]).copy(), head_i)
-            still = StillCamera(model, intr, cameras[i], omega, phi,
-                                None if head_i is None else torch.as_tensor(head_i), chunk,
-                                settings)
+        head = None if heads is None else torch.as_tensor(np.asarray(heads[i], np.float32))
+        if still is None or not still.same_view(intr, cameras[i], head):
+            still = StillCamera(model, intr, np.asarray(cameras[i]).copy(), omega, phi, head,
+                                chunk, settings)
         out = still(beta, mask)
         yield RenderedFrame(out["rgb"].numpy(), out["depth"].numpy(), out["acc"].numpy(), mask)
 

@@ -56,9 +56,8 @@ class View:
     shown_level: int = -1
     depth_range: tuple[float, float] | None = None
     renders: int = 0
-    # the renderer of the last full-height image and what it depends on besides the
-    # expression: {"scene": RenderWorker._scene, "still": StillCamera}
-    cache: dict | None = None
+    # the renderer of the last full-height image (the worker thread's alone)
+    cache: StillCamera | None = None
 
 
 @dataclass
@@ -251,22 +250,27 @@ class RenderWorker:
                     aspect=v.aspect, expression=s.expression.copy(), mode=s.mode,
                     height=heights[-1], final=True, depth_range=v.depth_range, head=s.head)
         if level < len(heights) - 1 and not (self._reusable(v, snap) and
-                                             v.cache["still"].last[1].mean() <= self.partial_max):
+                                             v.cache.last[1].mean() <= self.partial_max):
             snap.update(height=heights[level], final=False)
         else:  # the whole image at once, or only the pixels a new expression reaches
             level = len(heights) - 1
         return (key, level, heights, snap), None
 
     @staticmethod
-    def _scene(snap) -> tuple:
-        """What a pixel's ray depends on besides the expression."""
-        head = snap["head"]
-        return (snap["height"], snap["c2w"].tobytes(), snap["fov_y"], snap["aspect"],
-                None if head is None else np.asarray(head).tobytes())
+    def _view(snap) -> tuple[Intrinsics, np.ndarray, torch.Tensor | None]:
+        """A snapshot's intrinsics, camera and head twist (or None)."""
+        head = None
+        if snap["head"] is not None:
+            from flamenerf.geometry import se3_log
+
+            head = torch.from_numpy(se3_log(snap["head"]).astype(np.float32))
+        return view_intrinsics(snap["fov_y"], snap["aspect"], snap["height"]), snap["c2w"], head
 
     def _reusable(self, v: View, snap) -> bool:
-        return (v.cache is not None and v.cache["scene"] == self._scene(snap)
-                and self.model.expression_confined)
+        """Whether the view's last full image holds every pixel of `snap` that its
+        expression does not reach."""
+        return (v.cache is not None and self.model.expression_confined
+                and v.cache.same_view(*self._view(snap)))
 
     def _loop(self) -> None:
         while True:
@@ -327,20 +331,14 @@ class RenderWorker:
         from flamenerf.images import colorize_depth, to_uint8
 
         t0 = time.perf_counter()
-        intr = view_intrinsics(snap["fov_y"], snap["aspect"], snap["height"])
-        c2w = snap["c2w"]
+        intr, c2w, head = self._view(snap)
         # head pose: the masker poses the mesh, render_image moves the head's points
         mask = self.masker(intr, c2w, snap["expression"], snap["head"])
-        head = None
-        if snap["head"] is not None:
-            from flamenerf.geometry import se3_log
-
-            head = torch.from_numpy(se3_log(snap["head"]).astype(np.float32))
         expr = torch.from_numpy(snap["expression"])
         with self._cv:
             v = self.views.get(snap["key"])
         if v is not None and snap["final"] and self._reusable(v, snap):
-            still = v.cache["still"]  # only the pixels a new expression reaches
+            still = v.cache  # only the pixels a new expression reaches
         else:
             still = StillCamera(self.model, intr, c2w, self.omega, self.phi, head=head,
                                 settings=self.settings)
@@ -353,7 +351,7 @@ class RenderWorker:
         rgb, depth, rays = out["rgb"].numpy(), out["depth"].numpy(), still.rays
         if snap["final"] and v is not None:
             with self._cv:
-                v.cache = {"scene": self._scene(snap), "still": still}
+                v.cache = still
         extras: dict = {"mask": mask, "rays": rays}
         if snap["mode"] == "Depth":
             rng = snap["depth_range"]
