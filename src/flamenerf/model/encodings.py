@@ -14,6 +14,8 @@ import math
 import torch
 from torch import Tensor, nn
 
+from flamenerf import runtime
+
 
 def cosine_easing_window(num_freqs: int, alpha: float | Tensor) -> Tensor:
     """Coarse-to-fine weights w_l(α) = (1 − cos(π·clamp(α − l, 0, 1))) / 2, l = 0..m−1.
@@ -130,8 +132,6 @@ class HashGrid(nn.Module):
         rank = self.features // features
         if rank * features != self.features or z.shape != (x.shape[0], rank):
             return None
-        from flamenerf import runtime
-
         if runtime.gpu_inference(x.device):
             from flamenerf import gpu_kernels
 
