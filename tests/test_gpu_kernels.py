@@ -90,15 +90,16 @@ CHECK = textwrap.dedent("""
         td, ti = nearest_vertices(pts, meshes, k, 10.0, which)
         assert (d - td).abs().max() < 1e-6 and torch.equal(i, ti), k
         assert bool((i // 50 == which[:, None]).all())
-    # a face-sized mesh (the kernel's vertex tiles: 700 = 43 whole tiles and a part) and
-    # points along rays through it, as an image's samples come: most tiles are skipped
+    # a face-sized mesh (vertex tiles of 8 and 16: 700 = 87 or 43 whole tiles and a part)
+    # and points along rays through it, as an image's samples come: most tiles are
+    # skipped; and no tiles (every vertex in turn)
     big = torch.rand(1, 700, 3, generator=g)
     ray = torch.rand(40, 1, 3, generator=g) + torch.linspace(-0.5, 0.5, 20)[None, :, None]
     ray = ray.reshape(-1, 3)
-    for k in (1, 8):
-        d, i = gk.knn(ray, big, torch.zeros(len(ray), dtype=torch.long), k)
+    for k, tile in ((1, None), (8, None), (4, 0), (4, 16)):
+        d, i = gk.knn(ray, big, torch.zeros(len(ray), dtype=torch.long), k, tile=tile)
         td, ti = nearest_vertices(ray, big[0], k, 10.0)
-        assert (d - td).abs().max() < 1e-6 and torch.equal(i, ti), k
+        assert (d - td).abs().max() < 1e-6 and torch.equal(i, ti), (k, tile)
     # the brute-force path off the CPU takes the kernel where it runs: the rays form and
     # the bound as the tree has them
     rays, ray_mesh = pts.view(30, 10, 3), torch.randint(3, (30,), generator=g)

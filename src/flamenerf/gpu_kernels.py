@@ -25,14 +25,21 @@ fails to build (it alone goes off). `TRITON_INTERPRET=1` runs the kernels on a C
 
 from __future__ import annotations
 
+import contextlib
+import inspect
 import os
+import re
+import subprocess
+import time
 import warnings
+from pathlib import Path
 
 import torch
 from torch import Tensor
 
 _kernels: dict | None = None
 _tried = False
+_recorded: list | None = None  # `recording()`'s launches
 
 
 def available(device: torch.device) -> bool:
@@ -69,6 +76,8 @@ def _launch(name: str, grid: tuple, *args, **meta) -> bool:
     kernels = _load()
     if kernels is None or name not in kernels:
         return False
+    if _recorded is not None:
+        _recorded.append(launch_signature(name, kernels[name], args, meta))
     try:
         kernels[name][grid](*args, **meta)
         return True
@@ -77,6 +86,98 @@ def _launch(name: str, grid: tuple, *args, **meta) -> bool:
         warnings.warn(f"flamenerf: the Triton kernel {name} failed ({type(e).__name__}: "
                       f"{str(e)[:200]}); using PyTorch ops instead", stacklevel=3)
         return False
+
+
+@contextlib.contextmanager
+def recording():
+    """Yields a list that collects each kernel launch's signature (`launch_signature`)
+    while the block runs: what `build` compiles for a GPU, offline."""
+    global _recorded
+    kept, _recorded = _recorded, []
+    try:
+        yield _recorded
+    finally:
+        _recorded = kept
+
+
+_DTYPES = {torch.float32: "fp32", torch.float16: "fp16", torch.bfloat16: "bf16",
+           torch.int64: "i64", torch.int32: "i32", torch.int16: "i16", torch.int8: "i8",
+           torch.uint8: "u8", torch.bool: "i1"}
+
+
+def launch_signature(name: str, kernel, args: tuple, meta: dict) -> dict:
+    """A launch as Triton's compiler takes it: {"kernel", "signature" (argument -> type,
+    "*fp16" for a pointer), "constexprs", "divisible" (arguments Triton's launcher would
+    specialise as multiples of 16)}. An integer argument equal to 1 is a constant, as
+    Triton's launcher specialises it; pointers are taken as 16-byte aligned (CUDA's
+    allocations are)."""
+    params = inspect.signature(kernel.fn).parameters  # the same under the interpreter
+    names = list(params)
+    sig, const, div = {}, {k: v for k, v in meta.items() if k in names}, []
+    for arg, a in zip(names, args):
+        if "constexpr" in str(params[arg].annotation):  # a constant passed by position
+            const[arg] = a
+        elif isinstance(a, Tensor):
+            sig[arg] = "*" + _DTYPES[a.dtype]
+            div.append(arg)
+        elif isinstance(a, bool):
+            sig[arg] = "i1"
+        elif isinstance(a, int):
+            if a == 1:
+                const[arg] = 1
+                continue
+            sig[arg] = "i32" if -2**31 <= a < 2**31 else "i64"
+            if a % 16 == 0:
+                div.append(arg)
+        elif isinstance(a, float):
+            sig[arg] = "fp32"
+        else:
+            raise TypeError(f"{name}: argument {arg} of type {type(a).__name__}")
+    return {"kernel": name, "signature": sig, "constexprs": const, "divisible": div,
+            "num_warps": meta.get("num_warps", 4)}
+
+
+def build(launch: dict, arch: int) -> dict:
+    """Compile a recorded launch (`launch_signature`) for an NVIDIA GPU of compute
+    capability `arch` (80: A100, 90: H100/H200) without a GPU: Triton's compiler and the
+    ptxas it ships. -> {"arch", "seconds", "registers", "spill_bytes" (stack and local
+    memory a thread uses: registers that did not fit), "shared_bytes"}. Raises what
+    Triton raises where the kernel does not compile. The process must not run Triton's
+    interpreter (`TRITON_INTERPRET`), whose kernels are not compiled."""
+    import triton
+    from triton.backends.compiler import GPUTarget
+
+    kernel = _define()[launch["kernel"]]
+    names = list(inspect.signature(kernel.fn).parameters)
+    signature = {n: launch["signature"].get(n, "constexpr") for n in names}
+    src = triton.compiler.ASTSource(
+        fn=kernel, signature=signature,
+        constexprs={(names.index(k),): v for k, v in launch["constexprs"].items()},
+        attrs={(names.index(k),): [["tt.divisibility", 16]] for k in launch["divisible"]})
+    target = GPUTarget("cuda", arch, 32)
+    options = triton.compiler.make_backend(target).parse_options(
+        {"num_warps": launch.get("num_warps", 4)})
+    t = time.perf_counter()
+    compiled = triton.compile(src, target=target, options=options.__dict__)
+    seconds = time.perf_counter() - t
+    usage = _resource_usage(compiled.asm["cubin"])
+    return {"arch": arch, "seconds": round(seconds, 2), "registers": usage["REG"],
+            "spill_bytes": usage["STACK"] + usage["LOCAL"], "shared_bytes": usage["SHARED"]}
+
+
+def _resource_usage(cubin: bytes) -> dict:
+    """cuobjdump's resource usage of a one-kernel cubin: {"REG": ..., "STACK": ...}."""
+    import tempfile
+
+    import triton
+
+    tool = Path(triton.__file__).parent / "backends" / "nvidia" / "bin" / "cuobjdump"
+    with tempfile.NamedTemporaryFile(suffix=".cubin") as f:
+        f.write(cubin)
+        f.flush()
+        text = subprocess.run([str(tool), "-res-usage", f.name], capture_output=True,
+                              text=True, check=True).stdout
+    return {k: int(v) for k, v in re.findall(r"([A-Z]+):(\d+)", text)}
 
 
 def _define() -> dict:
@@ -139,46 +240,56 @@ def _define() -> dict:
 
     @triton.jit
     def knn(p_ptr, v_ptr, which_ptr, d_ptr, i_ptr, n, V: tl.constexpr,
-            K: tl.constexpr, KP: tl.constexpr, BLOCK: tl.constexpr, TILE: tl.constexpr):
+            K: tl.constexpr, KP: tl.constexpr, BLOCK: tl.constexpr, TILE: tl.constexpr,
+            CHECK: tl.constexpr):
         rows = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
         ok = rows < n
         px = tl.load(p_ptr + rows * 3, mask=ok, other=0.0)
         py = tl.load(p_ptr + rows * 3 + 1, mask=ok, other=0.0)
         pz = tl.load(p_ptr + rows * 3 + 2, mask=ok, other=0.0)
-        base = tl.load(which_ptr + rows, mask=ok, other=0).to(tl.int64) * V
+        # 32-bit vertex offsets (the caller checks that they fit): 64-bit ones cost a
+        # third more registers
+        base = tl.load(which_ptr + rows, mask=ok, other=0).to(tl.int32) * V
         cols = tl.arange(0, KP)
         # the k best so far, unsorted; padding columns at -inf are never the worst
         best = tl.where(cols[None, :] < K, float("inf"), float("-inf")) + tl.zeros(
             (BLOCK, KP), dtype=tl.float32)
-        besti = tl.zeros((BLOCK, KP), dtype=tl.int64)
-        # the vertices in tiles of TILE: each tile's distances in one vectorised step, and
-        # the insertions (vertex by vertex, in order) only where some point of the block
-        # has one of them nearer than its k-th best so far. Once the nearby vertices are
-        # in, most tiles are skipped whole; skipping one changes nothing, since no
-        # insertion would have happened in it
-        tc = tl.arange(0, TILE)
+        besti = tl.zeros((BLOCK, KP), dtype=tl.int32)
+        # the vertices in tiles of TILE; with CHECK a tile's distances in one vectorised
+        # step, and its vertices inserted in turn only where some point of the block has
+        # one of them nearer than its k-th best so far (a tile skipped would have inserted
+        # nothing: the same answer). Each thread holds its rows' TILE distances: 16 took
+        # 166 registers a thread on sm_90 (255 and spills with the insertions unrolled
+        # from them), 8 with 8 warps 58 (benchmarks/gpu_kernels_build.py)
         for j0 in range(0, V, TILE):
-            jj = j0 + tc
-            live = ok[:, None] & (jj < V)[None, :]
-            v = (base[:, None] + jj[None, :]) * 3
-            dx = px[:, None] - tl.load(v_ptr + v, mask=live, other=0.0)
-            dy = py[:, None] - tl.load(v_ptr + v + 1, mask=live, other=0.0)
-            dz = pz[:, None] - tl.load(v_ptr + v + 2, mask=live, other=0.0)
-            d = tl.where(live, dx * dx + dy * dy + dz * dz, float("inf"))
-            need = tl.sum((tl.min(d, 1) < tl.max(best, 1)).to(tl.int32), 0)
+            if CHECK:
+                jj = j0 + tl.arange(0, TILE)
+                live = ok[:, None] & (jj < V)[None, :]
+                v = (base[:, None] + jj[None, :]) * 3
+                dx = px[:, None] - tl.load(v_ptr + v, mask=live, other=0.0)
+                dy = py[:, None] - tl.load(v_ptr + v + 1, mask=live, other=0.0)
+                dz = pz[:, None] - tl.load(v_ptr + v + 2, mask=live, other=0.0)
+                d = tl.where(live, dx * dx + dy * dy + dz * dz, float("inf"))
+                need = tl.sum((tl.min(d, 1) < tl.max(best, 1)).to(tl.int32), 0)
+            else:
+                need = 1
             if need > 0:
-                for t in tl.static_range(TILE):
-                    dt = tl.sum(tl.where((tc == t)[None, :], d, 0.0), 1)
+                for j in range(j0, tl.minimum(j0 + TILE, V)):
+                    w = (base + j) * 3
+                    ex = px - tl.load(v_ptr + w, mask=ok, other=0.0)
+                    ey = py - tl.load(v_ptr + w + 1, mask=ok, other=0.0)
+                    ez = pz - tl.load(v_ptr + w + 2, mask=ok, other=0.0)
+                    dj = ex * ex + ey * ey + ez * ez
                     worst = tl.max(best, 1)
                     # the first column holding the worst: replaced where this vertex is
                     # nearer
                     at = tl.min(tl.where(best == worst[:, None], cols[None, :], KP), 1)
-                    put = (cols[None, :] == at[:, None]) & (dt < worst)[:, None]
-                    best = tl.where(put, dt[:, None], best)
-                    besti = tl.where(put, base[:, None] + j0 + t, besti)
+                    put = (cols[None, :] == at[:, None]) & (dj < worst)[:, None]
+                    best = tl.where(put, dj[:, None], best)
+                    besti = tl.where(put, base[:, None] + j, besti)
         keep = ok[:, None] & (cols[None, :] < K)
         tl.store(d_ptr + rows[:, None] * K + cols[None, :], best, mask=keep)
-        tl.store(i_ptr + rows[:, None] * K + cols[None, :], besti, mask=keep)
+        tl.store(i_ptr + rows[:, None] * K + cols[None, :], besti.to(tl.int64), mask=keep)
 
     @triton.jit
     def field_heads(f_ptr, f_stride, term_ptr, per, n,
@@ -219,18 +330,29 @@ def _define() -> dict:
     return {"hashgrid": hashgrid_fwd, "knn": knn, "field_heads": field_heads}
 
 
-def knn(pts: Tensor, meshes: Tensor, which: Tensor, k: int) -> tuple[Tensor, Tensor] | None:
+KNN_TILE, KNN_WARPS = 8, 8
+"""The nearest-vertex kernel's tile of vertices (0: none, every vertex inserted in turn)
+and warps a block: chosen by registers a thread on sm_90 (`build`), not yet timed on a GPU
+(benchmarks/gpu_knn.py times the choices)."""
+
+
+def knn(pts: Tensor, meshes: Tensor, which: Tensor, k: int, tile: int | None = None,
+        warps: int | None = None) -> tuple[Tensor, Tensor] | None:
     """The k nearest vertices of each point's own mesh, nearest first: pts (P, 3), meshes
     (M, V, 3), which (P,) long -> squared distances (P, k) float32 and indices (P, k) long
     into the M·V stacked vertices (k <= V); None where the kernel failed (`_launch`).
-    Distances are summed as (x - v)² per axis, not through `cdist`'s |x|² + |v|² - 2x·v."""
-    P, V = len(pts), meshes.shape[1]
+    Distances are summed as (x - v)² per axis, not through `cdist`'s |x|² + |v|² - 2x·v.
+    `tile`, `warps`: KNN_TILE and KNN_WARPS unless given."""
+    P, (M, V) = len(pts), meshes.shape[:2]
+    tile = KNN_TILE if tile is None else tile
+    if M * V * 3 >= 2**31:  # the kernel's vertex offsets are 32-bit
+        return None
     d2 = torch.empty(P, k, dtype=torch.float32, device=pts.device)
     idx = torch.empty(P, k, dtype=torch.long, device=pts.device)
     if P and not _launch("knn", (triton_cdiv(P, 128),), pts.detach().float().contiguous(),
                          meshes.detach().float().contiguous(), which.contiguous(), d2, idx,
                          P, V, K=k, KP=max(2, 1 << (k - 1).bit_length()), BLOCK=128,
-                         TILE=16):
+                         TILE=max(tile, 1), CHECK=tile > 0, num_warps=KNN_WARPS if warps is None else warps):
         return None
     d2, order = torch.sort(d2, -1)
     return d2, idx.gather(-1, order)

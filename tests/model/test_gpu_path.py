@@ -21,20 +21,20 @@ CHECK = textwrap.dedent("""
     import dataclasses
 
     import torch
-    from flamenerf import gpu_kernels, runtime
+    from flamenerf import gpu_kernels
     from flamenerf.model import mlp
+    from flamenerf.model.gpu_emulation import gpu_path_on_cpu
     from flamenerf.model.inference import FAST
     from test_inference import render, toy_model
 
     assert gpu_kernels.available(torch.device("cpu"))
     m = toy_model()
     m.cfg.sampler.refine_main = 16  # the second pass too
-    # float32 throughout: this CPU's bfloat16 layers would differ by their rounding, and
-    # autocast (the GPU's half precision) is CUDA's alone
+    # float32 throughout: this CPU's bfloat16 layers would differ by their rounding
     settings = dataclasses.replace(FAST, half=False)
     cpu = render(m, settings)
 
-    calls = {"contract": 0, "lean": 0, "encode": 0, "heads": 0}
+    calls = {"contract": 0, "lean": 0, "encode": 0, "heads": 0, "knn": 0}
     def counted(name, fn):
         def wrapper(*a, **k):
             out = fn(*a, **k)
@@ -44,16 +44,52 @@ CHECK = textwrap.dedent("""
     gpu_kernels.hashgrid_contract = counted("contract", gpu_kernels.hashgrid_contract)
     gpu_kernels.hashgrid_forward = counted("encode", gpu_kernels.hashgrid_forward)
     gpu_kernels.field_heads = counted("heads", gpu_kernels.field_heads)
+    gpu_kernels.knn = counted("knn", gpu_kernels.knn)
     mlp.MLP.forward_lean = counted("lean", mlp.MLP.forward_lean)
-    runtime.gpu_inference = lambda device: True
-    mlp._oneDNN_linear = lambda: None  # the CPU's fused layers off: the lean ones instead
-    gpu = render(m, settings)
+    with gpu_path_on_cpu():
+        gpu = render(m, settings)
     assert all(v > 0 for v in calls.values()), calls
     assert 0.2 < float(cpu["acc"].mean()) < 0.999
     for k in ("rgb", "acc", "depth"):
         err = (gpu[k] - cpu[k]).abs().max()
         assert err < 2e-4, (k, float(err))
     print("gpu path agrees", calls)
+""")
+
+RECORD = textwrap.dedent("""
+    import dataclasses
+    import json
+    import sys
+
+    from flamenerf import gpu_kernels
+    from flamenerf.model.gpu_emulation import gpu_path_on_cpu
+    from flamenerf.model.inference import FAST
+    from test_inference import render, toy_model
+
+    m = toy_model()
+    ref = render(m, dataclasses.replace(FAST, half=False))
+    with gpu_path_on_cpu(half=True), gpu_kernels.recording() as launches:
+        half = render(m, FAST)  # the fields in float16, as CUDA's autocast runs them
+    for k in ("rgb", "acc", "depth"):
+        err = float((half[k] - ref[k]).abs().max())
+        assert 0 < err < 1e-2, (k, err)  # float16's rounding (3.6e-3 seen), and no more
+    json.dump(launches, open(sys.argv[1], "w"))
+""")
+
+BUILD = textwrap.dedent("""
+    import json
+    import sys
+
+    from flamenerf import gpu_kernels
+
+    launches = json.load(open(sys.argv[1]))
+    assert {x["kernel"] for x in launches} == {"hashgrid", "knn", "field_heads"}, launches
+    assert {x["signature"]["f_ptr"] for x in launches if x["kernel"] == "field_heads"} \\
+        == {"*fp16"}
+    for x in {json.dumps(x, sort_keys=True): x for x in launches}.values():
+        got = gpu_kernels.build(x, 90)
+        assert got["spill_bytes"] == 0, (x["kernel"], x["constexprs"], got)
+    print("built for sm_90")
 """)
 
 
@@ -66,3 +102,23 @@ def test_gpu_inference_path_matches_the_cpu_one_under_the_interpreter():
                          capture_output=True, text=True, timeout=600)
     assert out.returncode == 0, out.stderr[-3000:]
     assert "gpu path agrees" in out.stdout
+
+
+def test_the_gpu_paths_kernels_build_for_an_h100_without_one(tmp_path):
+    """The launches of a half-precision frame down the GPU's path (recorded under the
+    interpreter) compile for sm_90 with Triton's compiler and ptxas, which ship with Triton:
+    a kernel that only the interpreter takes, or one that spills registers, is found here
+    rather than in a scarce GPU session."""
+    env = {**os.environ, "TRITON_INTERPRET": "1", "FLAMENERF_GPU_KERNELS": "1",
+           "FLAMENERF_CPU_KERNELS": "0",
+           "PYTHONPATH": os.pathsep.join([str(TESTS / "model"), str(TESTS),
+                                          os.environ.get("PYTHONPATH", "")])}
+    rec = tmp_path / "launches.json"
+    out = subprocess.run([sys.executable, "-W", "ignore", "-c", RECORD, str(rec)], env=env,
+                         capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stderr[-3000:]
+    env.pop("TRITON_INTERPRET")
+    out = subprocess.run([sys.executable, "-W", "ignore", "-c", BUILD, str(rec)], env=env,
+                         capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert "built for sm_90" in out.stdout

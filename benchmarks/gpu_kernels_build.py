@@ -1,0 +1,116 @@
+"""Build the GPU path's Triton kernels for NVIDIA GPUs on a machine without one, and say
+what each needs: registers per thread, spilled bytes (registers that did not fit, kept in
+slow local memory), shared memory, build time.
+
+A GPU session is short and rare; a kernel that does not compile for the GPU (Triton's
+interpreter, which the tests run, is not its compiler) or that spills would cost it. The
+launches are recorded from a real frame: a trained run's frame 0 (its most expressive β,
+so that every kernel runs) rendered at a small size down the GPU's inference path on this
+CPU, Triton's interpreter standing in for the GPU and CPU autocast in float16 for CUDA's
+(the layers' dtypes are then those of a GPU frame), in a child process; each distinct
+launch is then compiled here with Triton's own compiler and ptxas for each architecture.
+
+Usage: python benchmarks/gpu_kernels_build.py --run RUN [--dataset SCENE] [--arch 80,90]
+        [--size 16] [--json OUT.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def record(run_dir: Path, dataset: Path | None, size: int) -> list[dict]:
+    """The distinct kernel launches of one frame down the GPU's inference path (this
+    process must run Triton's interpreter: `main` starts it so)."""
+    import numpy as np
+    import torch
+
+    from flamenerf import gpu_kernels
+    from flamenerf.data.prior import dataset_dilation, mesh_function, prior_mask
+    from flamenerf.model import inference
+    from flamenerf.model.gpu_emulation import gpu_path_on_cpu
+    from flamenerf.model.render_image import render_image
+    from flamenerf.training.run import load_run
+
+    assert gpu_kernels.available(torch.device("cpu")), "Triton's interpreter is not on"
+    run = load_run(run_dir, torch.device("cpu"))
+    ds = run.dataset(dataset)
+    fr = max(ds.frames, key=lambda f: float(np.abs(f.expression).sum()))
+    omega, phi = run.frame_codes(0)
+    beta = np.asarray(fr.expression, np.float32)
+    intr = ds.intrinsics.scaled(size / ds.intrinsics.w)
+    mask = prior_mask(ds, mesh_function(run.model, ds)(beta), fr.c2w, intr,
+                      dataset_dilation(ds))
+    settings = dataclasses.replace(inference.FAST, threads=1)
+    with gpu_path_on_cpu(half=True), gpu_kernels.recording() as launches:
+        render_image(run.model, intr, fr.c2w, omega, phi, torch.as_tensor(beta), mask,
+                     settings=settings)
+    distinct = {json.dumps(x, sort_keys=True) for x in launches}
+    return [json.loads(x) for x in sorted(distinct)]
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--run", type=Path, required=True)
+    ap.add_argument("--dataset", type=Path, default=None, help="the run's dataset, if moved")
+    ap.add_argument("--arch", default="80,90",
+                    help="compute capabilities, comma-separated (80: A100, 90: H100/H200)")
+    ap.add_argument("--size", type=int, default=16, help="the recorded frame's size in px")
+    ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--record-to", type=Path, default=None, help=argparse.SUPPRESS)
+    a = ap.parse_args()
+
+    if a.record_to is not None:  # the child
+        a.record_to.write_text(json.dumps(record(a.run, a.dataset, a.size)))
+        return 0
+    with tempfile.TemporaryDirectory() as tmp:
+        rec = Path(tmp) / "launches.json"
+        env = {**os.environ, "TRITON_INTERPRET": "1", "FLAMENERF_GPU_KERNELS": "1",
+               "FLAMENERF_CPU_KERNELS": "0"}
+        cmd = [sys.executable, "-W", "ignore", __file__, "--run", str(a.run), "--size",
+               str(a.size), "--record-to", str(rec)]
+        if a.dataset is not None:
+            cmd += ["--dataset", str(a.dataset)]
+        subprocess.run(cmd, env=env, check=True)
+        launches = json.loads(rec.read_text())
+
+    import torch
+    import triton
+
+    from flamenerf import gpu_kernels
+
+    assert os.environ.get("TRITON_INTERPRET") != "1", "run without TRITON_INTERPRET"
+    rows = []
+    for launch in launches:
+        shown = {k: v for k, v in launch["constexprs"].items()}
+        for arch in (int(x) for x in a.arch.split(",")):
+            try:
+                got = gpu_kernels.build(launch, arch)
+            except Exception as e:  # noqa: BLE001 - reported: what a GPU would have hit
+                got = {"arch": arch, "error": f"{type(e).__name__}: {str(e)[:300]}"}
+            rows.append({"kernel": launch["kernel"], "constexprs": shown,
+                         "signature": launch["signature"], **got})
+            print(f"{launch['kernel']:12s} sm_{arch} {shown} -> "
+                  + (got["error"] if "error" in got else
+                     f"{got['registers']} registers, {got['spill_bytes']} bytes spilled, "
+                     f"{got['shared_bytes']} bytes shared, built in {got['seconds']} s"),
+                  flush=True)
+    if a.json:
+        a.json.parent.mkdir(parents=True, exist_ok=True)
+        a.json.write_text(json.dumps({"run": str(a.run), "size": a.size,
+                                      "triton": triton.__version__, "torch": torch.__version__,
+                                      "builds": rows}, indent=1) + "\n")
+    return 1 if any("error" in r for r in rows) else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

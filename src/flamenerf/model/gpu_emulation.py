@@ -1,0 +1,46 @@
+"""A CPU render sent down the GPU's inference path, for checks without a GPU: the GPU's
+layers and kernels (`runtime.gpu_inference`), its nearest vertices (distance blocks and
+the Triton kernel, not the CPU's k-d tree or compiled kernel) and, with `half`, CPU
+autocast in float16 standing in for CUDA's. The Triton kernels then need Triton's
+interpreter (`TRITON_INTERPRET=1` before Triton is imported, with
+`FLAMENERF_GPU_KERNELS=1`). Used by tests/model/test_gpu_path.py and
+benchmarks/gpu_kernels_build.py (which records the launches to compile them for GPUs)."""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Iterator
+
+import torch
+
+from flamenerf import meshes, runtime
+from flamenerf.model import flame_nerf, inference, mlp
+
+
+@contextlib.contextmanager
+def gpu_path_on_cpu(half: bool = True) -> Iterator[None]:
+    """Within the block, CPU renders take the GPU's inference path (module functions
+    replaced, restored after). `half`: the fields in float16 where the render's settings
+    ask for half precision, as on CUDA (else float32 throughout)."""
+
+    def off_the_cpu(pts, verts, k, bound, which=None):
+        if verts.dim() == 2:
+            verts, which = verts[None], torch.zeros(len(pts), dtype=torch.long)
+        return meshes.nearest_vertices_brute(pts, verts, k, bound, which)
+
+    def autocast(device, settings):
+        return (torch.autocast("cpu", dtype=torch.float16) if half and settings.half
+                else contextlib.nullcontext())
+
+    swaps = [(runtime, "gpu_inference", lambda device: True),
+             (mlp, "_oneDNN_linear", lambda: None),  # the lean layers, not oneDNN's fused
+             (flame_nerf, "nearest_vertices", off_the_cpu),
+             (inference, "_autocast", autocast)]
+    kept = [(mod, name, getattr(mod, name)) for mod, name, _ in swaps]
+    try:
+        for mod, name, fn in swaps:
+            setattr(mod, name, fn)
+        yield
+    finally:
+        for mod, name, fn in kept:
+            setattr(mod, name, fn)
