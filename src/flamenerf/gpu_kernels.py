@@ -259,8 +259,8 @@ def _define() -> dict:
         # step, and its vertices inserted in turn only where some point of the block has
         # one of them nearer than its k-th best so far (a tile skipped would have inserted
         # nothing: the same answer). Each thread holds its rows' TILE distances: 16 took
-        # 166 registers a thread on sm_90 (255 and spills with the insertions unrolled
-        # from them), 8 with 8 warps 58 (benchmarks/gpu_kernels_build.py)
+        # ~160 registers a thread on sm_90 (255 and spills with the insertions unrolled
+        # from them), 8 with 8 warps ~60 (benchmarks/gpu_kernels_build.py)
         for j0 in range(0, V, TILE):
             if CHECK:
                 jj = j0 + tl.arange(0, TILE)
