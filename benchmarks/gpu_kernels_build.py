@@ -4,11 +4,11 @@ slow local memory), shared memory, build time.
 
 A GPU session is short and rare; a kernel that does not compile for the GPU (Triton's
 interpreter, which the tests run, is not its compiler) or that spills would cost it. The
-launches are recorded from a real frame: a trained run's frame 0 (its most expressive β,
-so that every kernel runs) rendered at a small size down the GPU's inference path on this
-CPU, Triton's interpreter standing in for the GPU and CPU autocast in float16 for CUDA's
-(the layers' dtypes are then those of a GPU frame), in a child process; each distinct
-launch is then compiled here with Triton's own compiler and ptxas for each architecture.
+launches are recorded from a real frame: a trained run's view with its most expressive β
+(so that every kernel runs; frame 0's codes), rendered small down the GPU's inference
+path on this CPU in a child process (model/gpu_emulation.py: Triton's interpreter for the
+GPU, CPU autocast in float16 for CUDA's, so the layers' dtypes are a GPU frame's); each
+distinct launch is then compiled here for each architecture (flamenerf/gpu_build.py).
 
 Usage: python benchmarks/gpu_kernels_build.py --run RUN [--dataset SCENE] [--arch 80,90]
         [--size 16] [--json OUT.json]
@@ -86,7 +86,7 @@ def main() -> int:
     import torch
     import triton
 
-    from flamenerf import gpu_kernels
+    from flamenerf import gpu_build
 
     assert os.environ.get("TRITON_INTERPRET") != "1", "run without TRITON_INTERPRET"
     rows = []
@@ -94,7 +94,7 @@ def main() -> int:
         shown = {k: v for k, v in launch["constexprs"].items()}
         for arch in (int(x) for x in a.arch.split(",")):
             try:
-                got = gpu_kernels.build(launch, arch)
+                got = gpu_build.build(launch, arch)
             except Exception as e:  # noqa: BLE001 - reported: what a GPU would have hit
                 got = {"arch": arch, "error": f"{type(e).__name__}: {str(e)[:300]}"}
             rows.append({"kernel": launch["kernel"], "constexprs": shown,

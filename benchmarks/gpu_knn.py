@@ -3,7 +3,7 @@ turn) and warps a block, on the queries of a trained run's frame (its most expre
 at one size, each against the first choice's answer (the same, index for index).
 
 `gpu_kernels.KNN_TILE` / `KNN_WARPS` were chosen by registers a thread on sm_90
-(benchmarks/gpu_kernels_build.py), not by time: this says which is fastest.
+(gpu_build.py, benchmarks/gpu_kernels_build.py), not by time: this says which is fastest.
 
 Usage: python benchmarks/gpu_knn.py --run RUN [--dataset SCENE] [--size 512]
         [--repeats 20] [--points 0] [--json OUT.json]

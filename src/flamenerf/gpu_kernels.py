@@ -26,13 +26,8 @@ fails to build (it alone goes off). `TRITON_INTERPRET=1` runs the kernels on a C
 from __future__ import annotations
 
 import contextlib
-import inspect
 import os
-import re
-import subprocess
-import time
 import warnings
-from pathlib import Path
 
 import torch
 from torch import Tensor
@@ -77,6 +72,8 @@ def _launch(name: str, grid: tuple, *args, **meta) -> bool:
     if kernels is None or name not in kernels:
         return False
     if _recorded is not None:
+        from flamenerf.gpu_build import launch_signature
+
         _recorded.append(launch_signature(name, kernels[name], args, meta))
     try:
         kernels[name][grid](*args, **meta)
@@ -90,94 +87,14 @@ def _launch(name: str, grid: tuple, *args, **meta) -> bool:
 
 @contextlib.contextmanager
 def recording():
-    """Yields a list that collects each kernel launch's signature (`launch_signature`)
-    while the block runs: what `build` compiles for a GPU, offline."""
+    """Yields a list that collects each kernel launch's signature while the block runs
+    (`gpu_build.launch_signature`): what `gpu_build.build` compiles for a GPU, offline."""
     global _recorded
     kept, _recorded = _recorded, []
     try:
         yield _recorded
     finally:
         _recorded = kept
-
-
-_DTYPES = {torch.float32: "fp32", torch.float16: "fp16", torch.bfloat16: "bf16",
-           torch.int64: "i64", torch.int32: "i32", torch.int16: "i16", torch.int8: "i8",
-           torch.uint8: "u8", torch.bool: "i1"}
-
-
-def launch_signature(name: str, kernel, args: tuple, meta: dict) -> dict:
-    """A launch as Triton's compiler takes it: {"kernel", "signature" (argument -> type,
-    "*fp16" for a pointer), "constexprs", "divisible" (arguments Triton's launcher would
-    specialise as multiples of 16)}. An integer argument equal to 1 is a constant, as
-    Triton's launcher specialises it; pointers are taken as 16-byte aligned (CUDA's
-    allocations are)."""
-    params = inspect.signature(kernel.fn).parameters  # the same under the interpreter
-    names = list(params)
-    sig, const, div = {}, {k: v for k, v in meta.items() if k in names}, []
-    for arg, a in zip(names, args):
-        if "constexpr" in str(params[arg].annotation):  # a constant passed by position
-            const[arg] = a
-        elif isinstance(a, Tensor):
-            sig[arg] = "*" + _DTYPES[a.dtype]
-            div.append(arg)
-        elif isinstance(a, bool):
-            sig[arg] = "i1"
-        elif isinstance(a, int):
-            if a == 1:
-                const[arg] = 1
-                continue
-            sig[arg] = "i32" if -2**31 <= a < 2**31 else "i64"
-            if a % 16 == 0:
-                div.append(arg)
-        elif isinstance(a, float):
-            sig[arg] = "fp32"
-        else:
-            raise TypeError(f"{name}: argument {arg} of type {type(a).__name__}")
-    return {"kernel": name, "signature": sig, "constexprs": const, "divisible": div,
-            "num_warps": meta.get("num_warps", 4)}
-
-
-def build(launch: dict, arch: int) -> dict:
-    """Compile a recorded launch (`launch_signature`) for an NVIDIA GPU of compute
-    capability `arch` (80: A100, 90: H100/H200) without a GPU: Triton's compiler and the
-    ptxas it ships. -> {"arch", "seconds", "registers", "spill_bytes" (stack and local
-    memory a thread uses: registers that did not fit), "shared_bytes"}. Raises what
-    Triton raises where the kernel does not compile. The process must not run Triton's
-    interpreter (`TRITON_INTERPRET`), whose kernels are not compiled."""
-    import triton
-    from triton.backends.compiler import GPUTarget
-
-    kernel = _define()[launch["kernel"]]
-    names = list(inspect.signature(kernel.fn).parameters)
-    signature = {n: launch["signature"].get(n, "constexpr") for n in names}
-    src = triton.compiler.ASTSource(
-        fn=kernel, signature=signature,
-        constexprs={(names.index(k),): v for k, v in launch["constexprs"].items()},
-        attrs={(names.index(k),): [["tt.divisibility", 16]] for k in launch["divisible"]})
-    target = GPUTarget("cuda", arch, 32)
-    options = triton.compiler.make_backend(target).parse_options(
-        {"num_warps": launch.get("num_warps", 4)})
-    t = time.perf_counter()
-    compiled = triton.compile(src, target=target, options=options.__dict__)
-    seconds = time.perf_counter() - t
-    usage = _resource_usage(compiled.asm["cubin"])
-    return {"arch": arch, "seconds": round(seconds, 2), "registers": usage["REG"],
-            "spill_bytes": usage["STACK"] + usage["LOCAL"], "shared_bytes": usage["SHARED"]}
-
-
-def _resource_usage(cubin: bytes) -> dict:
-    """cuobjdump's resource usage of a one-kernel cubin: {"REG": ..., "STACK": ...}."""
-    import tempfile
-
-    import triton
-
-    tool = Path(triton.__file__).parent / "backends" / "nvidia" / "bin" / "cuobjdump"
-    with tempfile.NamedTemporaryFile(suffix=".cubin") as f:
-        f.write(cubin)
-        f.flush()
-        text = subprocess.run([str(tool), "-res-usage", f.name], capture_output=True,
-                              text=True, check=True).stdout
-    return {k: int(v) for k, v in re.findall(r"([A-Z]+):(\d+)", text)}
 
 
 def _define() -> dict:
@@ -260,7 +177,7 @@ def _define() -> dict:
         # one of them nearer than its k-th best so far (a tile skipped would have inserted
         # nothing: the same answer). Each thread holds its rows' TILE distances: 16 took
         # ~160 registers a thread on sm_90 (255 and spills with the insertions unrolled
-        # from them), 8 with 8 warps ~60 (benchmarks/gpu_kernels_build.py)
+        # from them), 8 with 8 warps ~60 (gpu_build.py)
         for j0 in range(0, V, TILE):
             if CHECK:
                 jj = j0 + tl.arange(0, TILE)

@@ -80,14 +80,14 @@ BUILD = textwrap.dedent("""
     import json
     import sys
 
-    from flamenerf import gpu_kernels
+    from flamenerf import gpu_build, gpu_kernels
 
     launches = json.load(open(sys.argv[1]))
     assert {x["kernel"] for x in launches} == {"hashgrid", "knn", "field_heads"}, launches
     assert {x["signature"]["f_ptr"] for x in launches if x["kernel"] == "field_heads"} \\
         == {"*fp16"}
     for x in {json.dumps(x, sort_keys=True): x for x in launches}.values():
-        got = gpu_kernels.build(x, 90)
+        got = gpu_build.build(x, 90)
         assert got["spill_bytes"] == 0, (x["kernel"], x["constexprs"], got)
     print("built for sm_90")
 """)
