@@ -294,6 +294,24 @@ def test_corrupt_latest_checkpoint_falls_back_to_the_previous(tiny_scene, tmp_pa
     assert load_run(run).step == 6
 
 
+def test_a_checkpoint_damaged_in_place_is_caught_by_its_checksums(tiny_scene, tmp_path,
+                                                                   capsys):
+    """Bytes changed inside a tensor (a disk or copy error; the file's length unchanged)
+    loaded silently and rendered a smeared scene: the zip's CRCs catch it, and the run
+    falls back to the checkpoint before."""
+    run = tmp_path / "run"
+    trainer(tiny_scene, run, 4, every=2).fit()
+    newest = checkpoints(run)[-1]
+    data = bytearray(newest.read_bytes())
+    mid = len(data) // 2
+    data[mid:mid + 4096] = b"\xff" * 4096
+    newest.write_bytes(bytes(data))
+    with pytest.raises(UserError, match="checksum"):
+        ckpt.load_checkpoint(newest)
+    assert load_run(run).step == 2
+    assert "step-000000004.ckpt" in capsys.readouterr().err
+
+
 # ----------------------------------------------------------------------------- damaged runs
 
 
