@@ -12,8 +12,8 @@ def test_clamp_and_what_it_changes():
     out = r.clamp(v)
     assert out.dtype == np.float32
     assert np.allclose(out, [[0.3, 0.1], [0.6, 0.0]])
-    assert r.beyond(v) == ["jawOpen up to 0.70 (the clip: 0.00-0.60)",
-                           "mouthSmileLeft up to 1.00 (the clip: 0.00-0.10)"]
+    assert r.beyond(v) == ["jawOpen 0.70 asked, 0.60 rendered (the clip: 0.00-0.60)",
+                           "mouthSmileLeft 1.00 asked, 0.10 rendered (the clip: 0.00-0.10)"]
     assert r.beyond(out) == []
     assert r.clamp(out) is not None and np.array_equal(r.clamp(out), out)
 

@@ -102,7 +102,7 @@ def test_controls_beyond_the_training_range_are_clamped_unless_asked(toy_run, tm
         return np.stack(read_frames(out)).astype(int), notes
 
     clamped, notes = frames(5)
-    assert any("clamped" in n and "jawOpen up to 5.00" in n for n in notes)
+    assert any("clamped" in n and "jawOpen 5.00 asked, " in n for n in notes)
     at_hi, notes_hi = frames(f"{hi:.6f}")
     assert not any("clamped" in n for n in notes_hi)
     assert np.abs(clamped - at_hi).max() <= 1  # the same expression (video rounding)

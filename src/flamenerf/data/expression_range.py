@@ -35,14 +35,15 @@ class ExpressionRange:
     def beyond(self, values: np.ndarray, tol: float = 0.02) -> list[str]:
         """values (..., E) -> what `clamp` changes, one line per control that leaves the
         range by more than `tol` (smaller clamps are applied but not worth a line):
-        'name up to 1.00 (the clip: 0.00-0.10)'."""
+        'name 1.00 asked, 0.10 rendered (the clip: 0.00-0.10)'."""
         v = np.asarray(values, np.float64).reshape(-1, len(self.names))
         out = []
         for k, name in enumerate(self.names):
             top, bottom = v[:, k].max(), v[:, k].min()
             if top > self.hi[k] + tol or bottom < self.lo[k] - tol:
                 far = top if top - self.hi[k] >= self.lo[k] - bottom else bottom
-                out.append(f"{name} {'up' if far > self.hi[k] else 'down'} to {far:.2f} "
+                got = self.hi[k] if far > self.hi[k] else self.lo[k]
+                out.append(f"{name} {far:.2f} asked, {got:.2f} rendered "
                            f"(the clip: {self.lo[k]:.2f}-{self.hi[k]:.2f})")
         return out
 
