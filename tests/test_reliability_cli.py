@@ -291,3 +291,11 @@ def test_resume_says_which_settings_it_ignores(toy_dataset, tmp_path, capsys):
     out = capsys.readouterr().out
     assert "ignored: --preset nerfies, --batch-rays 64" in out
     assert json.loads((run / "config.json").read_text())["preset"] == "fast"
+    # a run of another preset resumed with the default one (typed or not): named as such
+    nerfies = tmp_path / "nerfies"
+    assert main(["train", str(toy_dataset), "--out", str(nerfies), "--steps", "1",
+                 "--preset", "nerfies"]) == 0
+    capsys.readouterr()
+    assert main(["train", str(toy_dataset), "--out", str(nerfies), "--steps", "2", "--resume",
+                 "--preset", "fast"]) == 0
+    assert "a `nerfies` run, with its own settings" in capsys.readouterr().out

@@ -223,10 +223,12 @@ def _note_ignored(out: Path, preset: str, flags: dict[str, Any]) -> None:
         return  # the trainer reports a damaged config.json
     kept = meta.get("preset") if isinstance(meta, dict) else None
     ignored = [f"{k} {v}" for k, v in flags.items() if v is not None]
-    # (the default preset cannot be told from one given: only another one is named)
-    if kept is not None and preset not in (kept, inspect.signature(train).parameters["preset"]
-                                           .default):
+    other = kept is not None and preset != kept
+    # the default preset cannot be told from one given: a run of another preset is named
+    # as such, and a --preset other than the default is listed as ignored
+    if other and preset != inspect.signature(train).parameters["preset"].default:
         ignored.insert(0, f"--preset {preset}")
-    if ignored:
-        print(f"note: --resume continues {out} with its own settings; ignored: "
-              f"{', '.join(ignored)} (only --steps changes a resumed run)")
+    if ignored or other:
+        print(f"note: --resume continues {out}{f', a `{kept}` run,' if other else ''} with "
+              f"its own settings{'; ignored: ' + ', '.join(ignored) if ignored else ''} "
+              f"(only --steps changes a resumed run)")
