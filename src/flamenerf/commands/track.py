@@ -53,13 +53,15 @@ def track(
         overwrite: Replace OUT if it exists.
     """
     from flamenerf.errors import UserError
+    from flamenerf.outdir import writable_dir
     from flamenerf.tracking.expressions import save_expressions, transfer_to_subject
     from flamenerf.tracking.driving import track_expressions
 
-    if out.exists() and not overwrite:
-        raise UserError(f"{out}: already exists (pass --overwrite to replace it)")
     if out.is_dir():
         raise UserError(f"{out}: is a directory; --out names a .json file")
+    if out.exists() and not overwrite:
+        raise UserError(f"{out}: already exists (pass --overwrite to replace it)")
+    writable_dir(out.parent, "expressions file")  # before tracking the video, not after
     subject = None
     if relative_to is not None:
         from flamenerf.data.dataset import load_dataset
