@@ -114,6 +114,15 @@ def test_too_few_frames_tracked(tmp_path, mostly_noface_video, capsys):
     assert "only 2 of 10" in msg and str(mostly_noface_video) in msg
 
 
+def test_a_one_frame_video_says_so(tmp_path, capsys):
+    """One frame, with a face: what is short is the frames, not the tracking."""
+    from media import astronaut_frames, write_mp4
+
+    one = write_mp4(tmp_path / "one.mp4", astronaut_frames(1))
+    msg = _fails(one, tmp_path / "ds", capsys)
+    assert "only 1 frame selected from the video's 1" in msg and "--fps" in msg
+
+
 def test_unreadable_video(tmp_path, capsys):
     bad = tmp_path / "broken.mp4"
     bad.write_bytes(b"\x00\x00\x00\x18ftypmp42" + b"\x00" * 100)

@@ -88,6 +88,10 @@ def require_enough(clip: TrackedClip, min_fraction: float, minimum: int = 2) -> 
     """UserError when too few of the selected frames have a face."""
     n_sel, n_ok = len(clip.selected), len(clip.frames)
     path = clip.info.path
+    if n_sel < minimum:  # tracking is not what failed: say what is short
+        raise UserError(f"{path}: only {n_sel} frame{'s' * (n_sel != 1)} selected from the "
+                        f"video's {clip.info.num_frames} (need at least {minimum}; --fps and "
+                        f"--max-frames select them)")
     if n_ok == 0:
         raise UserError(f"{path}: no face found in any of the {n_sel} selected frames")
     need = max(minimum, int(np.ceil(min_fraction * n_sel)))
