@@ -89,3 +89,10 @@ def test_vector_and_named_files(tmp_path):
         X.load_file(tmp_path / "u.json", NAMES)
     with pytest.raises(UserError, match="nothere.json: expression file does not exist"):
         X.from_items([str(tmp_path / "nothere.json")], NAMES, BASE, 5)
+    for empty in ({}, [{}, {}]):  # every control silently 0: refused
+        (tmp_path / "e.json").write_text(json.dumps(empty))
+        with pytest.raises(UserError, match="e.json: names no controls"):
+            X.load_file(tmp_path / "e.json", NAMES)
+    (tmp_path / "f.json").write_text(json.dumps([{}, {"jawOpen": 1}]))  # a neutral frame
+    np.testing.assert_allclose(X.load_file(tmp_path / "f.json", NAMES).values,
+                               [[0, 0, 0], [1, 0, 0]])

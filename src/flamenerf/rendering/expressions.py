@@ -184,6 +184,9 @@ def load_file(path: Path, names: list[str]) -> ExpressionSequence:
 
 
 def _named_rows(rows: list[dict], names: list[str], where: str) -> np.ndarray:
+    if not any(rows):  # `{}` would render every control at 0, which nobody writes on purpose
+        raise UserError(f"{where}: names no controls (give name: value pairs, e.g. "
+                        f"{{\"{names[0]}\": 0.5}})")
     out = np.zeros((len(rows), len(names)), np.float32)
     index = {n: i for i, n in enumerate(names)}
     for t, row in enumerate(rows):
