@@ -337,6 +337,15 @@ def test_a_damaged_config_json_is_one_line_naming_it(tiny_scene, tmp_path):
             trainer(tiny_scene, bad, 3, resume=True)
 
 
+def test_a_run_whose_dataset_moved_says_how_to_give_it(toy_run, toy_dataset, tmp_path):
+    r = load_run(toy_run)
+    r.meta["dataset"] = str(tmp_path / "moved_away")
+    with pytest.raises(UserError, match="moved_away: the dataset this run was trained on is "
+                                        "not there .* --dataset PATH"):
+        r.dataset()
+    assert r.dataset(toy_dataset).root == toy_dataset  # given where it is now
+
+
 def test_a_checkpoint_of_another_run_is_refused(tiny_scene, toy_dataset, tmp_path):
     run, other = tmp_path / "run", tmp_path / "other"
     trainer(tiny_scene, run, 2).fit()

@@ -35,6 +35,9 @@ class Run:
         """The run's training dataset (or another one with the same expression model),
         attached to the model (`attach`)."""
         p = Path(path) if path is not None else Path(self.meta["dataset"])
+        if path is None and not p.exists():  # runs are shared; datasets stay behind
+            raise UserError(f"{p}: the dataset this run was trained on is not there (moved or "
+                            f"not copied with the run?); give its place with --dataset PATH")
         ds = load_dataset(p)
         if ds.expression_names != self.expression_names:
             raise UserError(f"{p}: its expression model ({ds.expression_dim} controls) is not "
