@@ -268,6 +268,7 @@ def test_stale_synth_folders_are_removed_on_the_next_start(tmp_path, capsys):
     (["train", "{tmp}/afile", "--out", "{tmp}/r"], ["afile: is a file"]),
     (["train", "{data}", "--out", "{tmp}/r", "--face-reg-weight", "-1"], ["--face-reg-weight"]),
     (["convert", "{tmp}/nope"], ["nope: run directory does not exist"]),
+    (["eval", "{run}", "--split", "nosuch"], ["no split named 'nosuch'", "--split chooses"]),
     # the output is checked before the video is read (tracking it first took minutes)
     (["track", "{tmp}/nope.mp4", "--out", "{tmp}/afile/d.json"], ["afile", "not a folder"]),
     (["track", "{tmp}/nope.mp4", "--out", "{tmp}", "--overwrite"], ["is a directory"]),

@@ -48,6 +48,10 @@ def preprocess(
           f"({err['rigid_median_source']:.2f} px in the source); "
           f"fov {rep['camera']['fov_x_deg']:.1f} deg; "
           f"{rep['frames_per_second']:.1f} frames/s")
+    if "val" not in rep["splits"] and opts.val_every > 1:
+        print(f"note: no val split: {rep['kept_frames']} frames kept and --val-every "
+              f"{opts.val_every} holds out every {opts.val_every}th; `flamenerf eval` needs "
+              f"held-out frames (keep more with --fps, or give --val-every 2)")
     for line in scene_lines(rep["scene"]):
         print(line)
     cov = rep.get("expressions")
