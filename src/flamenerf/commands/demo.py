@@ -14,9 +14,10 @@ def demo(
     batch_rays: int = 2048,
     seed: int = 0,
 ) -> None:
-    """The main job end to end on the built-in scene: synthesize it, train the `fast`
-    preset, then render a re-animation video (the expressions of the scene's `reanimate`
-    split, one video frame each, along an orbiting camera) with its depth video and a side-by-side. A few minutes on a laptop CPU.
+    """The main job end to end on the built-in scene: synthesize it, train the `demo`
+    preset (`fast` with fewer, smaller steps), then render a re-animation video (the
+    expressions of the scene's `reanimate` split, one video frame each, along an orbiting
+    camera) with its depth video and a side-by-side. A few minutes on a laptop CPU.
 
     Writes OUT/scene (dataset), OUT/run (trained run), OUT/reanimation.mp4,
     OUT/reanimation_depth.mp4 and OUT/reanimation_sbs.mp4. Re-running reuses what exists.
@@ -27,7 +28,7 @@ def demo(
         out: Output folder.
         size: Resolution of the synthesized scene.
         frames: Capture frames of the synthesized scene.
-        steps: Training steps of the `fast` preset.
+        steps: Training steps.
         train_size: Training resolution.
         batch_rays: Rays per training step.
         seed: Scene seed.
@@ -57,7 +58,7 @@ def demo(
     cfg.train.downscale = size / train_size
     cfg.train.batch_rays = batch_rays
     ck = latest_checkpoint(run)
-    print(f"[2/3] training the fast preset for {steps} steps into {run}")
+    print(f"[2/3] training the demo preset (fast, smaller) for {steps} steps into {run}")
     if train(scene, run, cfg, resume=ck is not None, steps=steps).interrupted:
         from flamenerf.errors import Interrupted
 
