@@ -132,6 +132,7 @@ def psnr(a: np.ndarray, b: np.ndarray) -> float:
 
 def quality(run, ds, frames: int) -> dict:
     from flamenerf.data.prior import prior_mask
+    from flamenerf.images import resize_image
 
     split = ds.split("train")
     pick = split[:: max(1, len(split) // frames)][:frames]
@@ -140,7 +141,8 @@ def quality(run, ds, frames: int) -> dict:
     for fr in pick:
         mask = prior_mask(ds, ds.face_vertices[fr.position], fr.c2w, intr)
         omega, phi = run.frame_codes(fr.frame_index)
-        gt = ds.load_image(fr)[..., :3]
+        # at the training resolution, as the trainer sees it (data/scene.py)
+        gt = resize_image(ds.load_image(fr), intr.w, intr.h)[..., :3]
         e = torch.as_tensor(fr.expression)
         out = {k: render_image(run.model, intr, fr.c2w, omega, phi, e, mask, settings=s)
                ["rgb"].numpy() for k, s in PATHS.items()}
