@@ -110,6 +110,10 @@ def test_textureless_background_falls_back_to_the_head(canonical_mesh):
     assert world.head_pose is None
     np.testing.assert_allclose(world.c2w, sol.c2w, atol=1e-9)  # today's cameras
     assert any("could not be solved from the background" in w for w in world.warnings)
+    # --cameras head asks for this: the same world, and no warning that it failed
+    asked = compose_world(sol.w2c, None, canonical_mesh.vertices.mean(0), head_asked=True)
+    assert asked.case == CASES[4] and np.allclose(asked.c2w, world.c2w)
+    assert not any("could not be solved" in w for w in asked.warnings)
 
 
 def test_textureless_background_of_a_still_camera_is_a_still_camera(canonical_mesh):

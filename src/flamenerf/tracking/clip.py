@@ -174,7 +174,7 @@ def solve_scene(clip: TrackedClip, mesh, fov: float | None, max_error: float = M
     clip, sol = solve_clip(clip, mesh, fov, max_error, min_tracked)
     centre = sol.template.mean(0)
     if not background:
-        return clip, sol, Scene(compose_world(sol.w2c, None, centre), None)
+        return clip, sol, Scene(compose_world(sol.w2c, None, centre, head_asked=True), None)
     t0 = time.perf_counter()
     opts = bg_opts or BackgroundOptions()
     if fov is not None:

@@ -131,10 +131,11 @@ def _scale_floor(reg, cam_from_head: np.ndarray) -> float:
 
 
 def compose_world(cam_from_head: np.ndarray, reg, head_centre: np.ndarray,
-                  th: MotionThresholds | None = None) -> World:
+                  th: MotionThresholds | None = None, head_asked: bool = False) -> World:
     """cam_from_head (N, 4, 4) OpenGL camera-from-head, metres, of the frames `reg`
     (a background Registration of the same frames in the same order, or None) has; frames
-    it did not register must have been dropped by the caller."""
+    it did not register must have been dropped by the caller. `head_asked`: the user asked
+    for the head as the world (`--cameras head`), so its fallback is no warning."""
     th = th or MotionThresholds()
     n = len(cam_from_head)
     warnings: list[str] = []
@@ -159,6 +160,8 @@ def compose_world(cam_from_head: np.ndarray, reg, head_centre: np.ndarray,
             scale = floor
         c2w[:, :3, 3] *= scale
         head = c2w @ cam_from_head
+    elif head_asked and reg is None:
+        return _fallback(cam_from_head, head_centre, th, warnings)
     else:
         why = reg.reason if reg is not None else "no background registration"
         warnings.append(f"cameras could not be solved from the background ({why}): the head "
