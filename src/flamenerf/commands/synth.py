@@ -45,7 +45,7 @@ def synth(
             which needs the room static).
         head_motion: The head turns and shifts independently of the camera (ground-truth
             head poses in transforms.json as head_pose).
-        reanimate: Number of re-animation frames (default: frames / 10).
+        reanimate: Number of re-animation frames (default: frames / 10, at least 3).
         leakage_steps: Values per control in the leakage sweep (1/steps .. 1).
         workers: Render processes (0: one per CPU core, at most 4).
         overwrite: Replace OUT if it exists.
