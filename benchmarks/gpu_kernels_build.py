@@ -31,29 +31,21 @@ ROOT = Path(__file__).resolve().parents[1]
 def record(run_dir: Path, dataset: Path | None, size: int) -> list[dict]:
     """The distinct kernel launches of one frame down the GPU's inference path (this
     process must run Triton's interpreter: `main` starts it so)."""
-    import numpy as np
     import torch
 
     from flamenerf import gpu_kernels
-    from flamenerf.data.prior import dataset_dilation, mesh_function, prior_mask
     from flamenerf.model import inference
     from flamenerf.model.gpu_emulation import gpu_path_on_cpu
     from flamenerf.model.render_image import render_image
     from flamenerf.training.run import load_run
+    from view_args import view_args
 
     assert gpu_kernels.available(torch.device("cpu")), "Triton's interpreter is not on"
     run = load_run(run_dir, torch.device("cpu"))
-    ds = run.dataset(dataset)
-    fr = max(ds.frames, key=lambda f: float(np.abs(f.expression).sum()))
-    omega, phi = run.frame_codes(0)
-    beta = np.asarray(fr.expression, np.float32)
-    intr = ds.intrinsics.scaled(size / ds.intrinsics.w)
-    mask = prior_mask(ds, mesh_function(run.model, ds)(beta), fr.c2w, intr,
-                      dataset_dilation(ds))
+    args = view_args(run, run.dataset(dataset), size, expressive=True)
     settings = dataclasses.replace(inference.FAST, threads=1)
     with gpu_path_on_cpu(half=True), gpu_kernels.recording() as launches:
-        render_image(run.model, intr, fr.c2w, omega, phi, torch.as_tensor(beta), mask,
-                     settings=settings)
+        render_image(*args, settings=settings)
     distinct = {json.dumps(x, sort_keys=True) for x in launches}
     return [json.loads(x) for x in sorted(distinct)]
 

@@ -21,15 +21,14 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 import torch
 
 from flamenerf import gpu_kernels
-from flamenerf.data.prior import dataset_dilation, mesh_function, prior_mask
 from flamenerf.model import inference
 from flamenerf.model.gpu_emulation import gpu_path_on_cpu
 from flamenerf.model.render_image import render_image
 from flamenerf.training.run import load_run
+from view_args import view_args
 
 CHOICES = [(0, 4), (0, 8), (8, 4), (8, 8), (16, 4), (16, 8)]
 
@@ -52,13 +51,7 @@ def main() -> int:
         print(f"gpu_knn: no Triton kernels on {dev}", file=sys.stderr)
         return 1
     run = load_run(a.run, dev)
-    ds = run.dataset(a.dataset)
-    fr = max(ds.frames, key=lambda f: float(np.abs(f.expression).sum()))
-    omega, phi = run.frame_codes(0)
-    beta = np.asarray(fr.expression, np.float32)
-    intr = ds.intrinsics.scaled(a.size / ds.intrinsics.w)
-    mask = prior_mask(ds, mesh_function(run.model, ds)(beta), fr.c2w, intr,
-                      dataset_dilation(ds))
+    args = view_args(run, run.dataset(a.dataset), a.size, expressive=True)
     queries = []
     kernel = gpu_kernels.knn
 
@@ -70,8 +63,7 @@ def main() -> int:
     gpu_kernels.knn = kept
     try:
         with gpu_path_on_cpu() if dev.type == "cpu" else torch.inference_mode():
-            render_image(run.model, intr, fr.c2w, omega, phi, torch.as_tensor(beta), mask,
-                         settings=dataclasses.replace(inference.FAST, threads=1))
+            render_image(*args, settings=dataclasses.replace(inference.FAST, threads=1))
     finally:
         gpu_kernels.knn = kernel
     if not queries:

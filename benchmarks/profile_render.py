@@ -14,14 +14,13 @@ import dataclasses
 import sys
 from pathlib import Path
 
-import numpy as np
 import torch
 from torch.profiler import ProfilerActivity, profile
 
-from flamenerf.data.prior import dataset_dilation, mesh_function, prior_mask
 from flamenerf.model import inference
 from flamenerf.model.render_image import render_image
 from flamenerf.training.run import load_run
+from view_args import view_args
 
 
 def main() -> int:
@@ -38,19 +37,12 @@ def main() -> int:
 
     dev = torch.device(a.device)
     run = load_run(a.run, dev)
-    ds = run.dataset(a.dataset)
-    fr = next(f for f in ds.frames if f.frame_index == 0)
-    omega, phi = run.frame_codes(0)
-    beta = np.asarray(fr.expression, np.float32)
-    intr = ds.intrinsics.scaled(a.size / ds.intrinsics.w)
-    mask = prior_mask(ds, mesh_function(run.model, ds)(beta), fr.c2w, intr,
-                      dataset_dilation(ds))
+    args = view_args(run, run.dataset(a.dataset), a.size)
     # one thread on a CPU: the profiler sees only the thread that starts it
     settings = dataclasses.replace(getattr(inference, a.settings), threads=1)
 
     def frame() -> None:
-        render_image(run.model, intr, fr.c2w, omega, phi, torch.as_tensor(beta), mask,
-                     settings=settings)
+        render_image(*args, settings=settings)
         if dev.type == "cuda":
             torch.cuda.synchronize()
 
