@@ -76,12 +76,16 @@ def main() -> int:
 
     name = torch.cuda.get_device_name(dev) if dev.type == "cuda" else "CPU (interpreter)"
     rows = []
+    built = gpu_kernels._load()["knn"]
     for q, (pts, meshes, which, k) in enumerate(queries):
+        if len(pts) == 0:
+            continue
         first = None
         for tile, warps in CHOICES:
             got = kernel(pts, meshes, which, k, tile=tile, warps=warps)  # also the build
             if got is None:
                 rows.append({"query": q, "tile": tile, "warps": warps, "error": "failed"})
+                gpu_kernels._load()["knn"] = built  # one choice failing turned knn off
                 continue
             same = first is None or (torch.equal(got[1], first[1])
                                      and bool((got[0] - first[0]).abs().max() < 1e-6))

@@ -272,6 +272,8 @@ def test_stale_synth_folders_are_removed_on_the_next_start(tmp_path, capsys):
     # the output is checked before the video is read (tracking it first took minutes)
     (["track", "{tmp}/nope.mp4", "--out", "{tmp}/afile/d.json"], ["afile", "not a folder"]),
     (["track", "{tmp}/nope.mp4", "--out", "{tmp}", "--overwrite"], ["is a directory"]),
+    # a video that is not there: the folders made for the output are removed again
+    (["track", "{tmp}/nope.mp4", "--out", "{tmp}/new/sub/d.json"], ["nope.mp4"]),
     (["track", "{tmp}/nope.mp4", "--out", "{tmp}"], ["is a directory"]),
 ])
 def test_bad_numbers_are_one_line_before_any_work(args, words, toy_run, toy_dataset, tmp_path,

@@ -32,9 +32,8 @@ _DTYPES = {torch.float32: "fp32", torch.float16: "fp16", torch.bfloat16: "bf16",
 def launch_signature(name: str, kernel, args: tuple, meta: dict) -> dict:
     """A launch as Triton's compiler takes it: {"kernel", "signature" (argument -> type,
     "*fp16" for a pointer), "constexprs", "divisible" (arguments Triton's launcher would
-    specialise as multiples of 16)}. An integer argument equal to 1 is a constant, as
-    Triton's launcher specialises it; pointers are taken as 16-byte aligned (CUDA's
-    allocations are)."""
+    specialise as multiples of 16: aligned pointers, integers), "num_warps"}. An integer
+    argument equal to 1 is a constant, as Triton's launcher specialises it."""
     params = inspect.signature(kernel.fn).parameters  # the same under the interpreter
     names = list(params)
     sig, const, div = {}, {k: v for k, v in meta.items() if k in names}, []
@@ -42,15 +41,19 @@ def launch_signature(name: str, kernel, args: tuple, meta: dict) -> dict:
         if "constexpr" in str(params[arg].annotation):  # a constant passed by position
             const[arg] = a
         elif isinstance(a, Tensor):
+            if a.dtype not in _DTYPES:
+                raise TypeError(f"{name}: argument {arg} of dtype {a.dtype}")
             sig[arg] = "*" + _DTYPES[a.dtype]
-            div.append(arg)
+            if a.data_ptr() % 16 == 0:
+                div.append(arg)
         elif isinstance(a, bool):
             sig[arg] = "i1"
         elif isinstance(a, int):
             if a == 1:
                 const[arg] = 1
                 continue
-            sig[arg] = "i32" if -2**31 <= a < 2**31 else "i64"
+            sig[arg] = ("i32" if -2**31 <= a < 2**31 else "i64" if -2**63 <= a < 2**63
+                        else "u64")
             if a % 16 == 0:
                 div.append(arg)
         elif isinstance(a, float):

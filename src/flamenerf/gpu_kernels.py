@@ -249,19 +249,23 @@ def _define() -> dict:
 
 KNN_TILE, KNN_WARPS = 8, 8
 """The nearest-vertex kernel's tile of vertices (0: none, every vertex inserted in turn)
-and warps a block: chosen by registers a thread on sm_90 (`build`), not yet timed on a GPU
-(benchmarks/gpu_knn.py times the choices)."""
+and warps a block: chosen by registers a thread on sm_90 (`gpu_build.build`), not yet timed
+on a GPU (benchmarks/gpu_knn.py times the choices)."""
 
 
 def knn(pts: Tensor, meshes: Tensor, which: Tensor, k: int, tile: int | None = None,
         warps: int | None = None) -> tuple[Tensor, Tensor] | None:
     """The k nearest vertices of each point's own mesh, nearest first: pts (P, 3), meshes
     (M, V, 3), which (P,) long -> squared distances (P, k) float32 and indices (P, k) long
-    into the M·V stacked vertices (k <= V); None where the kernel failed (`_launch`).
-    Distances are summed as (x - v)² per axis, not through `cdist`'s |x|² + |v|² - 2x·v.
-    `tile`, `warps`: KNN_TILE and KNN_WARPS unless given."""
+    into the M·V stacked vertices (k <= V); None where the kernel failed (`_launch`) or
+    its 32-bit vertex offsets would not hold M·V·3. Distances are summed as (x - v)² per
+    axis, not through `cdist`'s |x|² + |v|² - 2x·v. `tile` (0 or a power of two),
+    `warps`: KNN_TILE and KNN_WARPS unless given."""
     P, (M, V) = len(pts), meshes.shape[:2]
     tile = KNN_TILE if tile is None else tile
+    warps = KNN_WARPS if warps is None else warps
+    if tile & (tile - 1):
+        raise ValueError(f"knn: tile {tile} is not 0 or a power of two")
     if M * V * 3 >= 2**31:  # the kernel's vertex offsets are 32-bit
         return None
     d2 = torch.empty(P, k, dtype=torch.float32, device=pts.device)
@@ -269,7 +273,7 @@ def knn(pts: Tensor, meshes: Tensor, which: Tensor, k: int, tile: int | None = N
     if P and not _launch("knn", (triton_cdiv(P, 128),), pts.detach().float().contiguous(),
                          meshes.detach().float().contiguous(), which.contiguous(), d2, idx,
                          P, V, K=k, KP=max(2, 1 << (k - 1).bit_length()), BLOCK=128,
-                         TILE=max(tile, 1), CHECK=tile > 0, num_warps=KNN_WARPS if warps is None else warps):
+                         TILE=max(tile, 1), CHECK=tile > 0, num_warps=warps):
         return None
     d2, order = torch.sort(d2, -1)
     return d2, idx.gather(-1, order)

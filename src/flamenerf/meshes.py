@@ -151,10 +151,7 @@ def nearest_vertices(pts: Tensor, verts: Tensor, k: int, bound: float,
     if verts.dim() == 3 and which is None:
         raise ValueError("nearest_vertices: several meshes need `which`")
     if pts.device.type != "cpu":
-        if verts.dim() == 2:
-            verts, which = verts[None], torch.zeros(len(pts), dtype=torch.long,
-                                                    device=pts.device)
-        return nearest_vertices_brute(pts, verts, k, bound, which)
+        return nearest_vertices_off_cpu(pts, verts, k, bound, which)
     if pts.dim() == 3:
         which = which.repeat_interleave(pts.shape[1])
         pts = pts.reshape(-1, 3)
@@ -205,6 +202,15 @@ def _nearest_vertices_kernel(lib, pts: Tensor, verts: Tensor, k: int, bound: flo
     if rc != 0:
         raise RuntimeError(f"knn_forward failed ({rc})")
     return d2.to(pts.dtype), idx
+
+
+def nearest_vertices_off_cpu(pts: Tensor, verts: Tensor, k: int, bound: float,
+                             which: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    """`nearest_vertices` as it runs off the CPU (distance blocks or the GPU's kernel), on
+    any device: one mesh (V, 3) is taken as a stack of one."""
+    if verts.dim() == 2:
+        verts, which = verts[None], torch.zeros(len(pts), dtype=torch.long, device=pts.device)
+    return nearest_vertices_brute(pts, verts, k, bound, which)
 
 
 def nearest_vertices_brute(pts: Tensor, meshes: Tensor, k: int, bound: float, which: Tensor,

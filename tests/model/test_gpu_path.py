@@ -88,7 +88,8 @@ BUILD = textwrap.dedent("""
         == {"*fp16"}
     for x in {json.dumps(x, sort_keys=True): x for x in launches}.values():
         got = gpu_build.build(x, 90)
-        assert got["spill_bytes"] == 0, (x["kernel"], x["constexprs"], got)
+        # no spill, and room for several blocks an SM (the tiled knn took 255 registers)
+        assert got["spill_bytes"] == 0 and got["registers"] <= 128, (x["kernel"], got)
     print("built for sm_90")
 """)
 
@@ -104,6 +105,21 @@ def test_gpu_inference_path_matches_the_cpu_one_under_the_interpreter():
     assert "gpu path agrees" in out.stdout
 
 
+def _nvidia_tools() -> bool:
+    """Triton's compiler with the NVIDIA backend and the tools it ships (ptxas, cuobjdump),
+    and the ASTSource of Triton >= 3.3 (`constexprs`), which gpu_build calls."""
+    import inspect
+
+    import triton
+    import triton.compiler
+
+    tools = Path(triton.__file__).parent / "backends" / "nvidia" / "bin"
+    return ((tools / "ptxas").exists() and (tools / "cuobjdump").exists()
+            and "constexprs" in inspect.signature(triton.compiler.ASTSource).parameters)
+
+
+@pytest.mark.skipif(importlib.util.find_spec("triton") is None or not _nvidia_tools(),
+                    reason="Triton without its NVIDIA backend's tools, or older than 3.3")
 def test_the_gpu_paths_kernels_build_for_an_h100_without_one(tmp_path):
     """The launches of a half-precision frame down the GPU's path (recorded under the
     interpreter) compile for sm_90 with Triton's compiler and ptxas, which ship with Triton:

@@ -98,9 +98,10 @@ def eval(  # noqa: A001 - the subcommand's name
     out_dir = out if out is not None else Path(run) / "eval"
     r = load_run(run, device)  # first: a folder that is no run gets no eval/ folder
     ds = r.dataset(dataset, captured_directions)
-    if split not in ds.splits:
-        raise UserError(f"{ds.root / 'transforms.json'}: no split named {split!r} to evaluate "
-                        f"on (have: {', '.join(sorted(ds.splits))}; --split chooses one)")
+    try:
+        ds.split(split)  # before any work
+    except UserError as e:
+        raise UserError(f"{e}; --split chooses the frames to evaluate on") from None
     writable_dir(out_dir, "evaluation")  # before minutes of fitting, not after
     if fit_steps is None:
         fit_steps = 2000 if r.device.type == "cuda" else 300

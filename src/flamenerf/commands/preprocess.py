@@ -49,9 +49,10 @@ def preprocess(
           f"fov {rep['camera']['fov_x_deg']:.1f} deg; "
           f"{rep['frames_per_second']:.1f} frames/s")
     if "val" not in rep["splits"] and opts.val_every > 1:
-        print(f"note: no val split: {rep['kept_frames']} frames kept and --val-every "
-              f"{opts.val_every} holds out every {opts.val_every}th; `flamenerf eval` needs "
-              f"held-out frames (keep more with --fps, or give --val-every 2)")
+        print(f"note: no val split: {rep['kept_frames']} frames kept, and --val-every "
+              f"{opts.val_every} holds out one frame in {opts.val_every}; `flamenerf eval` "
+              f"needs held-out frames (keep more with --fps or --max-frames, or lower "
+              f"--val-every)")
     for line in scene_lines(rep["scene"]):
         print(line)
     cov = rep.get("expressions")

@@ -23,18 +23,13 @@ def gpu_path_on_cpu(half: bool = True) -> Iterator[None]:
     replaced, restored after). `half`: the fields in float16 where the render's settings
     ask for half precision, as on CUDA (else float32 throughout)."""
 
-    def off_the_cpu(pts, verts, k, bound, which=None):
-        if verts.dim() == 2:
-            verts, which = verts[None], torch.zeros(len(pts), dtype=torch.long)
-        return meshes.nearest_vertices_brute(pts, verts, k, bound, which)
-
     def autocast(device, settings):
         return (torch.autocast("cpu", dtype=torch.float16) if half and settings.half
                 else contextlib.nullcontext())
 
     swaps = [(runtime, "gpu_inference", lambda device: True),
              (mlp, "_oneDNN_linear", lambda: None),  # the lean layers, not oneDNN's fused
-             (flame_nerf, "nearest_vertices", off_the_cpu),
+             (flame_nerf, "nearest_vertices", meshes.nearest_vertices_off_cpu),
              (inference, "_autocast", autocast)]
     kept = [(mod, name, getattr(mod, name)) for mod, name, _ in swaps]
     try:
