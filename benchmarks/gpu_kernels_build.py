@@ -91,8 +91,9 @@ def main() -> int:
                 got = gpu_build.build(launch, arch)
             except Exception as e:  # noqa: BLE001 - reported: what a GPU would have hit
                 got = {"arch": arch, "error": f"{type(e).__name__}: {str(e)[:300]}"}
-            rows.append({"kernel": launch["kernel"], "constexprs": shown,
-                         "signature": launch["signature"], **got})
+            rows.append({"kernel": launch["kernel"], "constexprs": launch["constexprs"],
+                         "num_warps": launch["num_warps"], "signature": launch["signature"],
+                         "divisible": launch["divisible"], **got})
             print(f"{launch['kernel']:12s} sm_{arch} {shown} -> "
                   + (got["error"] if "error" in got else
                      f"{got['registers']} registers, {got['spill_bytes']} bytes spilled, "
