@@ -54,7 +54,7 @@ LOG=$OUT/log.txt
 : >"$LOG"
 say() { echo "== $*" | tee -a "$LOG"; }
 
-say "$(date -u +%FT%TZ) $("$PY" -c 'import torch; print(torch.__version__, torch.cuda.get_device_name(0) if torch.cuda.is_available() else "no GPU")')"
+say "$(date -u +%FT%TZ) $("$PY" -c 'import torch; print(torch.__version__, torch.cuda.get_device_name(0) if torch.cuda.is_available() else "no GPU")') triton $("$PY" -c 'import triton; print(triton.__version__)' 2>/dev/null || echo none)"
 say "commit $(git rev-parse --short HEAD 2>/dev/null || echo unknown)${SET:+, set $SET}"
 "$PY" -c "from flamenerf.synthetic.scene import make_scene; make_scene('$SCENE', size=$SIZE, frames=300)" 2>&1 | tee -a "$LOG"
 for seed in $SEEDS; do
