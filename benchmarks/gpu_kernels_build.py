@@ -51,12 +51,12 @@ def record(run_dir: Path, dataset: Path | None, size: int) -> list[dict]:
 
 
 def main() -> int:
+    from view_args import view_options
+
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--run", type=Path, required=True)
-    ap.add_argument("--dataset", type=Path, default=None, help="the run's dataset, if moved")
+    view_options(ap, size=16, device=None)  # the recorded frame: small, on this CPU
     ap.add_argument("--arch", default="80,90",
                     help="compute capabilities, comma-separated (80: A100, 90: H100/H200)")
-    ap.add_argument("--size", type=int, default=16, help="the recorded frame's size in px")
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--record-to", type=Path, default=None, help=argparse.SUPPRESS)
     a = ap.parse_args()

@@ -28,17 +28,14 @@ from flamenerf.model import inference
 from flamenerf.model.gpu_emulation import gpu_path_on_cpu
 from flamenerf.model.render_image import render_image
 from flamenerf.training.run import load_run
-from view_args import view_args
+from view_args import view_args, view_options
 
 CHOICES = [(0, 4), (0, 8), (8, 4), (8, 8), (16, 4), (16, 8)]
 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--run", type=Path, required=True)
-    ap.add_argument("--dataset", type=Path, default=None, help="the run's dataset, if moved")
-    ap.add_argument("--device", default="cuda")
-    ap.add_argument("--size", type=int, default=512)
+    view_options(ap, size=512, device="cuda")
     ap.add_argument("--repeats", type=int, default=20)
     ap.add_argument("--points", type=int, default=0,
                     help="time only a query's first N points (0: all; the interpreter's "

@@ -20,15 +20,12 @@ from torch.profiler import ProfilerActivity, profile
 from flamenerf.model import inference
 from flamenerf.model.render_image import render_image
 from flamenerf.training.run import load_run
-from view_args import view_args
+from view_args import view_args, view_options
 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--run", type=Path, required=True)
-    ap.add_argument("--dataset", type=Path, default=None, help="the run's dataset, if moved")
-    ap.add_argument("--device", default="cpu")
-    ap.add_argument("--size", type=int, default=512)
+    view_options(ap, size=512)
     ap.add_argument("--settings", choices=["FAST", "VIEWER", "REFERENCE"], default="FAST")
     ap.add_argument("--frames", type=int, default=3, help="frames profiled (after a warm-up)")
     ap.add_argument("--rows", type=int, default=40, help="rows of the table")

@@ -5,10 +5,23 @@ expression's kernels run) with frame 0's codes; the prior's mask at `size` px.""
 
 from __future__ import annotations
 
+import argparse
+from pathlib import Path
+
 import numpy as np
 import torch
 
 from flamenerf.data.prior import dataset_dilation, mesh_function, prior_mask
+
+
+def view_options(ap: argparse.ArgumentParser, size: int, device: str | None = "cpu") -> None:
+    """The options that choose the view: --run, --dataset, --size, and --device unless
+    `device` is None (a CPU-only script)."""
+    ap.add_argument("--run", type=Path, required=True)
+    ap.add_argument("--dataset", type=Path, default=None, help="the run's dataset, if moved")
+    if device is not None:
+        ap.add_argument("--device", default=device)
+    ap.add_argument("--size", type=int, default=size)
 
 
 def view_args(run, ds, size: int, expressive: bool = False) -> tuple:
