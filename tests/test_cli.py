@@ -55,3 +55,18 @@ def test_fast_on_a_gpu_suggests_fast_gpu(tmp_path, capsys, monkeypatch, toy_data
     for extra, noted in cases:
         assert main(["train", str(toy_dataset), "--out", str(tmp_path / "run"), *extra]) == 0
         assert ("--preset fast-gpu" in capsys.readouterr().out) == noted, extra
+
+
+def test_top_level_help_lists_each_command_on_a_line_or_two():
+    """`flamenerf --help` is a short index (tyro's printed every whole docstring, ~220
+    lines); a command's own --help keeps its whole text."""
+    from flamenerf.cli import COMMANDS
+
+    r = _run("--help")
+    assert r.returncode == 0, r.stderr
+    lines = r.stdout.splitlines()
+    assert len(lines) < 40
+    listed = [line.split()[0] for line in lines if line.startswith("  ") and line[2] != " "]
+    assert listed == COMMANDS
+    r = _run("demo", "--help")
+    assert r.returncode == 0 and "OUT/reanimation_sbs.mp4" in r.stdout

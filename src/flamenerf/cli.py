@@ -77,11 +77,38 @@ def _finite_floats(command):
     return checked
 
 
+def summary(command) -> str:
+    """A command's docstring's first sentence, on one line."""
+    import re
+
+    first = " ".join((command.__doc__ or "").strip().split("\n\n")[0].split())
+    return re.split(r"(?<=\.)\s", first)[0]
+
+
+def short_help(cmds: dict) -> str:
+    """`flamenerf --help`: one line or two per subcommand. tyro's own lists every
+    subcommand's whole docstring (~220 lines); each `flamenerf NAME --help` keeps it."""
+    import textwrap
+
+    width = max(len(n) for n in cmds) + 4
+    lines = [f"usage: flamenerf [-h] {{{','.join(cmds)}}} ...", "",
+             __doc__.splitlines()[0], "", "commands:"]
+    for name, command in cmds.items():
+        lines += textwrap.wrap(summary(command), 88, initial_indent=f"  {name:<{width - 2}}",
+                               subsequent_indent=" " * width)
+    lines += ["", "`flamenerf NAME --help` shows a command's options and an example."]
+    return "\n".join(lines)
+
+
 def main(argv: list[str] | None = None) -> int:
     import tyro
 
     from flamenerf.errors import Interrupted, UserError
 
+    args = sys.argv[1:] if argv is None else argv
+    if args in (["-h"], ["--help"]):
+        print(short_help(available_commands()))
+        return 0
     if argv is None and any(a in sys.argv[1:2] for a in ("train", "bench", "demo", "eval")):
         _tune_allocator()
     cmds = available_commands()

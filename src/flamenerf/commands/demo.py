@@ -14,10 +14,12 @@ def demo(
     batch_rays: int = 2048,
     seed: int = 0,
 ) -> None:
-    """The main job end to end on the built-in scene: synthesize it, train the `demo`
-    preset (`fast` with fewer, smaller steps), then render a re-animation video (the
-    expressions of the scene's `reanimate` split, one video frame each, along an orbiting
-    camera) with its depth video and a side-by-side. A few minutes on a laptop CPU.
+    """Try flamenerf end to end on the built-in scene: a few minutes on a laptop CPU.
+
+    Synthesizes the scene, trains the `demo` preset (`fast` with fewer, smaller steps),
+    then renders a re-animation video (the expressions of the scene's `reanimate` split,
+    one video frame each, along an orbiting camera) with its depth video and a
+    side-by-side.
 
     Writes OUT/scene (dataset), OUT/run (trained run), OUT/reanimation.mp4,
     OUT/reanimation_depth.mp4 and OUT/reanimation_sbs.mp4. Re-running reuses what exists.
