@@ -57,6 +57,11 @@ def test_bad_inputs_are_user_errors(toy_run, tmp_path):
     with pytest.raises(UserError, match="taken.mp4: already exists"):
         render(RenderOptions(toy_run, out=tmp_path / "taken.mp4", device="cpu"))
     assert not (tmp_path / "x.mp4").exists()
+    # folders made for the videos go again when the render fails
+    with pytest.raises(UserError, match="unknown control 'jawOpn'"):
+        render(RenderOptions(toy_run, out=tmp_path / "new" / "deeper" / "x.mp4",
+                             expressions=["jawOpn=0.8"], device="cpu"))
+    assert not (tmp_path / "new").exists()
 
 
 def test_prior_mask_reproduces_the_dataset_masks(toy_dataset):

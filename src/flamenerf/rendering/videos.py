@@ -336,12 +336,24 @@ def write_videos(run, ds: Dataset, intr: Intrinsics, poses: np.ndarray, values: 
 
 def render_videos(opts: RenderOptions, log=print) -> RenderSummary:
     """The whole of `flamenerf render` (see its --help)."""
+    from flamenerf.outdir import missing_folders, remove_if_empty
+
+    opts.check()
+    made = missing_folders(opts.out.parent if opts.out is not None
+                           else Path(opts.run) / "renders")
+    try:
+        return _render_videos(opts, log)
+    except BaseException:
+        remove_if_empty(made)  # the folders made for videos that were never written
+        raise
+
+
+def _render_videos(opts: RenderOptions, log) -> RenderSummary:
     from flamenerf.data.prior import dataset_dilation, mesh_function
     from flamenerf.outdir import writable_dir
     from flamenerf.runtime import set_threads
     from flamenerf.training.run import load_run
 
-    opts.check()
     set_threads(opts.threads)
     if opts.out is not None:  # fail before loading and tracking, not after rendering
         writable_dir(opts.out.parent, "video")
