@@ -173,3 +173,14 @@ def test_flame_needs_its_files(tmp_path, astronaut_video):
     with pytest.raises(UserError, match="FLAME directory does not exist"):
         preprocess_video(astronaut_video, tmp_path / "ds", PreprocessOptions(
             face_model="flame", flame_dir=tmp_path / "FLAME", progress=False))
+
+
+def test_a_clip_too_short_for_a_val_split_says_so(tmp_path, astronaut_video, capsys):
+    """12 frames held out one in 20: a dataset without val, and a note saying why and what
+    to change (eval needs held-out frames)."""
+    out = tmp_path / "ds"
+    assert main(["preprocess", str(astronaut_video), str(out), "--size", "64",
+                 "--val-every", "20", "--cameras", "head"]) == 0
+    assert "val" not in json.loads((out / "qa" / "tracking_report.json").read_text())["splits"]
+    note = [line for line in capsys.readouterr().out.splitlines() if line.startswith("note:")]
+    assert note and "no val split" in note[0] and "--val-every 20" in note[0]
