@@ -10,8 +10,8 @@
 #      the second pass over unfinished rays and without it: the targets are 60 fps at
 #      256 px and 20 fps at 512 px, within 0.2 dB of the reference renderer.
 #   4. a profile of one 512 px frame (profile_render.py: where the GPU's time goes), in
-#      the log, and the nearest-vertex kernel's tile and warp choices timed on that
-#      frame's queries (gpu_knn.py);
+#      the log, and the nearest-vertex kernel's and the field heads' launch choices timed
+#      on that frame's calls (gpu_choices.py);
 #   5. with OLD_SRC set (a source tree of an earlier commit): the same run's frames at
 #      256 and 512 px with OLD_SRC and with this checkout's src, alternated in fresh
 #      processes (bench_render_ab.py), so that a change to the GPU's inference path is
@@ -40,12 +40,12 @@ export PYTHONPATH="$PWD/src${PYTHONPATH:+:$PYTHONPATH}" PYTHONUNBUFFERED=1
 SEEDS=${SEEDS:-0 1}
 SET=${SET:-}
 if [[ -n "${SMOKE:-}" ]]; then
-  SIZE=32 BUDGET=3 EVAL_FIT=2 FINAL_FIT=2 SIZES="32 64" DEVICE=cpu REPEATS=1 KNN_POINTS=128
-  KNN_SIZE=16  # the interpreter renders the frame: slow
+  SIZE=32 BUDGET=3 EVAL_FIT=2 FINAL_FIT=2 SIZES="32 64" DEVICE=cpu REPEATS=1 CHOICE_POINTS=128
+  CHOICE_SIZE=16  # the interpreter renders the frame: slow
   EXTRA_TRAIN=(--steps 4 --batch-rays 1024)
 else
   SIZE=256 BUDGET=70 EVAL_FIT=60 FINAL_FIT=100 SIZES="128 256 512" DEVICE=cuda REPEATS=5
-  KNN_POINTS=0 KNN_SIZE=512
+  CHOICE_POINTS=0 CHOICE_SIZE=512
   EXTRA_TRAIN=()
 fi
 WORK=$(mktemp -d)
@@ -79,14 +79,14 @@ say "profile of a ${SIZES##* } px frame (seed $first's run)"
 { "$PY" benchmarks/profile_render.py --run "$WORK/run_s$first" --dataset "$SCENE" \
     --device "$DEVICE" --size "${SIZES##* }" --frames 3 --rows 45 2>&1 \
     | grep -v "^\(STAGE\|USDT\)" | tee -a "$LOG"; } || say "the profile failed"
-say "the nearest-vertex kernel's choices (seed $first's run, $KNN_SIZE px)"
+say "the kernels' launch choices (seed $first's run, $CHOICE_SIZE px)"
 # auxiliary, as the profile; on a CPU the interpreter checks it on a few points
-KNN_ENV=(); [[ $DEVICE == cpu ]] && KNN_ENV=(TRITON_INTERPRET=1 FLAMENERF_GPU_KERNELS=1 \
+CHOICE_ENV=(); [[ $DEVICE == cpu ]] && CHOICE_ENV=(TRITON_INTERPRET=1 FLAMENERF_GPU_KERNELS=1 \
   FLAMENERF_CPU_KERNELS=0)
-{ env "${KNN_ENV[@]}" "$PY" benchmarks/gpu_knn.py --run "$WORK/run_s$first" \
-    --dataset "$SCENE" --device "$DEVICE" --size "$KNN_SIZE" --repeats "$REPEATS" \
-    --points "$KNN_POINTS" --json "$OUT/knn.json" 2>&1 | tee -a "$LOG"; } \
-  || say "the nearest-vertex timing failed"
+{ env "${CHOICE_ENV[@]}" "$PY" benchmarks/gpu_choices.py --run "$WORK/run_s$first" \
+    --dataset "$SCENE" --device "$DEVICE" --size "$CHOICE_SIZE" --repeats "$REPEATS" \
+    --points "$CHOICE_POINTS" --json "$OUT/choices.json" 2>&1 | tee -a "$LOG"; } \
+  || say "the launch choices' timing failed"
 if [[ -n "${OLD_SRC:-}" ]]; then
   say "render A/B: $OLD_SRC against src (seed $first's run)"
   # shellcheck disable=SC2086

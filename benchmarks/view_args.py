@@ -1,5 +1,5 @@
 """The arguments of `render_image` for one view of a trained run, as the benchmarks render
-it (profile_render.py, gpu_kernels_build.py, gpu_knn.py): frame 0's camera, codes and β;
+it (profile_render.py, gpu_kernels_build.py, gpu_choices.py): frame 0's camera, codes and β;
 or, `expressive`, the camera and β of the frame with the most expressive β (so that the
 expression's kernels run) with frame 0's codes; the prior's mask at `size` px."""
 

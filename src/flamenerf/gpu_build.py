@@ -83,7 +83,7 @@ def build(launch: dict, arch: int) -> dict:
         attrs={(names.index(k),): [["tt.divisibility", 16]] for k in launch["divisible"]})
     target = GPUTarget("cuda", arch, 32)
     options = triton.compiler.make_backend(target).parse_options(
-        {"num_warps": launch.get("num_warps", 4)})
+        {"num_warps": launch.get("num_warps", 4), "enable_fp_fusion": gpu_kernels.FP_FUSION})
     t = time.perf_counter()
     compiled = triton.compile(src, target=target, options=options.__dict__)
     seconds = time.perf_counter() - t

@@ -64,6 +64,11 @@ def _load() -> dict | None:
     return _kernels
 
 
+FP_FUSION = True
+"""Multiplies and adds fused (FMA), as the kernels were tested: named at each launch, as
+Triton 3.9 warns where it is left to its default, which 3.10 turns off."""
+
+
 def _launch(name: str, grid: tuple, *args, **meta) -> bool:
     """Run kernel `name`; False (with one warning, and that kernel off from then on) where
     Triton cannot build it for this GPU or driver: its callers then take PyTorch ops, and
@@ -76,7 +81,7 @@ def _launch(name: str, grid: tuple, *args, **meta) -> bool:
 
         _recorded.append(launch_signature(name, kernels[name], args, meta))
     try:
-        kernels[name][grid](*args, **meta)
+        kernels[name][grid](*args, enable_fp_fusion=FP_FUSION, **meta)
         return True
     except Exception as e:  # noqa: BLE001 - any build or launch failure means: do without
         del kernels[name]
@@ -250,7 +255,11 @@ def _define() -> dict:
 KNN_TILE, KNN_WARPS = 8, 8
 """The nearest-vertex kernel's tile of vertices (0: none, every vertex inserted in turn)
 and warps a block: chosen by registers a thread on sm_90 (`gpu_build.build`), not yet timed
-on a GPU (benchmarks/gpu_knn.py times the choices)."""
+on a GPU (benchmarks/gpu_choices.py times the choices)."""
+
+HEADS_BLOCK, HEADS_WARPS = 64, 4
+"""The field heads' points a block and warps a block: not timed on a GPU either (96
+registers a thread on sm_90, five blocks an SM; benchmarks/gpu_choices.py times others)."""
 
 
 def knn(pts: Tensor, meshes: Tensor, which: Tensor, k: int, tile: int | None = None,
@@ -324,7 +333,8 @@ def _hashgrid(grid, x: Tensor, out: Tensor, col0: int, z: Tensor | None, fe: int
                    F=F, FP=fp, BLOCK=block, RANK=rank, FE=max(fe, 1))
 
 
-def field_heads(feats: Tensor, term: Tensor, per: int, density_head, rgb_head
+def field_heads(feats: Tensor, term: Tensor, per: int, density_head, rgb_head,
+                block: int | None = None, warps: int | None = None
                 ) -> tuple[Tensor, Tensor] | None:
     """A hash field's density and colour heads (model/field.HashField, one hidden layer
     and two) in one kernel: each block of points goes from its features to σ and RGB in
@@ -338,7 +348,13 @@ def field_heads(feats: Tensor, term: Tensor, per: int, density_head, rgb_head
     term (M, H) the colour head's first layer applied to the per-ray conditioning (γ(d),
     φ), bias included, point i taking row i // per -> σ (N,) (trunc_exp of the logit) and
     RGB (N, 3), float32; None where the heads are not of that shape or the kernel failed.
+    `block` (a power of two, at least 16: `tl.dot`'s), `warps`: HEADS_BLOCK and
+    HEADS_WARPS unless given.
     """
+    block = HEADS_BLOCK if block is None else block
+    warps = HEADS_WARPS if warps is None else warps
+    if block & (block - 1) or block < 16:
+        raise ValueError(f"field_heads: block {block} is not a power of two >= 16")
     if len(density_head.layers) != 1 or len(rgb_head.layers) != 2 or density_head.skips \
             or rgb_head.skips or density_head.out is None or rgb_head.out is None:
         return None
@@ -356,10 +372,9 @@ def field_heads(feats: Tensor, term: Tensor, per: int, density_head, rgb_head
     if N == 0:
         return sigma, rgb
     cp, g = w[0].shape[0], w[2].shape[1]
-    block = 64
     if not _launch("field_heads", (triton_cdiv(N, block),), feats, feats.stride(0),
                    term.contiguous(), per, N, *w, sigma, rgb, CIN=C, CP=cp, H=H, G=g,
-                   OUT=16, BLOCK=block,
+                   OUT=16, BLOCK=block, num_warps=warps,
                    # float32 exactly (tf32 is ignored for half-precision operands)
                    PREC="ieee" if feats.dtype == torch.float32 else "tf32"):
         return None
