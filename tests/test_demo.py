@@ -3,6 +3,7 @@ import sys
 
 import pytest
 
+from flamenerf.commands.demo import TOUR_FRAMES
 from flamenerf.data.dataset import load_dataset
 from flamenerf.data.video import read_frames
 
@@ -16,6 +17,9 @@ def test_demo_end_to_end_at_tiny_size(tmp_path):
     assert r.returncode == 0, r.stderr[-2000:]
     frames = read_frames(out / "reanimation.mp4")
     n = len(load_dataset(out / "scene").splits["reanimate"])  # one video frame each
-    assert n > 0 and len(frames) == n and frames[0].shape[-1] == 3
-    for extra in ("reanimation_depth.mp4", "reanimation_sbs.mp4"):
+    assert n > 0 and len(frames) == n and frames[0].shape == (32, 32, 3)
+    tour = read_frames(out / "expressions.mp4")  # the expression tour
+    assert len(tour) == TOUR_FRAMES and tour[0].shape == (32, 32, 3)
+    for extra in ("reanimation_depth.mp4", "reanimation_sbs.mp4", "expressions_depth.mp4",
+                  "expressions_sbs.mp4"):
         assert (out / extra).stat().st_size > 0

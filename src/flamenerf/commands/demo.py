@@ -4,6 +4,13 @@ from __future__ import annotations
 
 from pathlib import Path
 
+# the expression tour: one keyframe per part of the face the built-in scene moves, eased
+# from frame 0's expression through each in turn and back (`render --expressions`), 4 s at
+# 30 fps
+TOUR = ["jawOpen=1", "mouthSmileLeft=1,mouthSmileRight=1", "browInnerUp=1", "mouthPucker=1",
+        "eyeBlinkLeft=1,eyeBlinkRight=1"]
+TOUR_FRAMES = 120
+
 
 def demo(
     out: Path = Path("demo"),
@@ -17,18 +24,20 @@ def demo(
     """Try flamenerf end to end on the built-in scene: a few minutes on a laptop CPU.
 
     Synthesizes the scene, trains the `demo` preset (`fast` with fewer, smaller steps),
-    then renders a re-animation video (the expressions of the scene's `reanimate` split,
-    one video frame each, along an orbiting camera) with its depth video and a
-    side-by-side.
+    then renders two videos at the scene's resolution, each with its depth video and a
+    side-by-side: a tour of the expression controls along an orbiting camera (jaw, smile,
+    brows, pucker, blink, eased from one to the next: 4 s), and the re-animation of the
+    scene's `reanimate` split (novel expressions from novel cameras, one video frame each
+    at 4 fps; its side-by-side puts the ground truth beside the render).
 
-    Writes OUT/scene (dataset), OUT/run (trained run), OUT/reanimation.mp4,
-    OUT/reanimation_depth.mp4 and OUT/reanimation_sbs.mp4. Re-running reuses what exists.
+    Writes OUT/scene (dataset), OUT/run (trained run), OUT/expressions.mp4 and
+    OUT/reanimation.mp4, each with _depth.mp4 and _sbs.mp4. Re-running reuses what exists.
 
     Example: flamenerf demo --out demo
 
     Args:
         out: Output folder.
-        size: Resolution of the synthesized scene.
+        size: Resolution of the synthesized scene and of the videos.
         frames: Capture frames of the synthesized scene.
         steps: Training steps.
         train_size: Training resolution.
@@ -65,8 +74,12 @@ def demo(
         from flamenerf.errors import Interrupted
 
         raise Interrupted(f"run saved in {run}; the same `flamenerf demo` command resumes it")
-    print("[3/3] rendering the re-animation video")
-    render(RenderOptions(run, out=out / "reanimation.mp4", split="reanimate", camera="orbit",
-                         depth=True, side_by_side=True, overwrite=True))
-    print(f"done: {out / 'reanimation.mp4'} (+ _depth, _sbs); "
-          f"`flamenerf view {run}` to play with it")
+    print("[3/3] rendering the videos")
+    videos = dict(size=size, depth=True, side_by_side=True, overwrite=True)
+    render(RenderOptions(run, out=out / "expressions.mp4", expressions=TOUR,
+                         frames=TOUR_FRAMES, camera="orbit", **videos))
+    # the split's own cameras: its side-by-side is then the ground truth beside the render
+    render(RenderOptions(run, out=out / "reanimation.mp4", split="reanimate", camera="auto",
+                         fps=4, **videos))
+    print(f"done: {out / 'expressions.mp4'} and {out / 'reanimation.mp4'} (each + _depth, "
+          f"_sbs); `flamenerf view {run}` to play with it")
