@@ -69,4 +69,4 @@ def test_top_level_help_lists_each_command_on_a_line_or_two():
     listed = [line.split()[0] for line in lines if line.startswith("  ") and line[2] != " "]
     assert listed == COMMANDS
     r = _run("demo", "--help")
-    assert r.returncode == 0 and "OUT/reanimation_sbs.mp4" in r.stdout
+    assert r.returncode == 0 and "OUT/expressions.mp4" in r.stdout
