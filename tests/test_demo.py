@@ -3,7 +3,6 @@ import sys
 
 import pytest
 
-from flamenerf.commands.demo import TOUR_FRAMES
 from flamenerf.data.dataset import load_dataset
 from flamenerf.data.video import read_frames
 
@@ -18,8 +17,8 @@ def test_demo_end_to_end_at_tiny_size(tmp_path):
     frames = read_frames(out / "reanimation.mp4")
     n = len(load_dataset(out / "scene").splits["reanimate"])  # one video frame each
     assert n > 0 and len(frames) == n and frames[0].shape == (32, 32, 3)
-    tour = read_frames(out / "expressions.mp4")  # the expression tour
-    assert len(tour) == TOUR_FRAMES and tour[0].shape == (32, 32, 3)
+    tour = read_frames(out / "expressions.mp4")  # the expression tour: a few controls
+    assert len(tour) >= 3 * 24 and len(tour) % 24 == 1 and tour[0].shape == (32, 32, 3)
     for extra in ("reanimation_depth.mp4", "reanimation_sbs.mp4", "expressions_depth.mp4",
                   "expressions_sbs.mp4"):
         assert (out / extra).stat().st_size > 0

@@ -35,6 +35,9 @@ def test_split_and_file_sources_set_the_length(toy_run, tmp_path):
                          camera="spiral", size=20, device="cpu"))
     frames = read_frames(tmp_path / "e.mp4")
     assert len(frames) == 4 and frames[0].shape[:2] == (20, 20)
+    # the tour: 24 frames (and one) for each control the training frames vary
+    render(RenderOptions(toy_run, out=tmp_path / "t.mp4", expressions=["tour"], device="cpu"))
+    assert len(read_frames(tmp_path / "t.mp4")) % 24 == 1
 
 
 def test_bad_inputs_are_user_errors(toy_run, tmp_path):

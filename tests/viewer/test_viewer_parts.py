@@ -14,7 +14,7 @@ from flamenerf.viewer.camera import c2w_from_viser, home_camera, view_intrinsics
 from flamenerf.data.prior import dataset_dilation, estimate_dilation
 from flamenerf.viewer.mask import FaceMasker
 from flamenerf.viewer.renderer import RenderWorker
-from flamenerf.viewer.tracks import dataset_tracks, load_track_file, slider_range
+from flamenerf.viewer.tracks import dataset_tracks, load_track_file, slider_range, tour_track
 
 
 def test_camera_conversion():
@@ -52,6 +52,12 @@ def test_tracks(tiny_scene, tmp_path):
     assert cap.num_frames == sum(f.frame_index is not None for f in ds.frames)
     assert any(t.name.startswith("split reanimate") for t in tracks)
     assert slider_range(ds) == (0.0, 1.0)
+    # the tour: `render --expressions tour`'s sequence, from the base given
+    base = ds.frames[0].expression.astype(np.float32)
+    tour = tour_track(ds, ds.expression_names, base)
+    assert tour.name.startswith("tour") and tour.fps == 30 and tour.num_frames % 24 == 1
+    assert np.allclose(tour.frames[0], base) and np.abs(tour.frames - base).max() > 0.1
+    assert tour_track(ds, ds.expression_names[::-1], base) is None  # not the run's controls
 
     names = ds.expression_names
     p = tmp_path / "drive.json"
@@ -181,9 +187,11 @@ def test_viewer_controls_without_a_browser(tiny_run, tmp_path):
         assert not v.playing and any(np.allclose(e, r) for r in np.asarray(rows, np.float32))
         time.sleep(0.3)
         assert np.array_equal(v.worker.expression(), e)  # paused: stays
-        v.g_track.value = v.tracks[1].name  # the capture
-        assert v.g_frame.max == v.tracks[1].num_frames - 1
-        assert np.allclose(v.worker.expression(), v.tracks[1].frames[0])
+        assert v.tracks[1].name.startswith("tour")  # the tour, then the capture
+        v.g_track.value = v.tracks[2].name
+        assert v.tracks[2].name.startswith("capture")
+        assert v.g_frame.max == v.tracks[2].num_frames - 1
+        assert np.allclose(v.worker.expression(), v.tracks[2].frames[0])
         v.set_expression(v.neutral)  # zeros, within the training frames' range
         want = v.range.clamp(np.zeros(len(names), np.float32))
         assert np.allclose(v.worker.expression(), want)

@@ -4,13 +4,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-# the expression tour: one keyframe per part of the face the built-in scene moves, eased
-# from frame 0's expression through each in turn and back (`render --expressions`), 4 s at
-# 30 fps
-TOUR = ["jawOpen=1", "mouthSmileLeft=1,mouthSmileRight=1", "browInnerUp=1", "mouthPucker=1",
-        "eyeBlinkLeft=1,eyeBlinkRight=1"]
-TOUR_FRAMES = 120
-
 
 def demo(
     out: Path = Path("demo"),
@@ -25,10 +18,11 @@ def demo(
 
     Synthesizes the scene, trains the `demo` preset (`fast` with fewer, smaller steps),
     then renders two videos at the scene's resolution, each with its depth video and a
-    side-by-side: a tour of the expression controls along an orbiting camera (jaw, smile,
-    brows, pucker, blink, eased from one to the next: 4 s), and the re-animation of the
-    scene's `reanimate` split (novel expressions from novel cameras, one video frame each
-    at 4 fps; its side-by-side puts the ground truth beside the render).
+    side-by-side: a tour of the expression controls along an orbiting camera (`render
+    --expressions tour`: each control in turn, from frame 0's expression to the top of
+    its range and back; 7 s), and the re-animation of the scene's `reanimate` split (novel
+    expressions from novel cameras, one video frame each at 4 fps; its side-by-side puts
+    the ground truth beside the render).
 
     Writes OUT/scene (dataset), OUT/run (trained run), OUT/expressions.mp4 and
     OUT/reanimation.mp4, each with _depth.mp4 and _sbs.mp4. Re-running reuses what exists.
@@ -76,8 +70,8 @@ def demo(
         raise Interrupted(f"run saved in {run}; the same `flamenerf demo` command resumes it")
     print("[3/3] rendering the videos")
     videos = dict(size=size, depth=True, side_by_side=True, overwrite=True)
-    render(RenderOptions(run, out=out / "expressions.mp4", expressions=TOUR,
-                         frames=TOUR_FRAMES, camera="orbit", **videos))
+    render(RenderOptions(run, out=out / "expressions.mp4", expressions=["tour"],
+                         camera="orbit", **videos))
     # the split's own cameras: its side-by-side is then the ground truth beside the render
     render(RenderOptions(run, out=out / "reanimation.mp4", split="reanimate", camera="auto",
                          fps=4, **videos))

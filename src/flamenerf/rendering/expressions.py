@@ -17,11 +17,16 @@ Accepted `--expressions` values:
               a keyframe does not name keep the base's value, except, by default, their
               companions: the controls of the same part of the face and side that the
               tracker reads with them (data/companions.py).
+  tour        every control the training frames vary, one after the other: from the base
+              to the top of the control's span (its 95th percentile in the training
+              frames, what `eval` sweeps) and back; a Left/Right pair together; companions
+              as for keyframes. What a run can do with its clip's expressions, at a glance.
 """
 
 from __future__ import annotations
 
 import json
+import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -33,6 +38,9 @@ from flamenerf.errors import UserError
 from flamenerf.keyvalues import parse_assignments, suggest
 
 FILE_SUFFIXES = (".json", ".npy", ".csv")
+KEYFRAME_FRAMES = 60  # a keyframe sequence's length unless --frames says
+TOUR_FRAMES = 24  # a tour's frames a control (0.8 s at 30 fps; one more in all) unless
+# --frames says
 
 
 @dataclass
@@ -105,14 +113,56 @@ def is_file_arg(items: list[str]) -> bool:
                                 or Path(items[0]).is_file())
 
 
-def from_items(items: list[str], names: list[str], base: np.ndarray, num: int,
-               companions: Companions | None = None) -> ExpressionSequence:
-    """`--expressions` values: one file, or keyframes (with `companions`: the controls the
-    tracker reads with the named ones move too; files are taken as they are)."""
+def tour_keyframes(training: np.ndarray, names: list[str], base: np.ndarray,
+                   companions: Companions | None = None) -> tuple[np.ndarray, list[str]]:
+    """`--expressions tour`'s keyframes: for each control that varies in the training
+    expressions (N, E) (data/expression_range.varies), in the run's order, the base with it
+    at the top of its span, then the base again; a Left/Right pair is one keyframe.
+    -> keys (2K - 1, E) and the K keyframes' names (a pair by its stem)."""
+    from flamenerf.data.expression_range import span, varies
+
+    groups: dict[str, list[int]] = {}
+    for j, name in enumerate(names):
+        if varies(training[:, j]):
+            groups.setdefault(re.sub(r"(Left|Right)$", "", name) or name, []).append(j)
+    if not groups:
+        raise UserError("--expressions tour: no control varies in the training frames (each "
+                        "one's 5th-95th percentile span is under 0.1)")
+    base = np.asarray(base, np.float32)
+    keys = []
+    for js in groups.values():
+        values = {j: span(training[:, j])[1] for j in js}
+        if companions is not None:
+            keys.append(companions.complete(base, values))
+        else:
+            key = base.copy()
+            key[list(values)] = list(values.values())
+            keys.append(key)
+        keys.append(base)
+    return np.stack(keys[:-1]), list(groups)
+
+
+def from_items(items: list[str], names: list[str], base: np.ndarray, num: int | None,
+               companions: Companions | None = None, training: np.ndarray | None = None
+               ) -> ExpressionSequence:
+    """`--expressions` values: one file, `tour` (needs the `training` expressions (N, E)),
+    or keyframes (with `companions`: the controls the tracker reads with the named ones
+    move too; files are taken as they are). `num` frames (None: KEYFRAME_FRAMES, a tour
+    TOUR_FRAMES a control)."""
     if not items:
-        raise UserError("--expressions: give a file or name=value keyframes")
+        raise UserError("--expressions: give a file, `tour` or name=value keyframes")
+    if items == ["tour"]:
+        if training is None:
+            raise UserError("--expressions tour: needs the run's training frames")
+        keys, shown = tour_keyframes(training, names, base, companions)
+        return ExpressionSequence(
+            # + 1: every keyframe then falls on a frame, at its full value
+            keyframe_sequence(keys, base, num or TOUR_FRAMES * len(shown) + 1), label="tour",
+            resizable=True, notes=(f"the tour: {', '.join(shown)}, each to the top of its "
+                                   f"span in the training frames and back",))
     if is_file_arg(items):
         return load_file(Path(items[0]), names)
+    num = num or KEYFRAME_FRAMES
     keys = np.stack([parse_keyframe(it, names, base, companions) for it in items])
     notes = ()
     if companions is not None:

@@ -30,7 +30,8 @@ class RenderOptions:
     Attributes:
         run: Run directory (made by `flamenerf train`).
         out: Output video (default: RUN/renders/SOURCE_CAMERA.mp4).
-        expressions: An expression file, or name=value[,name=value] keyframes.
+        expressions: An expression file, name=value[,name=value] keyframes, or `tour`
+            (each control the training frames vary, in turn).
         split: Take expressions, cameras and face meshes from this dataset split.
         drive: Track the expressions of this driving video.
         camera: static, orbit, spiral, dolly, a JSON file of poses, or auto.
@@ -40,8 +41,8 @@ class RenderOptions:
             expression keyframes, or a .json list of such objects (one per frame). Needs
             a run trained with head poses. Default: a split's own head poses, else frame
             0's.
-        frames: Number of frames when the source does not fix it (keyframes, held
-            expression, a named camera path).
+        frames: Number of frames when the source does not fix it (keyframes, a tour, the
+            held expression; a named camera path follows). Default: 60, a tour 24 a control.
         fps: Frames per second (default: the source's, else 30). With --drive the video
             is sampled at this rate.
         size: Render width in pixels (default: the run's training width).
@@ -90,7 +91,7 @@ class RenderOptions:
     drive: Path | None = None
     camera: str = "auto"
     head_pose: list[str] | None = None
-    frames: int = 60
+    frames: int | None = None
     fps: float | None = None
     size: int | None = None
     amplitude: float | None = None
@@ -117,7 +118,7 @@ class RenderOptions:
                                 ("--drive", self.drive)) if v]
         if len(given) > 1:
             raise UserError(f"give one expression source, not {' and '.join(given)}")
-        if self.frames < 1:
+        if self.frames is not None and self.frames < 1:
             raise UserError(f"--frames {self.frames}: must be at least 1")
         if self.max_frames is not None and self.max_frames < 1:
             raise UserError(f"--max-frames {self.max_frames}: must be at least 1")
@@ -171,8 +172,17 @@ def expression_source(opts: RenderOptions, ds: Dataset, names: list[str], intr: 
                 f"plays at their rate ({seq.fps:.3g} fps) unless --fps is given")
         return seq
     if opts.expressions:
-        return X.from_items(opts.expressions, names, base, opts.frames, companions)
-    return held_expression(base, opts.frames, "reference")
+        return X.from_items(opts.expressions, names, base, opts.frames, companions,
+                            training_expressions(ds, names))
+    return held_expression(base, opts.frames or X.KEYFRAME_FRAMES, "reference")
+
+
+def training_expressions(ds: Dataset, names: list[str]) -> np.ndarray | None:
+    """The training frames' expressions (N, E) where the dataset's controls are the run's
+    (what `--expressions tour` reads), else None."""
+    if ds.expression_names != names:
+        return None
+    return ds.expression_matrix(ds.training_frames())
 
 
 def keyframe_companions(opts: RenderOptions, ds: Dataset, names: list[str]):
@@ -207,10 +217,12 @@ def held_expression(base: np.ndarray, num: int, label: str) -> X.ExpressionSeque
 
 
 def camera_poses(opts: RenderOptions, seq: X.ExpressionSequence, rig: C.CameraRig,
-                 names: list[str], base: np.ndarray, log=print, companions=None
+                 names: list[str], base: np.ndarray, log=print, companions=None,
+                 training: np.ndarray | None = None
                  ) -> tuple[np.ndarray, str, X.ExpressionSequence]:
     """--camera -> poses (T, 4, 4), the path's label, and the expression sequence (re-made
-    when a pose file fixes the length of a keyframe/held sequence)."""
+    when a pose file fixes the length of a keyframe, tour or held sequence; `training`: the
+    training expressions a tour reads)."""
     camera = opts.camera
     if camera in ("auto", "split"):
         if seq.cameras is not None:
@@ -225,7 +237,7 @@ def camera_poses(opts: RenderOptions, seq: X.ExpressionSequence, rig: C.CameraRi
                         "auto, split) nor an existing JSON file of poses")
     poses = C.load_poses(Path(camera))
     if seq.resizable and len(poses) != len(seq):
-        seq = (X.from_items(opts.expressions, names, base, len(poses), companions)
+        seq = (X.from_items(opts.expressions, names, base, len(poses), companions, training)
                if opts.expressions
                else held_expression(base, len(poses), seq.label))
     elif len(poses) != len(seq):
@@ -370,7 +382,7 @@ def _render_videos(opts: RenderOptions, log) -> RenderSummary:
     for note in seq.notes:
         log(f"note: {note}")
     poses, cam_label, seq = camera_poses(opts, seq, C.rig_from_dataset(ds), names, base, log,
-                                         comp)
+                                         comp, training_expressions(ds, names))
     n = len(seq) if opts.max_frames is None else min(len(seq), opts.max_frames)
     values, poses = within_training_range(opts, ds, names, seq.values[:n], log), poses[:n]
     T = head_transforms(opts, run, ds, n, log, seq)

@@ -18,7 +18,8 @@ from flamenerf.viewer.camera import c2w_from_viser, home_camera
 from flamenerf.viewer.mask import FaceMasker
 from flamenerf.viewer.options import ViewerOptions
 from flamenerf.viewer.renderer import Frame, RenderWorker
-from flamenerf.viewer.tracks import Track, dataset_tracks, load_track_file, slider_range
+from flamenerf.viewer.tracks import (Track, dataset_tracks, load_track_file, slider_range,
+                                     tour_track)
 
 STATUS_PREFIX = "Render"
 
@@ -73,7 +74,8 @@ class Viewer:
         self.companions = dataset_companions(self.ds) if same else None
         self.range = training_range(self.ds) if same else None
         self.tracks: list[Track] = [load_track_file(p, self.names) for p in opts.track]
-        self.tracks += dataset_tracks(self.ds)
+        tour = tour_track(self.ds, self.names, self.frame0_expression, self.companions)
+        self.tracks += ([tour] if tour is not None else []) + dataset_tracks(self.ds)
         h = opts.resolution or run.train_intrinsics(self.ds).h
         self.height = int(min(max(8, round(h / 8) * 8), opts.max_resolution))
         omega, phi = run.frame_codes(0)

@@ -1,5 +1,5 @@
-"""Expression tracks the viewer can play: the dataset's own sequences and `flamenerf track`
-output files, each mapped onto the run's expression controls."""
+"""Expression tracks the viewer can play: the dataset's own sequences, a tour of its controls
+and `flamenerf track` output files, each mapped onto the run's expression controls."""
 
 from __future__ import annotations
 
@@ -49,6 +49,24 @@ def dataset_tracks(ds: Dataset) -> list[Track]:
             out.append(Track(f"split {name} ({len(frames)} frames)",
                              ds.expression_matrix(frames), fps))
     return out
+
+
+def tour_track(ds: Dataset, names: list[str], base: np.ndarray, companions=None
+               ) -> Track | None:
+    """`tour`: each control the training frames vary, in turn, from `base` to the top of
+    its span and back (`render --expressions tour`); None where the dataset's controls are
+    not the run's or none varies."""
+    from flamenerf.errors import UserError
+    from flamenerf.rendering.expressions import from_items
+
+    if ds.expression_names != names:
+        return None
+    try:
+        seq = from_items(["tour"], names, base, None, companions,
+                         ds.expression_matrix(ds.training_frames()))
+    except UserError:
+        return None
+    return Track(f"tour ({len(seq)} frames)", seq.values, 30.0)
 
 
 def load_track_file(path: str | Path, names: list[str]) -> Track:
