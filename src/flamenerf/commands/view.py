@@ -21,10 +21,12 @@ def view(
     Serves a viewer at http://localhost:PORT (open it in a browser): drag to orbit, scroll
     to zoom, right-drag to pan; the camera starts at the capture's first frame. One
     slider per expression control, `Reset to neutral`, playback of an expression track
-    (the dataset's own sequences, or a `flamenerf track` file given with --track), RGB or
+    (a tour of the controls, the dataset's own sequences, or a `flamenerf track` file
+    given with --track), head-pose sliders for runs trained with head poses, RGB or
     depth, and a resolution control: while the view changes it renders at 1/4 of the
     chosen resolution and refines when still. Every image uses frame 0's deformation and
-    appearance codes and the face mesh of frame 0 as the spatial prior. Ctrl-C stops it.
+    appearance codes, and as the spatial prior the face mesh of the expression shown.
+    Ctrl-C stops it.
 
     The server listens on 127.0.0.1 only; `--host 0.0.0.0` serves every network
     interface (anyone who can reach the port can use the viewer).

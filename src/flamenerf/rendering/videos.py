@@ -54,8 +54,8 @@ class RenderOptions:
         side_by_side: Also write driving | result | depth (the expression as bars when
             there is no driving image).
         dataset: Dataset with the face mesh and cameras (default: the run's own).
-        dilate_px: Dilation of the prior's mask in dataset pixels (default: estimated
-            from the dataset's masks).
+        dilate_px: Dilation of the prior's mask in dataset pixels (default: the
+            dataset's own, estimated from its masks where it does not store one).
         max_frames: Render at most this many frames (with --drive: this many spread over
             the clip).
         relative: With --drive on a dataset of the same expression model, transfer
