@@ -110,15 +110,28 @@ def text_strip(text: str, width: int, height: int = 14, align: str = "center") -
     return np.asarray(im, np.float32) / 255
 
 
+def panel_rows(expr: np.ndarray, max_rows: int, ref: np.ndarray | None = None
+               ) -> tuple[list[int], np.ndarray]:
+    """The controls an expression panel shows, in the model's order: those that differ
+    from `ref` (E,) by more than 0.01 first, most changed first (with 52 controls a small
+    moving one would otherwise hide behind the still ones), then the largest |values|.
+    -> (indices, moved (E,) bool)."""
+    expr = np.asarray(expr, np.float64)
+    change = np.zeros_like(expr) if ref is None else np.abs(expr - np.asarray(ref))
+    moved = change > 0.01
+    order = np.lexsort((-np.abs(expr), -change * moved, ~moved))[:max_rows]
+    return sorted(int(j) for j in order), moved
+
+
 def expression_panel(expr: np.ndarray, names: list[str], h: int, w: int,
-                     max_rows: int = 8) -> np.ndarray:
-    """Horizontal bars of the largest |values| of an expression vector (values in [0, 1]
-    fill the bar; negative ones are drawn in red), as an (h, w, 3) float image."""
+                     max_rows: int = 8, ref: np.ndarray | None = None) -> np.ndarray:
+    """Horizontal bars of an expression vector (values in [0, 1] fill the bar; negative
+    ones are drawn in red), as an (h, w, 3) float image: `panel_rows`' controls, those
+    that moved from `ref` in a darker blue."""
     from PIL import Image, ImageDraw
 
     expr = np.asarray(expr, np.float64)
-    order = np.argsort(-np.abs(expr), kind="stable")[:max_rows]
-    order = sorted(order)  # keep the model's control order
+    order, moved = panel_rows(expr, max_rows, ref)
     rows = max(len(order), 1)
     # draw on a canvas tall enough for the text, then shrink to (h, w)
     H = max(h, 16 * rows)
@@ -130,7 +143,7 @@ def expression_panel(expr: np.ndarray, names: list[str], h: int, w: int,
         y0 = r * rh
         v = float(expr[j])
         bw = int(np.clip(abs(v), 0, 1) * (W - 4))
-        col = (70, 130, 220) if v >= 0 else (220, 80, 70)
+        col = ((20, 70, 170) if moved[j] else (70, 130, 220)) if v >= 0 else (220, 80, 70)
         dr.rectangle([2, y0 + rh * 0.15, 2 + bw, y0 + rh * 0.85], fill=col)
         dr.text((4, y0 + max(0, rh / 2 - 6)), f"{names[j]} {v:.2f}", fill=(0, 0, 0))
     im = im.resize((w, h), Image.LANCZOS)

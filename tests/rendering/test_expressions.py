@@ -125,3 +125,20 @@ def test_vector_and_named_files(tmp_path):
     (tmp_path / "f.json").write_text(json.dumps([{}, {"jawOpen": 1}]))  # a neutral frame
     np.testing.assert_allclose(X.load_file(tmp_path / "f.json", NAMES).values,
                                [[0, 0, 0], [1, 0, 0]])
+
+
+def test_the_side_by_sides_bars_show_what_moves_first():
+    """With many controls the panel shows those that differ from the first frame before
+    the largest still ones: a tour's small control is not hidden."""
+    from flamenerf.images import expression_panel, panel_rows
+
+    base = np.zeros(52)
+    base[:10] = 0.3  # ten still controls, larger than the moving one
+    v = base.copy()
+    v[40], v[41] = 0.12, 0.005  # one moves, one only by a hair
+    rows, moved = panel_rows(v, 8, base)
+    assert 40 in rows and 41 not in rows and len(rows) == 8 and moved.sum() == 1
+    assert rows == sorted(rows)  # in the model's order
+    assert panel_rows(v, 8)[0] == list(range(8))  # without a reference: the largest
+    img = expression_panel(v, [f"c{j}" for j in range(52)], 64, 64, ref=base)
+    assert img.shape == (64, 64, 3) and 0 <= img.min() and img.max() <= 1

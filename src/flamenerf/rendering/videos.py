@@ -342,7 +342,8 @@ def write_videos(run, ds: Dataset, intr: Intrinsics, poses: np.ndarray, values: 
                 if seq.driving is not None:
                     left = resize_to_height(seq.driving(i), intr.h)
                 else:
-                    left = expression_panel(values[i], names, intr.h, intr.w)
+                    # what moved since the first frame shows first (a keyframe's, a tour's)
+                    left = expression_panel(values[i], names, intr.h, intr.w, ref=values[0])
                 writers["sbs"].write(hstack([left, fr.rgb, dimg], gap=2))
 
 
