@@ -57,17 +57,19 @@ def test_keyframe_sequence_eases_from_and_back_to_the_base():
     np.testing.assert_allclose(two[4], 0.0)
 
 
-def test_tour_moves_each_varying_control_alone_to_the_top_of_its_span():
-    """`--expressions tour`: each control that varies in the training frames, in turn,
-    from the base to its 95th percentile and back (a Left/Right pair together); controls
-    that do not vary are left out; 24 frames a keyframe (and one) unless a length is
-    given, each keyframe on a frame."""
+def test_tour_moves_each_control_the_clip_shows_alone_to_its_99th_percentile():
+    """`--expressions tour`: each control the training frames show, in turn, from the base
+    to its 99th percentile and back (a Left/Right pair together); controls that do not
+    move are left out, and so is one frame's glitch; 24 frames a keyframe (and one) unless
+    a length is given, each keyframe on a frame."""
     names = ["jawOpen", "eyeBlinkLeft", "eyeBlinkRight", "cheekPuff", "browInnerUp"]
     base = np.zeros(5, np.float32)
     rng = np.random.default_rng(0)
-    train = np.stack([rng.uniform(0, 0.8, 200), rng.uniform(0, 1, 200),
+    smile_now_and_then = np.where(np.arange(200) % 40 == 0, 0.6, 0.0)  # 5 frames of 200
+    train = np.stack([rng.uniform(0, 0.8, 200), smile_now_and_then,
                       rng.uniform(0, 1, 200), np.full(200, 0.02),  # cheekPuff: still
                       rng.uniform(0, 0.5, 200)], 1)
+    train[7, 3] = 0.9  # a glitch of the tracker in one frame
     seq = X.from_items(["tour"], names, base, None, training=train)
     assert seq.label == "tour" and seq.resizable and len(seq) == 3 * X.TOUR_FRAMES + 1
     assert "jawOpen, eyeBlink, browInnerUp" in seq.notes[0]
@@ -75,14 +77,20 @@ def test_tour_moves_each_varying_control_alone_to_the_top_of_its_span():
     np.testing.assert_allclose(v[0], base, atol=1e-6)
     np.testing.assert_allclose(v[-1], base, atol=1e-6)
     assert v[:, 3].max() == 0  # the still control never moves
-    top = np.percentile(train, 95, axis=0)
+    top = np.percentile(train, 99, axis=0)
+    assert top[1] == 0.6  # in 2.5 % of the frames: the 95th percentile would be 0
     for cols in ([0], [1, 2], [4]):  # each keyframe's peak: its controls alone at the top
         k = int(np.argmax(v[:, cols[0]]))
         np.testing.assert_allclose(v[k, cols], top[cols], atol=1e-5)
         others = [j for j in range(5) if j not in cols]
         assert np.abs(v[k, others]).max() < 1e-3, (cols, v[k])
     assert len(X.from_items(["tour"], names, base, 50, training=train)) == 50
-    with pytest.raises(UserError, match="no control varies"):
+    # sideways moves and gaze go one side at a time: not one motion on two sides
+    side = ["jawLeft", "jawRight", "eyeLookInLeft", "eyeLookInRight"]
+    seq = X.from_items(["tour"], side, np.zeros(4, np.float32), None,
+                       training=rng.uniform(0, 1, (100, 4)))
+    assert "jawLeft, jawRight, eyeLookInLeft, eyeLookInRight" in seq.notes[0]
+    with pytest.raises(UserError, match="no control moves"):
         X.from_items(["tour"], names, base, None, training=np.zeros((10, 5)))
 
 

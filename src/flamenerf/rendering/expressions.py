@@ -17,10 +17,10 @@ Accepted `--expressions` values:
               a keyframe does not name keep the base's value, except, by default, their
               companions: the controls of the same part of the face and side that the
               tracker reads with them (data/companions.py).
-  tour        every control the training frames vary, one after the other: from the base
-              to the top of the control's span (its 95th percentile in the training
-              frames, what `eval` sweeps) and back; a Left/Right pair together; companions
-              as for keyframes. What a run can do with its clip's expressions, at a glance.
+  tour        every control the training frames show, one after the other: from the base
+              to the control's 99th percentile in the training frames and back; a
+              Left/Right pair together; companions as for keyframes. What a run can do
+              with its clip's expressions, at a glance.
 """
 
 from __future__ import annotations
@@ -39,6 +39,12 @@ from flamenerf.keyvalues import parse_assignments, suggest
 
 FILE_SUFFIXES = (".json", ".npy", ".csv")
 KEYFRAME_FRAMES = 60  # a keyframe sequence's length unless --frames says
+# the tour's controls and how far it takes them: a control whose 99th percentile in the
+# training frames is at least MIN_SPAN above its 5th, to that 99th percentile. Not eval's
+# 95th (data/expression_range.span): a clip that smiles in a few frames of a hundred
+# (the shared expressions clip: 95th 0.06-0.10, 99th 0.24-0.49) has learnt a smile the
+# 95th does not show; the 99th, unlike the largest, is not one frame's tracking glitch
+TOUR_QUANTILES = (5.0, 99.0)
 TOUR_FRAMES = 24  # a tour's frames a control (0.8 s at 30 fps; one more in all) unless
 # --frames says
 
@@ -113,25 +119,38 @@ def is_file_arg(items: list[str]) -> bool:
                                 or Path(items[0]).is_file())
 
 
+def _pair_stem(name: str) -> str:
+    """The name a control shares with its other side (`mouthSmileLeft` -> `mouthSmile`),
+    else its own: ARKit's sideways moves (jawLeft / jawRight, mouthLeft / mouthRight) and
+    gaze (eyeLookInLeft turns the left eye to the nose) are not one motion on two sides."""
+    stem = re.sub(r"(Left|Right)$", "", name)
+    if not stem or stem in ("jaw", "mouth") or stem.startswith("eyeLook"):
+        return name
+    return stem
+
+
 def tour_keyframes(training: np.ndarray, names: list[str], base: np.ndarray,
                    companions: Companions | None = None) -> tuple[np.ndarray, list[str]]:
-    """`--expressions tour`'s keyframes: for each control that varies in the training
-    expressions (N, E) (data/expression_range.varies), in the run's order, the base with it
-    at the top of its span, then the base again; a Left/Right pair is one keyframe.
-    -> keys (2K - 1, E) and the K keyframes' names (a pair by its stem)."""
-    from flamenerf.data.expression_range import span, varies
+    """`--expressions tour`'s keyframes: for each control the training expressions (N, E)
+    show (TOUR_QUANTILES), in the run's order, the base with it at its 99th percentile,
+    then the base again; a Left/Right pair is one keyframe (both sides, where either
+    shows). -> keys (2K - 1, E) and the K keyframes' names (a pair by its stem)."""
+    from flamenerf.data.expression_range import MIN_SPAN
 
+    lo, top = np.percentile(np.asarray(training, np.float64), TOUR_QUANTILES, axis=0)
+    stems = [_pair_stem(name) for name in names]
+    shown = {stems[j] for j in range(len(names)) if top[j] - lo[j] >= MIN_SPAN}
     groups: dict[str, list[int]] = {}
-    for j, name in enumerate(names):
-        if varies(training[:, j]):
-            groups.setdefault(re.sub(r"(Left|Right)$", "", name) or name, []).append(j)
+    for j, stem in enumerate(stems):
+        if stem in shown:
+            groups.setdefault(stem, []).append(j)
     if not groups:
-        raise UserError("--expressions tour: no control varies in the training frames (each "
-                        "one's 5th-95th percentile span is under 0.1)")
+        raise UserError("--expressions tour: no control moves in the training frames (each "
+                        f"one's 5th-99th percentile span is under {MIN_SPAN})")
     base = np.asarray(base, np.float32)
     keys = []
     for js in groups.values():
-        values = {j: span(training[:, j])[1] for j in js}
+        values = {j: float(top[j]) for j in js}
         if companions is not None:
             keys.append(companions.complete(base, values))
         else:
@@ -158,8 +177,8 @@ def from_items(items: list[str], names: list[str], base: np.ndarray, num: int | 
         return ExpressionSequence(
             # + 1: every keyframe then falls on a frame, at its full value
             keyframe_sequence(keys, base, num or TOUR_FRAMES * len(shown) + 1), label="tour",
-            resizable=True, notes=(f"the tour: {', '.join(shown)}, each to the top of its "
-                                   f"span in the training frames and back",))
+            resizable=True, notes=(f"the tour: {', '.join(shown)}, each to its 99th "
+                                   f"percentile in the training frames and back",))
     if is_file_arg(items):
         return load_file(Path(items[0]), names)
     num = num or KEYFRAME_FRAMES

@@ -31,7 +31,7 @@ class RenderOptions:
         run: Run directory (made by `flamenerf train`).
         out: Output video (default: RUN/renders/SOURCE_CAMERA.mp4).
         expressions: An expression file, name=value[,name=value] keyframes, or `tour`
-            (each control the training frames vary, in turn).
+            (each control the training frames show, in turn).
         split: Take expressions, cameras and face meshes from this dataset split.
         drive: Track the expressions of this driving video.
         camera: static, orbit, spiral, dolly, a JSON file of poses, or auto.

@@ -53,9 +53,9 @@ def dataset_tracks(ds: Dataset) -> list[Track]:
 
 def tour_track(ds: Dataset, names: list[str], base: np.ndarray, companions=None
                ) -> Track | None:
-    """`tour`: each control the training frames vary, in turn, from `base` to the top of
-    its span and back (`render --expressions tour`); None where the dataset's controls are
-    not the run's or none varies."""
+    """`tour`: each control the training frames show, in turn, from `base` to its 99th
+    percentile and back (`render --expressions tour`); None where the dataset's controls
+    are not the run's or none moves."""
     from flamenerf.errors import UserError
     from flamenerf.rendering.expressions import from_items
 
