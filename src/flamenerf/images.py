@@ -127,7 +127,7 @@ def expression_panel(expr: np.ndarray, names: list[str], h: int, w: int,
                      max_rows: int = 8, ref: np.ndarray | None = None) -> np.ndarray:
     """Horizontal bars of an expression vector (values in [0, 1] fill the bar; negative
     ones are drawn in red), as an (h, w, 3) float image: `panel_rows`' controls, those
-    that moved from `ref` in a darker blue."""
+    that moved from `ref` darker."""
     from PIL import Image, ImageDraw
 
     expr = np.asarray(expr, np.float64)
@@ -143,7 +143,8 @@ def expression_panel(expr: np.ndarray, names: list[str], h: int, w: int,
         y0 = r * rh
         v = float(expr[j])
         bw = int(np.clip(abs(v), 0, 1) * (W - 4))
-        col = ((20, 70, 170) if moved[j] else (70, 130, 220)) if v >= 0 else (220, 80, 70)
+        col = (((20, 70, 170) if moved[j] else (70, 130, 220)) if v >= 0
+               else ((170, 40, 30) if moved[j] else (220, 80, 70)))
         dr.rectangle([2, y0 + rh * 0.15, 2 + bw, y0 + rh * 0.85], fill=col)
         dr.text((4, y0 + max(0, rh / 2 - 6)), f"{names[j]} {v:.2f}", fill=(0, 0, 0))
     im = im.resize((w, h), Image.LANCZOS)

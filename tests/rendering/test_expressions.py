@@ -57,11 +57,11 @@ def test_keyframe_sequence_eases_from_and_back_to_the_base():
     np.testing.assert_allclose(two[4], 0.0)
 
 
-def test_tour_moves_each_control_the_clip_shows_alone_to_its_99th_percentile():
+def test_tour_moves_each_control_the_clip_shows_alone_to_the_end_of_its_range():
     """`--expressions tour`: each control the training frames show, in turn, from the base
-    to its 99th percentile and back (a Left/Right pair together); controls that do not
-    move are left out, and so is one frame's glitch; 24 frames a keyframe (and one) unless
-    a length is given, each keyframe on a frame."""
+    to its 99th percentile (or 1st, where farther from the base) and back (a Left/Right
+    pair together); controls that do not move are left out, and so is one frame's glitch;
+    24 frames a keyframe (and one) unless a length is given, each keyframe on a frame."""
     names = ["jawOpen", "eyeBlinkLeft", "eyeBlinkRight", "cheekPuff", "browInnerUp"]
     base = np.zeros(5, np.float32)
     rng = np.random.default_rng(0)
@@ -90,6 +90,21 @@ def test_tour_moves_each_control_the_clip_shows_alone_to_its_99th_percentile():
     seq = X.from_items(["tour"], side, np.zeros(4, np.float32), None,
                        training=rng.uniform(0, 1, (100, 4)))
     assert "jawLeft, jawRight, eyeLookInLeft, eyeLookInRight" in seq.notes[0]
+    # signed controls (FLAME's) go to the end of their range farther from the base; a side
+    # that does not move itself keeps the base, and the side that does is named as it is
+    flame = np.stack([rng.normal(0, 1, 300), rng.uniform(-2, -0.4, 300),
+                      rng.uniform(0, 1, 300), np.full(300, 0.3)], 1)
+    names4 = ["exp0", "exp1", "mouthSmileLeft", "mouthSmileRight"]
+    base4 = np.array([2.0, -0.45, 0.0, 0.3], np.float32)
+    keys, shown = X.tour_keyframes(flame, names4, base4)
+    lo, hi = np.percentile(flame, [1, 99], axis=0)
+    assert shown == ["exp0", "exp1", "mouthSmileLeft"] and len(keys) == 5
+    assert keys[0][0] == pytest.approx(lo[0], abs=1e-5)  # base 2.0: the far end is below
+    assert keys[2][1] == pytest.approx(lo[1], abs=1e-5)  # always negative: down to -2
+    assert keys[4][2] == pytest.approx(hi[2], abs=1e-5) and keys[4][3] == pytest.approx(0.3)
+    # too few frames for the peaks: said
+    short = X.from_items(["tour"], names4, base4, 4, training=flame)
+    assert len(short) == 4 and "too few" in short.notes[1]
     with pytest.raises(UserError, match="no control moves"):
         X.from_items(["tour"], names, base, None, training=np.zeros((10, 5)))
 

@@ -17,7 +17,9 @@ def render(opts: Annotated[RenderOptions, tyro.conf.OmitArgPrefixes, tyro.conf.a
     Expressions come from one of: --expressions FILE (.json: a `flamenerf track` file, a
     list of vectors, or {name: value} objects; .npy; .csv with an optional header of
     control names) or --expressions KEYFRAME... (e.g. `jawOpen=0.8` `mouthSmileLeft=1,
-    browInnerUp=0.5`: ease from the base expression to each keyframe in turn and back);
+    browInnerUp=0.5`: ease from the base expression to each keyframe in turn and back) or
+    --expressions tour (each control the training frames show, in turn, to the far end of
+    its range and back: what the run can do);
     --split NAME (a dataset split's expressions, cameras and face meshes, e.g. reanimate);
     --drive VIDEO (tracked like `flamenerf track`). Named controls are mapped onto the
     run's; missing ones are 0. Without any, frame 0's expression is held.
@@ -28,8 +30,8 @@ def render(opts: Annotated[RenderOptions, tyro.conf.OmitArgPrefixes, tyro.conf.a
     centroid of frame 0's face mesh) where frame 0's camera sees it and stay where the
     capture filmed from unless --amplitude asks for more (for a moving head: where it
     filmed the head from too; a still camera gives a still path). The prior's mask
-    for each frame is the face mesh (frame 0's, or the split's per-frame mesh) rasterised
-    for that camera with the dataset's dilation.
+    for each frame is the face mesh of that frame's expression (the split's own meshes
+    with --split) rasterised for that camera with the dataset's dilation.
 
     Writes OUT (H.264 mp4), plus OUT_depth.mp4 with --depth and OUT_sbs.mp4 (driving |
     result | depth) with --side-by-side. See docs/evaluation.md.

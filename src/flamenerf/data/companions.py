@@ -85,6 +85,7 @@ def fit_companions(names: list[str], kind: str, num_vertices: int,
 
 def dataset_companions(ds) -> Companions | None:
     """`fit_companions` on a dataset's training frames."""
+    from flamenerf.data.expression_range import training_expressions
+
     return fit_companions(ds.expression_names, ds.expression_kind,
-                          int(ds.face_vertices.shape[1]),
-                          ds.expression_matrix(ds.training_frames()))
+                          int(ds.face_vertices.shape[1]), training_expressions(ds))

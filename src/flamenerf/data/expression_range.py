@@ -58,11 +58,12 @@ SPAN_QUANTILES = (5.0, 95.0)
 MIN_SPAN = 0.1
 
 
-def span(values: np.ndarray) -> tuple[float, float]:
+def span(values: np.ndarray, quantiles: tuple[float, float] = SPAN_QUANTILES):
     """The part of its range a control covers in most frames: its 5th and 95th percentile
-    over values (N,). What `eval` sweeps, and what `preprocess` reports."""
-    lo, hi = np.percentile(np.asarray(values, np.float64), SPAN_QUANTILES)
-    return float(lo), float(hi)
+    over values (N,) (floats), or each column's over (N, E) (arrays). What `eval` sweeps,
+    and what `preprocess` reports; `render --expressions tour` asks for other quantiles."""
+    lo, hi = np.percentile(np.asarray(values, np.float64), quantiles, axis=0)
+    return (float(lo), float(hi)) if np.ndim(lo) == 0 else (lo, hi)
 
 
 def varies(values: np.ndarray) -> bool:
@@ -72,6 +73,11 @@ def varies(values: np.ndarray) -> bool:
     return hi - lo >= MIN_SPAN
 
 
+def training_expressions(ds) -> np.ndarray:
+    """A dataset's training frames' expressions (N, E), in its control order."""
+    return ds.expression_matrix(ds.training_frames())
+
+
 def training_range(ds) -> ExpressionRange:
     """The range of a dataset's training frames."""
-    return ExpressionRange.of(ds.expression_names, ds.expression_matrix(ds.training_frames()))
+    return ExpressionRange.of(ds.expression_names, training_expressions(ds))

@@ -18,7 +18,8 @@ Accepted `--expressions` values:
               companions: the controls of the same part of the face and side that the
               tracker reads with them (data/companions.py).
   tour        every control the training frames show, one after the other: from the base
-              to the control's 99th percentile in the training frames and back; a
+              to the far end of the control's range in the training frames (its 99th
+              percentile, or its 1st where that is farther from the base) and back; a
               Left/Right pair together; companions as for keyframes. What a run can do
               with its clip's expressions, at a glance.
 """
@@ -40,11 +41,12 @@ from flamenerf.keyvalues import parse_assignments, suggest
 FILE_SUFFIXES = (".json", ".npy", ".csv")
 KEYFRAME_FRAMES = 60  # a keyframe sequence's length unless --frames says
 # the tour's controls and how far it takes them: a control whose 99th percentile in the
-# training frames is at least MIN_SPAN above its 5th, to that 99th percentile. Not eval's
-# 95th (data/expression_range.span): a clip that smiles in a few frames of a hundred
-# (the shared expressions clip: 95th 0.06-0.10, 99th 0.24-0.49) has learnt a smile the
-# 95th does not show; the 99th, unlike the largest, is not one frame's tracking glitch
-TOUR_QUANTILES = (5.0, 99.0)
+# training frames is at least MIN_SPAN above its 1st, to whichever of the two is farther
+# from the base (signed controls such as FLAME's go either way). Not eval's 5th-95th
+# (data/expression_range.span): a clip that smiles in a few frames of a hundred (the shared
+# expressions clip: 95th 0.06-0.10, 99th 0.24-0.49) has learnt a smile the 95th does not
+# show; the 99th, unlike the largest, is not one frame's tracking glitch
+TOUR_QUANTILES = (1.0, 99.0)
 TOUR_FRAMES = 24  # a tour's frames a control (0.8 s at 30 fps; one more in all) unless
 # --frames says
 
@@ -121,10 +123,12 @@ def is_file_arg(items: list[str]) -> bool:
 
 def _pair_stem(name: str) -> str:
     """The name a control shares with its other side (`mouthSmileLeft` -> `mouthSmile`),
-    else its own: ARKit's sideways moves (jawLeft / jawRight, mouthLeft / mouthRight) and
-    gaze (eyeLookInLeft turns the left eye to the nose) are not one motion on two sides."""
+    else its own: ARKit's sideways moves (data/face_parts: not sided) and gaze
+    (eyeLookInLeft turns the left eye to the nose) are not one motion on two sides."""
+    from flamenerf.data.face_parts import part_and_side
+
     stem = re.sub(r"(Left|Right)$", "", name)
-    if not stem or stem in ("jaw", "mouth") or stem.startswith("eyeLook"):
+    if not stem or not part_and_side(name)[1] or stem.startswith("eyeLook"):
         return name
     return stem
 
@@ -132,25 +136,26 @@ def _pair_stem(name: str) -> str:
 def tour_keyframes(training: np.ndarray, names: list[str], base: np.ndarray,
                    companions: Companions | None = None) -> tuple[np.ndarray, list[str]]:
     """`--expressions tour`'s keyframes: for each control the training expressions (N, E)
-    show (TOUR_QUANTILES), in the run's order, the base with it at its 99th percentile,
-    then the base again; a Left/Right pair is one keyframe (both sides, where either
-    shows). -> keys (2K - 1, E) and the K keyframes' names (a pair by its stem)."""
-    from flamenerf.data.expression_range import MIN_SPAN
+    show (TOUR_QUANTILES), in the run's order, the base with it at the end of its range
+    farther from the base, then the base again; a Left/Right pair is one keyframe (a side
+    that does not move itself keeps the base). -> keys (2K - 1, E) and the K keyframes'
+    names (a pair by its stem)."""
+    from flamenerf.data.expression_range import MIN_SPAN, span
 
-    lo, top = np.percentile(np.asarray(training, np.float64), TOUR_QUANTILES, axis=0)
-    stems = [_pair_stem(name) for name in names]
-    shown = {stems[j] for j in range(len(names)) if top[j] - lo[j] >= MIN_SPAN}
+    lo, top = span(training, TOUR_QUANTILES)
+    base = np.asarray(base, np.float32)
+    target = np.where(np.abs(top - base) >= np.abs(lo - base), top, lo)
+    moves = top - lo >= MIN_SPAN
     groups: dict[str, list[int]] = {}
-    for j, stem in enumerate(stems):
-        if stem in shown:
-            groups.setdefault(stem, []).append(j)
+    for j, name in enumerate(names):
+        if moves[j]:
+            groups.setdefault(_pair_stem(name), []).append(j)
     if not groups:
         raise UserError("--expressions tour: no control moves in the training frames (each "
-                        f"one's 5th-99th percentile span is under {MIN_SPAN})")
-    base = np.asarray(base, np.float32)
+                        f"one's 1st-99th percentile span is under {MIN_SPAN})")
     keys = []
     for js in groups.values():
-        values = {j: float(top[j]) for j in js}
+        values = {j: float(target[j]) for j in js}
         if companions is not None:
             keys.append(companions.complete(base, values))
         else:
@@ -158,7 +163,7 @@ def tour_keyframes(training: np.ndarray, names: list[str], base: np.ndarray,
             key[list(values)] = list(values.values())
             keys.append(key)
         keys.append(base)
-    return np.stack(keys[:-1]), list(groups)
+    return np.stack(keys[:-1]), [k if len(js) > 1 else names[js[0]] for k, js in groups.items()]
 
 
 def from_items(items: list[str], names: list[str], base: np.ndarray, num: int | None,
@@ -174,11 +179,15 @@ def from_items(items: list[str], names: list[str], base: np.ndarray, num: int | 
         if training is None:
             raise UserError("--expressions tour: needs the run's training frames")
         keys, shown = tour_keyframes(training, names, base, companions)
-        return ExpressionSequence(
-            # + 1: every keyframe then falls on a frame, at its full value
-            keyframe_sequence(keys, base, num or TOUR_FRAMES * len(shown) + 1), label="tour",
-            resizable=True, notes=(f"the tour: {', '.join(shown)}, each to its 99th "
-                                   f"percentile in the training frames and back",))
+        # + 1: every keyframe then falls on a frame, at its full value
+        num = num or TOUR_FRAMES * len(shown) + 1
+        notes = [f"the tour: {', '.join(shown)}, each to the far end of its range in the "
+                 f"training frames and back"]
+        if num < 2 * len(shown) + 1:
+            notes.append(f"{num} frames for a tour of {len(shown)}: too few for each control "
+                         f"to reach its peak (at least {2 * len(shown) + 1})")
+        return ExpressionSequence(keyframe_sequence(keys, base, num), label="tour",
+                                  resizable=True, notes=tuple(notes))
     if is_file_arg(items):
         return load_file(Path(items[0]), names)
     num = num or KEYFRAME_FRAMES

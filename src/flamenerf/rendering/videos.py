@@ -42,7 +42,7 @@ class RenderOptions:
             a run trained with head poses. Default: a split's own head poses, else frame
             0's.
         frames: Number of frames when the source does not fix it (keyframes, a tour, the
-            held expression; a named camera path follows). Default: 60, a tour 24 a control.
+            held expression; a named camera path follows). Unset: 60, a tour 24 a control.
         fps: Frames per second (default: the source's, else 30). With --drive the video
             is sampled at this rate.
         size: Render width in pixels (default: the run's training width).
@@ -158,9 +158,10 @@ def render_intrinsics(run, ds: Dataset, size: int | None) -> Intrinsics:
 
 
 def expression_source(opts: RenderOptions, ds: Dataset, names: list[str], intr: Intrinsics,
-                      base: np.ndarray, log=print, companions=None) -> X.ExpressionSequence:
-    """The sequence --split, --drive or --expressions name (keyframes with `companions`);
-    else `base` held."""
+                      base: np.ndarray, log=print, companions=None,
+                      training: np.ndarray | None = None) -> X.ExpressionSequence:
+    """The sequence --split, --drive or --expressions name (keyframes with `companions`, a
+    tour from the `training` expressions); else `base` held."""
     if opts.split:
         return X.from_split(ds, opts.split, (intr.h, intr.w))
     if opts.drive:
@@ -172,17 +173,18 @@ def expression_source(opts: RenderOptions, ds: Dataset, names: list[str], intr: 
                 f"plays at their rate ({seq.fps:.3g} fps) unless --fps is given")
         return seq
     if opts.expressions:
-        return X.from_items(opts.expressions, names, base, opts.frames, companions,
-                            training_expressions(ds, names))
+        return X.from_items(opts.expressions, names, base, opts.frames, companions, training)
     return held_expression(base, opts.frames or X.KEYFRAME_FRAMES, "reference")
 
 
-def training_expressions(ds: Dataset, names: list[str]) -> np.ndarray | None:
-    """The training frames' expressions (N, E) where the dataset's controls are the run's
-    (what `--expressions tour` reads), else None."""
-    if ds.expression_names != names:
+def tour_training(opts: RenderOptions, ds: Dataset, names: list[str]) -> np.ndarray | None:
+    """What `--expressions tour` reads: the training frames' expressions (N, E), where a
+    tour is asked for and the dataset's controls are the run's; else None."""
+    from flamenerf.data.expression_range import training_expressions
+
+    if opts.expressions != ["tour"] or ds.expression_names != names:
         return None
-    return ds.expression_matrix(ds.training_frames())
+    return training_expressions(ds)
 
 
 def keyframe_companions(opts: RenderOptions, ds: Dataset, names: list[str]):
@@ -379,12 +381,16 @@ def _render_videos(opts: RenderOptions, log) -> RenderSummary:
             else np.zeros(len(names), np.float32))
 
     comp = keyframe_companions(opts, ds, names)
-    seq = expression_source(opts, ds, names, intr, base, log, comp)
+    training = tour_training(opts, ds, names)
+    seq = expression_source(opts, ds, names, intr, base, log, comp, training)
     for note in seq.notes:
         log(f"note: {note}")
     poses, cam_label, seq = camera_poses(opts, seq, C.rig_from_dataset(ds), names, base, log,
-                                         comp, training_expressions(ds, names))
+                                         comp, training)
     n = len(seq) if opts.max_frames is None else min(len(seq), opts.max_frames)
+    if seq.label == "tour" and n < len(seq):
+        log(f"note: --max-frames {n} of the tour's {len(seq)}: the controls after the first "
+            f"frames are left out (--frames sets the tour's whole length)")
     values, poses = within_training_range(opts, ds, names, seq.values[:n], log), poses[:n]
     T = head_transforms(opts, run, ds, n, log, seq)
     if seq.vertices is not None and not opts.head_pose:  # a split's own (posed) meshes

@@ -165,9 +165,9 @@ def dataset_sweeps(ds, stage_names: list[str]) -> tuple[list[Sweep], list[int]]:
     tracker scores, alone, over its training span, at the reference frame's expression),
     at their low end, middle and high end; and the scored rows' indices in `stage_names`."""
     from flamenerf.data.dataset import reference_position
-    from flamenerf.data.expression_range import span, varies
+    from flamenerf.data.expression_range import span, training_expressions, varies
 
-    x = ds.expression_matrix(ds.training_frames())
+    x = training_expressions(ds)
     base = ds.frames[reference_position(ds)].expression.astype(np.float64)
     known = set(stage_names)
     ks = [k for k, n in enumerate(ds.expression_names) if n in known and varies(x[:, k])]

@@ -62,7 +62,8 @@ class PreprocessOptions:
         min_tracked: Fail unless at least this fraction of the selected frames is tracked.
         max_error: Drop frames whose median reprojection error exceeds this fraction of
             the face size (and 3x the clip's median).
-        qa: Write OUT/qa (overlay video, contact sheet, camera plot, report).
+        qa: Write OUT/qa's overlay video, contact sheet and plots (the report,
+            qa/tracking_report.json, is always written).
         consistent_expressions: Also fit the β -> mesh model so that each control commanded
             alone reads back through the tracker as that control, and store it with the
             dataset (expression_model.npz, which training then uses; MediaPipe meshes only;

@@ -125,8 +125,9 @@ def build_for_dataset(cfg: Config, ds: Dataset) -> FlameNeRF:
                       warp_region=model_warp_region(cfg, ds),
                       background=cfg.train.render_background)
     if cfg.model.expression_centre and cfg.model.expression_mode != "none" and ds.expression_dim:
-        model.set_expression_mean(torch.from_numpy(
-            ds.expression_matrix(ds.training_frames()).mean(0)))
+        from flamenerf.data.expression_range import training_expressions
+
+        model.set_expression_mean(torch.from_numpy(training_expressions(ds).mean(0)))
     if model.uses_mesh_model:
         mg = cfg.model.mesh_guide
         neutral, basis = fit_dataset_expression_model(ds, mg.ridge, mg.face_parts, mg.stored)

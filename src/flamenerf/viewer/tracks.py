@@ -53,17 +53,17 @@ def dataset_tracks(ds: Dataset) -> list[Track]:
 
 def tour_track(ds: Dataset, names: list[str], base: np.ndarray, companions=None
                ) -> Track | None:
-    """`tour`: each control the training frames show, in turn, from `base` to its 99th
-    percentile and back (`render --expressions tour`); None where the dataset's controls
+    """`tour`: each control the training frames show, in turn, from `base` to the far end
+    of its range and back (`render --expressions tour`); None where the dataset's controls
     are not the run's or none moves."""
+    from flamenerf.data.expression_range import training_expressions
     from flamenerf.errors import UserError
     from flamenerf.rendering.expressions import from_items
 
     if ds.expression_names != names:
         return None
     try:
-        seq = from_items(["tour"], names, base, None, companions,
-                         ds.expression_matrix(ds.training_frames()))
+        seq = from_items(["tour"], names, base, None, companions, training_expressions(ds))
     except UserError:
         return None
     return Track(f"tour ({len(seq)} frames)", seq.values, 30.0)
