@@ -105,6 +105,8 @@ def test_tour_moves_each_control_the_clip_shows_alone_to_the_end_of_its_range():
     # too few frames for the peaks: said
     short = X.from_items(["tour"], names4, base4, 4, training=flame)
     assert len(short) == 4 and "too few" in short.notes[1]
+    with pytest.raises(UserError, match="`tour` goes alone"):
+        X.from_items(["tour", "jawOpen=1"], names, base, None, training=train)
     with pytest.raises(UserError, match="no control moves"):
         X.from_items(["tour"], names, base, None, training=np.zeros((10, 5)))
 

@@ -175,6 +175,8 @@ def from_items(items: list[str], names: list[str], base: np.ndarray, num: int | 
     TOUR_FRAMES a control)."""
     if not items:
         raise UserError("--expressions: give a file, `tour` or name=value keyframes")
+    if "tour" in items and len(items) > 1:
+        raise UserError("--expressions: `tour` goes alone, not with keyframes or a file")
     if items == ["tour"]:
         if training is None:
             raise UserError("--expressions tour: needs the run's training frames")
