@@ -389,8 +389,8 @@ def _render_videos(opts: RenderOptions, log) -> RenderSummary:
                                          comp, training)
     n = len(seq) if opts.max_frames is None else min(len(seq), opts.max_frames)
     if seq.label == "tour" and n < len(seq):
-        log(f"note: --max-frames {n} of the tour's {len(seq)}: the controls after the first "
-            f"frames are left out (--frames sets the tour's whole length)")
+        log(f"note: --max-frames {n} keeps the tour's first {n} of {len(seq)} frames, so only "
+            f"its first controls (--frames sets the tour's whole length)")
     values, poses = within_training_range(opts, ds, names, seq.values[:n], log), poses[:n]
     T = head_transforms(opts, run, ds, n, log, seq)
     if seq.vertices is not None and not opts.head_pose:  # a split's own (posed) meshes
