@@ -102,6 +102,14 @@ def test_tour_moves_each_control_the_clip_shows_alone_to_the_end_of_its_range():
     assert keys[0][0] == pytest.approx(lo[0], abs=1e-5)  # base 2.0: the far end is below
     assert keys[2][1] == pytest.approx(lo[1], abs=1e-5)  # always negative: down to -2
     assert keys[4][2] == pytest.approx(hi[2], abs=1e-5) and keys[4][3] == pytest.approx(0.3)
+    # scores go up while the base leaves room: a pair both ways (frame 0's left brow near
+    # its top would otherwise go down while the right one goes up); with no room, down
+    brows = np.stack([rng.uniform(0, 0.8, 300), rng.uniform(0, 0.6, 300)], 1)
+    pair = ["browOuterUpLeft", "browOuterUpRight"]
+    keys, _ = X.tour_keyframes(brows, pair, np.array([0.75, 0.3], np.float32))
+    np.testing.assert_allclose(keys[0], np.percentile(brows, 99, axis=0), atol=1e-5)
+    keys, _ = X.tour_keyframes(brows, pair, np.array([0.8, 0.55], np.float32))
+    np.testing.assert_allclose(keys[0], np.percentile(brows, 1, axis=0), atol=1e-5)
     # too few frames for the peaks: said
     short = X.from_items(["tour"], names4, base4, 4, training=flame)
     assert len(short) == 4 and "too few" in short.notes[1]

@@ -19,8 +19,8 @@ def demo(
     Synthesizes the scene, trains the `demo` preset (`fast` with fewer, smaller steps),
     then renders two videos at the scene's resolution, each with its depth video and a
     side-by-side: a tour of the expression controls along an orbiting camera (`render
-    --expressions tour`: each control in turn, from frame 0's expression to the far end
-    of its range in the training frames and back), and the re-animation of the scene's `reanimate` split (novel
+    --expressions tour`: each control in turn, from frame 0's expression up to its 99th
+    percentile in the training frames and back), and the re-animation of the scene's `reanimate` split (novel
     expressions from novel cameras, one video frame each at 4 fps; its side-by-side puts
     the ground truth beside the render).
 

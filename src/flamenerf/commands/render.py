@@ -18,7 +18,7 @@ def render(opts: Annotated[RenderOptions, tyro.conf.OmitArgPrefixes, tyro.conf.a
     list of vectors, or {name: value} objects; .npy; .csv with an optional header of
     control names) or --expressions KEYFRAME... (e.g. `jawOpen=0.8` `mouthSmileLeft=1,
     browInnerUp=0.5`: ease from the base expression to each keyframe in turn and back) or
-    --expressions tour (each control the training frames show, in turn, to the far end of
+    --expressions tour (each control the training frames show, in turn, to the end of
     its range and back: what the run can do);
     --split NAME (a dataset split's expressions, cameras and face meshes, e.g. reanimate);
     --drive VIDEO (tracked like `flamenerf track`). Named controls are mapped onto the

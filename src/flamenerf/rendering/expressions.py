@@ -18,10 +18,10 @@ Accepted `--expressions` values:
               companions: the controls of the same part of the face and side that the
               tracker reads with them (data/companions.py).
   tour        every control the training frames show, one after the other: from the base
-              to the far end of the control's range in the training frames (its 99th
-              percentile, or its 1st where that is farther from the base) and back; a
-              Left/Right pair together; companions as for keyframes. What a run can do
-              with its clip's expressions, at a glance.
+              up to the control's 99th percentile in the training frames and back (down to
+              its 1st where the base leaves no room, and for signed controls such as
+              FLAME's where that end is farther); a Left/Right pair together; companions as
+              for keyframes. What a run can do with its clip's expressions, at a glance.
 """
 
 from __future__ import annotations
@@ -136,16 +136,19 @@ def _pair_stem(name: str) -> str:
 def tour_keyframes(training: np.ndarray, names: list[str], base: np.ndarray,
                    companions: Companions | None = None) -> tuple[np.ndarray, list[str]]:
     """`--expressions tour`'s keyframes: for each control the training expressions (N, E)
-    show (TOUR_QUANTILES), in the run's order, the base with it at the end of its range
-    farther from the base, then the base again; a Left/Right pair is one keyframe (a side
-    that does not move itself keeps the base). -> keys (2K - 1, E) and the K keyframes'
-    names (a pair by its stem)."""
+    show (TOUR_QUANTILES), in the run's order, the base with it moved to one end of its
+    range, then the base again. Scores in [0, 1] (ARKit's, the built-in rig's: 0 is at
+    rest) go up, to the 99th percentile, unless the base leaves less than MIN_SPAN of it;
+    then, and for signed controls (FLAME's), to the end farther from the base. A Left/Right
+    pair is one keyframe, both sides to the same end (a side that does not move itself
+    keeps the base). -> keys (2K - 1, E) and the K keyframes' names (a pair by its
+    stem)."""
     from flamenerf.data.expression_range import MIN_SPAN, span
 
     lo, top = span(training, TOUR_QUANTILES)
     base = np.asarray(base, np.float32)
-    target = np.where(np.abs(top - base) >= np.abs(lo - base), top, lo)
     moves = top - lo >= MIN_SPAN
+    scores = bool(np.min(training) >= -1e-6 and np.max(training) <= 1 + 1e-6)
     groups: dict[str, list[int]] = {}
     for j, name in enumerate(names):
         if moves[j]:
@@ -155,7 +158,9 @@ def tour_keyframes(training: np.ndarray, names: list[str], base: np.ndarray,
                         f"one's 1st-99th percentile span is under {MIN_SPAN})")
     keys = []
     for js in groups.values():
-        values = {j: float(target[j]) for j in js}
+        rise = np.clip(top[js] - base[js], 0, None).sum()
+        up = (scores and rise >= MIN_SPAN) or rise >= np.clip(base[js] - lo[js], 0, None).sum()
+        values = {j: float(top[j] if up else lo[j]) for j in js}
         if companions is not None:
             keys.append(companions.complete(base, values))
         else:
@@ -183,7 +188,7 @@ def from_items(items: list[str], names: list[str], base: np.ndarray, num: int | 
         keys, shown = tour_keyframes(training, names, base, companions)
         # + 1: every keyframe then falls on a frame, at its full value
         num = num or TOUR_FRAMES * len(shown) + 1
-        notes = [f"the tour: {', '.join(shown)}, each to the far end of its range in the "
+        notes = [f"the tour: {', '.join(shown)}, each to the end of its range in the "
                  f"training frames and back"]
         if num < 2 * len(shown) + 1:
             notes.append(f"{num} frames for a tour of {len(shown)}: too few for each control "

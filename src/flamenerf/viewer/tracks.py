@@ -53,8 +53,8 @@ def dataset_tracks(ds: Dataset) -> list[Track]:
 
 def tour_track(ds: Dataset, names: list[str], base: np.ndarray, companions=None
                ) -> Track | None:
-    """`tour`: each control the training frames show, in turn, from `base` to the far end
-    of its range and back (`render --expressions tour`); None where the dataset's controls
+    """`tour`: each control the training frames show, in turn, from `base` to an end of
+    its range and back (`render --expressions tour`); None where the dataset's controls
     are not the run's or none moves."""
     from flamenerf.data.expression_range import training_expressions
     from flamenerf.errors import UserError
