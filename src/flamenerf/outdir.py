@@ -9,6 +9,7 @@ crash and can go.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import re
@@ -100,6 +101,21 @@ def remove_if_empty(folders: list[Path]) -> None:
             f.rmdir()
         except OSError:
             return  # not empty, or not ours to remove: the folders above it stay too
+
+
+@contextlib.contextmanager
+def folders_kept_only_on_success(path: Path, remove: bool = True):
+    """Within the block, a command makes `path` (a folder) and writes into it; where the
+    block raises, the folders up to `path` that did not exist before it and are still
+    empty go again (`remove`: False on the processes of a distributed run that do not
+    write), so a failed command leaves no empty folder behind."""
+    made = missing_folders(path)
+    try:
+        yield
+    except BaseException:
+        if remove:
+            remove_if_empty(made)
+        raise
 
 
 def _is_dataset(path: Path) -> bool:

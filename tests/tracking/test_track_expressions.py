@@ -74,6 +74,10 @@ def test_track_errors(tmp_path, noface_video, astronaut_video, capsys):
                  "--driver-neutral-frame", "99", "--relative-to", str(tmp_path)]) == 2
     capsys.readouterr()
     assert list(tmp_path.iterdir()) == []
+    # folders made for an output never written go again
+    assert main(["track", str(noface_video), "--out", str(tmp_path / "a" / "b" / "d.json")]) == 2
+    capsys.readouterr()
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_load_expressions_validates(tmp_path):

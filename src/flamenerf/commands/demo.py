@@ -20,9 +20,9 @@ def demo(
     then renders two videos at the scene's resolution, each with its depth video and a
     side-by-side: a tour of the expression controls along an orbiting camera (`render
     --expressions tour`: each control in turn, from frame 0's expression up to its 99th
-    percentile in the training frames and back), and the re-animation of the scene's `reanimate` split (novel
-    expressions from novel cameras, one video frame each at 4 fps; its side-by-side puts
-    the ground truth beside the render).
+    percentile in the training frames and back), and the re-animation of the scene's
+    `reanimate` split (novel expressions from novel cameras, one video frame each at 4
+    fps; its side-by-side puts the ground truth beside the render).
 
     Writes OUT/scene (dataset), OUT/run (trained run), OUT/expressions.mp4 and
     OUT/reanimation.mp4, each with _depth.mp4 and _sbs.mp4. Re-running reuses what exists.

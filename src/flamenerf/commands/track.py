@@ -53,7 +53,7 @@ def track(
         overwrite: Replace OUT if it exists.
     """
     from flamenerf.errors import UserError
-    from flamenerf.outdir import missing_folders, remove_if_empty, writable_dir
+    from flamenerf.outdir import folders_kept_only_on_success, writable_dir
     from flamenerf.tracking.expressions import save_expressions, transfer_to_subject
     from flamenerf.tracking.driving import track_expressions
 
@@ -61,9 +61,8 @@ def track(
         raise UserError(f"{out}: is a directory; --out names a .json file")
     if out.exists() and not overwrite:
         raise UserError(f"{out}: already exists (pass --overwrite to replace it)")
-    made = missing_folders(out.parent)
-    writable_dir(out.parent, "expressions file")  # before tracking the video, not after
-    try:
+    with folders_kept_only_on_success(out.parent):
+        writable_dir(out.parent, "expressions file")  # before tracking the video, not after
         subject = None
         if relative_to is not None:
             from flamenerf.data.dataset import load_dataset
@@ -74,9 +73,6 @@ def track(
         if subject is not None:
             tr = transfer_to_subject(tr, subject, driver_neutral_frame)
         save_expressions(out, tr)
-    except BaseException:
-        remove_if_empty(made)  # the folders made for an output that was never written
-        raise
     print(f"wrote {out}: {len(tr.frames)} frames x {len(tr.names)} {tr.kind} values at "
           f"{tr.fps:g} fps; dropped {len(tr.dropped)}"
           + (f"; relative to {relative_to}" if subject is not None else ""))

@@ -97,6 +97,13 @@ def parse_keyframe(item: str, names: list[str], base: np.ndarray,
     index = {n: i for i, n in enumerate(names)}
     values = {index[name]: v for name, v in parse_assignments(
         item, names, "--expressions", "control", " (or a .json/.npy/.csv file)").items()}
+    return keyframe(base, values, companions)
+
+
+def keyframe(base: np.ndarray, values: dict[int, float],
+             companions: Companions | None = None) -> np.ndarray:
+    """The base expression (E,) with the controls `values` ({index: value}) set, and their
+    companions moved along when given."""
     if companions is not None:
         return companions.complete(np.asarray(base, np.float32), values)
     vec = np.array(base, np.float32, copy=True)
@@ -160,14 +167,8 @@ def tour_keyframes(training: np.ndarray, names: list[str], base: np.ndarray,
     for js in groups.values():
         rise = np.clip(top[js] - base[js], 0, None).sum()
         up = (scores and rise >= MIN_SPAN) or rise >= np.clip(base[js] - lo[js], 0, None).sum()
-        values = {j: float(top[j] if up else lo[j]) for j in js}
-        if companions is not None:
-            keys.append(companions.complete(base, values))
-        else:
-            key = base.copy()
-            key[list(values)] = list(values.values())
-            keys.append(key)
-        keys.append(base)
+        keys += [keyframe(base, {j: float(top[j] if up else lo[j]) for j in js}, companions),
+                 base]
     return np.stack(keys[:-1]), [k if len(js) > 1 else names[js[0]] for k, js in groups.items()]
 
 

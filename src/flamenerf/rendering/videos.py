@@ -351,16 +351,12 @@ def write_videos(run, ds: Dataset, intr: Intrinsics, poses: np.ndarray, values: 
 
 def render_videos(opts: RenderOptions, log=print) -> RenderSummary:
     """The whole of `flamenerf render` (see its --help)."""
-    from flamenerf.outdir import missing_folders, remove_if_empty
+    from flamenerf.outdir import folders_kept_only_on_success
 
     opts.check()
-    made = missing_folders(opts.out.parent if opts.out is not None
-                           else Path(opts.run) / "renders")
-    try:
+    with folders_kept_only_on_success(opts.out.parent if opts.out is not None
+                                      else Path(opts.run) / "renders"):
         return _render_videos(opts, log)
-    except BaseException:
-        remove_if_empty(made)  # the folders made for videos that were never written
-        raise
 
 
 def _render_videos(opts: RenderOptions, log) -> RenderSummary:

@@ -23,7 +23,7 @@ from flamenerf.errors import Interrupted, UserError, warn
 from flamenerf.io import atomic_write_text, read_json
 from flamenerf.model.flame_nerf import FlameNeRF
 from flamenerf.model.mlp import bf16_pays, bf16_training
-from flamenerf.outdir import clean_stale_temps, missing_folders, remove_if_empty, writable_dir
+from flamenerf.outdir import clean_stale_temps, folders_kept_only_on_success, writable_dir
 from flamenerf.training.run import run_config
 from flamenerf.training.checkpoint import (LEGACY_TEMP, latest_checkpoint, load_latest,
                                            load_model_state, rng_states, save_checkpoint,
@@ -230,14 +230,9 @@ class Trainer:
         if cfg.train.num_threads > 0:
             torch.set_num_threads(cfg.train.num_threads)
         self.ds = load_dataset(dataset)
-        made = missing_folders(self.run_dir)
-        ranks.on_main(self._prepare_dir)
-        try:
+        with folders_kept_only_on_success(self.run_dir, remove=ranks.main):
+            ranks.on_main(self._prepare_dir)
             self._build(resuming)
-        except BaseException:  # a new run that failed to start leaves no empty folder
-            if ranks.main:
-                remove_if_empty(made)
-            raise
 
     def _build(self, resuming: bool) -> None:
         cfg, ranks = self.cfg, self.ranks
