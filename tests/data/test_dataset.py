@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 
-from flamenerf.data.dataset import DatasetError, load_dataset
+from flamenerf.data.dataset import DatasetError, frame_rate, load_dataset
 from flamenerf.synthetic.head import CONTROLS
 
 
@@ -19,6 +19,15 @@ def test_load_dataset_reads_every_split(dataset_dir):
     assert all(f.frame_index is not None for f in ds.split("train") + ds.split("val"))
     cap = sorted(ds.split("train") + ds.split("val"), key=lambda f: f.position)
     assert [f.frame_index for f in cap] == list(range(12))
+    # `capture`: the clip as filmed, train and val in the order of their codes
+    assert [f.frame_index for f in ds.split("capture")] == list(range(12))
+    with pytest.raises(DatasetError, match=r"no split named 'nope' \(have: .*reanimate, "
+                                           r"train, val, capture\)"):
+        ds.split("nope")
+    assert frame_rate(ds.split("capture")) is None  # the built-in scene stores no times
+    for k, f in enumerate(ds.split("capture")):
+        f.extra["time"] = round(k / 15, 6)
+    assert frame_rate(ds.split("capture")) == 15.0
     assert [f.frame_index for f in ds.split("val")] == [5]
     assert all(f.frame_index is None for f in ds.split("reanimate") + ds.split("leakage"))
     assert len(ds.split("leakage")) == 1 + len(CONTROLS)

@@ -20,9 +20,12 @@ def render(opts: Annotated[RenderOptions, tyro.conf.OmitArgPrefixes, tyro.conf.a
     browInnerUp=0.5`: ease from the base expression to each keyframe in turn and back) or
     --expressions tour (each control the training frames show, in turn, to the end of
     its range and back: what the run can do);
-    --split NAME (a dataset split's expressions, cameras and face meshes, e.g. reanimate);
-    --drive VIDEO (tracked like `flamenerf track`). Named controls are mapped onto the
-    run's; missing ones are 0. Without any, frame 0's expression is held.
+    --split NAME (a dataset split's expressions, cameras and face meshes, e.g. reanimate;
+    `capture`: the clip as filmed); --drive VIDEO (tracked like `flamenerf track`). Named
+    controls are mapped onto the run's; missing ones are 0. Without any, frame 0's
+    expression is held. --edit changes controls in every frame of the source: `--split
+    capture --edit mouthSmileLeft+=0.3,mouthSmileRight+=0.3 --side-by-side` is the clip
+    with a broader smile, beside the frames as filmed.
 
     Camera paths (--camera): static (frame 0's camera), orbit (around the head, at the
     capture's distance and height), spiral, dolly, or a JSON file of camera-to-world

@@ -41,6 +41,9 @@ from flamenerf.errors import UserError, warn
 from flamenerf.geometry import is_rigid
 
 FORMAT_VERSION = 1
+CAPTURE = "capture"
+"""The split every dataset has without storing it: its capture frames (train and val) in
+the order of their codes, which is the clip's (`Dataset.split`)."""
 
 
 class DatasetError(UserError):
@@ -83,6 +86,18 @@ class Frame:
     head_pose: np.ndarray | None = None  # (4, 4) float64 world-from-head, or None
 
 
+def frame_rate(frames: list[Frame]) -> float | None:
+    """Frames per second of frames in clip order, from their `time`s (`preprocess` stores
+    them); None where a frame has none (the built-in scene's)."""
+    times = [f.extra.get("time") for f in frames]
+    if len(times) > 1 and all(isinstance(t, (int, float)) for t in times):
+        dt = np.diff(np.asarray(times, np.float64))
+        dt = dt[dt > 0]
+        if dt.size:  # to a thousandth: times are stored to a microsecond
+            return round(float(1.0 / np.median(dt)), 3)
+    return None
+
+
 @dataclass
 class Dataset:
     root: Path
@@ -119,10 +134,18 @@ class Dataset:
         return (max(idx) + 1) if idx else 1
 
     def split(self, name: str) -> list[Frame]:
+        """A stored split's frames, or for `capture` (unless stored) every capture frame in
+        the order of its codes: the clip as filmed, train and val frames together."""
+        if name == CAPTURE and name not in self.splits:
+            capture = [f for f in self.frames if f.frame_index is not None]
+            if capture:
+                return sorted(capture, key=lambda f: f.frame_index)
         if name not in self.splits:
+            have = sorted(self.splits) + ([CAPTURE] if CAPTURE not in self.splits and any(
+                f.frame_index is not None for f in self.frames) else [])
             raise DatasetError(
                 f"{self.root / 'transforms.json'}: no split named {name!r} "
-                f"(have: {', '.join(sorted(self.splits))})"
+                f"(have: {', '.join(have)})"
             )
         return [self.frames[i] for i in self.splits[name]]
 

@@ -32,8 +32,14 @@ class RenderOptions:
         out: Output video (default: RUN/renders/SOURCE_CAMERA.mp4).
         expressions: An expression file, name=value[,name=value] keyframes, or `tour`
             (each control the training frames show, in turn).
-        split: Take expressions, cameras and face meshes from this dataset split.
+        split: Take expressions, cameras and face meshes from this dataset split
+            (`capture`: the clip as filmed, every frame in order).
         drive: Track the expressions of this driving video.
+        edit: Change controls in every frame of the source, e.g. `--split capture --edit
+            mouthSmileLeft+=0.3,mouthSmileRight+=0.3`: `name=V` sets, `name+=D` /
+            `name-=D` raise or lower, `name*=S` scales (0 stills it, 1.5 exaggerates);
+            companions move along and the edited controls are clamped to the training
+            range as for keyframes.
         camera: static, orbit, spiral, dolly, a JSON file of poses, or auto.
         head_pose: Head pose relative to frame 0's, independent of --camera: `drive` (the
             driving video's head turns, with --drive), keyframes
@@ -89,6 +95,7 @@ class RenderOptions:
     expressions: list[str] | None = None
     split: str | None = None
     drive: Path | None = None
+    edit: list[str] | None = None
     camera: str = "auto"
     head_pose: list[str] | None = None
     frames: int | None = None
@@ -197,21 +204,26 @@ def keyframe_companions(opts: RenderOptions, ds: Dataset, names: list[str]):
 
 
 def within_training_range(opts: RenderOptions, ds: Dataset, names: list[str],
-                          values: np.ndarray, log=print) -> np.ndarray:
-    """What the user asked for (keyframes, a file, a driving video), each control clamped
-    to the training frames' range unless --extrapolate (data/expression_range.py); a
-    split's own expressions are taken as they are."""
+                          values: np.ndarray, log=print, edited: list[int] = ()
+                          ) -> np.ndarray:
+    """What the user asked for (keyframes, a file, a driving video, the `edited` controls),
+    each control clamped to the training frames' range unless --extrapolate
+    (data/expression_range.py); a split's own expressions are taken as they are."""
     from flamenerf.data.expression_range import training_range
 
-    if opts.split or opts.extrapolate or ds.expression_names != names:
+    if (opts.split and not edited) or opts.extrapolate or ds.expression_names != names:
         return values
     rng = training_range(ds)
-    over = rng.beyond(values)
+    asked = np.ones(len(names), bool)
+    if opts.split:  # only what the edit changed; the split's own values stay
+        asked[:] = False
+        asked[list(edited)] = True
+    over = rng.beyond(np.where(asked, values, rng.lo))
     if not over:
         return values
     log(f"note: clamped to the range the training frames cover, where the model has learnt "
         f"them (--extrapolate renders them as given): {'; '.join(over)}")
-    return rng.clamp(values)
+    return np.where(asked, rng.clamp(values), values).astype(values.dtype)
 
 
 def held_expression(base: np.ndarray, num: int, label: str) -> X.ExpressionSequence:
@@ -377,6 +389,11 @@ def _render_videos(opts: RenderOptions, log) -> RenderSummary:
             else np.zeros(len(names), np.float32))
 
     comp = keyframe_companions(opts, ds, names)
+    edits = []
+    if opts.edit:  # before a driving video is tracked, so that a typo fails at once
+        from flamenerf.rendering.edits import parse_edits
+
+        edits = parse_edits(opts.edit, names)
     training = tour_training(opts, ds, names)
     seq = expression_source(opts, ds, names, intr, base, log, comp, training)
     for note in seq.notes:
@@ -387,14 +404,27 @@ def _render_videos(opts: RenderOptions, log) -> RenderSummary:
     if seq.label == "tour" and n < len(seq):
         log(f"note: --max-frames {n} keeps the tour's first {n} of {len(seq)} frames, so only "
             f"its first controls (--frames sets the tour's whole length)")
-    values, poses = within_training_range(opts, ds, names, seq.values[:n], log), poses[:n]
+    values, poses, label = seq.values[:n], poses[:n], seq.label
+    if edits:
+        from flamenerf.rendering.edits import apply_edits
+
+        source, (values, moved) = values, apply_edits(values, edits, comp)
+        label = f"{label}_edited"
+        log(f"note: edited {', '.join(map(str, edits))} in every frame"
+            + (f", moving with them {', '.join(moved)} (--no-companions to leave them)"
+               if moved else ""))
+    values = within_training_range(opts, ds, names, values, log, [e.index for e in edits])
     T = head_transforms(opts, run, ds, n, log, seq)
-    if seq.vertices is not None and not opts.head_pose:  # a split's own (posed) meshes
-        verts = seq.vertices[:n]
-    elif seq.vertices is not None:  # the split's meshes, turned by --head-pose
+    if seq.vertices is not None and not opts.head_pose and not edits:
+        verts = seq.vertices[:n]  # a split's own (posed) meshes
+    elif seq.vertices is not None:  # the split's meshes, turned by --head-pose, edited
         from flamenerf.data.head_pose import canonical_vertices
 
-        verts = posed_vertices(canonical_vertices(ds, ds.split(opts.split))[:n], T)
+        canon = canonical_vertices(ds, ds.split(opts.split))[:n]
+        if edits:  # the tracked mesh, moved as the expression model moves it for the edit
+            mesh_of = mesh_function(run.model, ds)
+            canon = canon + np.stack([mesh_of(a) - mesh_of(b) for a, b in zip(values, source)])
+        verts = posed_vertices(canon, T)
     else:  # the prior's silhouette follows the driven expression's mesh, not frame 0's
         mesh_of = mesh_function(run.model, ds)  # canonical: the head at frame 0's pose
         verts = posed_vertices(np.stack([mesh_of(v) for v in values]), T)
@@ -408,10 +438,10 @@ def _render_videos(opts: RenderOptions, log) -> RenderSummary:
     dil = dataset_dilation(ds) if opts.dilate_px is None else opts.dilate_px
     fps = opts.fps or seq.fps or 30.0
 
-    paths = output_paths(opts, seq.label, cam_label)
+    paths = output_paths(opts, label, cam_label)
     writable_dir(paths["rgb"].parent, "video")
     settings = dataclasses.replace(REFERENCE if opts.exact else FAST,
                                    chunk=opts.chunk or (REFERENCE.chunk if opts.exact else 0))
     write_videos(run, ds, intr, poses, values, verts, dil, settings, fps, paths, seq, names,
                  heads)
-    return RenderSummary(paths, n, intr.w, intr.h, fps, seq.label, cam_label, dil)
+    return RenderSummary(paths, n, intr.w, intr.h, fps, label, cam_label, dil)

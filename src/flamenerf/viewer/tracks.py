@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from flamenerf.data.dataset import Dataset, Frame
+from flamenerf.data.dataset import CAPTURE, Dataset, frame_rate
 
 
 @dataclass
@@ -25,22 +25,12 @@ class Track:
         return self.num_frames / self.fps
 
 
-def _capture_fps(frames: list[Frame], default: float = 30.0) -> float:
-    times = [f.extra.get("time") for f in frames]
-    if len(times) > 1 and all(isinstance(t, (int, float)) for t in times):
-        dt = np.diff(np.asarray(times, np.float64))
-        dt = dt[dt > 0]
-        if dt.size:
-            return float(1.0 / np.median(dt))
-    return default
-
-
 def dataset_tracks(ds: Dataset) -> list[Track]:
     """`capture`: every frame of the video in order (train + val); then each split."""
     out: list[Track] = []
-    capture = sorted((f for f in ds.frames if f.frame_index is not None),
-                     key=lambda f: f.frame_index)
-    fps = _capture_fps(capture)
+    capture = (ds.split(CAPTURE) if any(f.frame_index is not None for f in ds.frames)
+               else [])
+    fps = frame_rate(capture) or 30.0
     if capture:
         out.append(Track(f"capture ({len(capture)} frames)", ds.expression_matrix(capture), fps))
     for name in sorted(ds.splits, key=lambda s: (s not in ("train", "val"), s)):

@@ -1,0 +1,98 @@
+"""Expression edits (`render --edit`): change some controls in every frame of a sequence and
+leave the rest as the source has them.
+
+The point is the filmed clip itself: `--split capture --edit mouthSmileLeft+=0.3,...`
+renders the video as it was shot, with a broader smile throughout, and `--side-by-side`
+puts each filmed frame beside its edit. Edits apply to any source (a driving video, a file).
+
+An item is `name=V` (set to V), `name+=D` / `name-=D` (raise or lower by D) or `name*=S`
+(scale by S: 0 removes the control's motion, 1.5 exaggerates it). With companions
+(data/companions.py) the controls the tracker reads with an edited one move by their
+regression on its change, frame by frame, as for keyframes; and as for keyframes, the
+edited controls are then clamped to the range the training frames cover unless
+`--extrapolate` (rendering/videos.py).
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass
+
+import numpy as np
+
+from flamenerf.data.companions import Companions
+from flamenerf.errors import UserError
+from flamenerf.keyvalues import suggest
+
+OPS = ("+=", "-=", "*=", "=")
+_ITEM = re.compile(r"^\s*(?P<name>[^=+*\s-][^=+*\s]*?)\s*(?P<op>\+=|-=|\*=|=)\s*(?P<amount>\S+)\s*$")
+
+
+@dataclass(frozen=True)
+class Edit:
+    index: int  # the control's column in the run's order
+    name: str
+    op: str  # one of OPS
+    amount: float
+
+    def apply(self, v: np.ndarray) -> np.ndarray:
+        """A control's values (T,) -> edited (T,)."""
+        if self.op == "=":
+            return np.full_like(v, self.amount)
+        if self.op == "*=":
+            return v * self.amount
+        return v + (self.amount if self.op == "+=" else -self.amount)
+
+    def __str__(self) -> str:
+        return f"{self.name}{self.op}{self.amount:g}"
+
+
+def parse_edits(items: list[str], names: list[str]) -> list[Edit]:
+    """`--edit` values, each `name=V`, `name+=D`, `name-=D` or `name*=S`, comma-separated
+    within an item -> edits in the order given; a one-line UserError for anything else."""
+    index = {n: i for i, n in enumerate(names)}
+    edits: list[Edit] = []
+    for item in items:
+        for part in item.split(","):
+            if not part.strip():
+                continue
+            m = _ITEM.match(part)
+            if not m:
+                raise UserError(f"--edit {item!r}: expected name=V, name+=D, name-=D or "
+                                f"name*=S, got {part.strip()!r}")
+            name, op = m["name"], m["op"]
+            if name not in index:
+                raise UserError(f"--edit {item!r}: unknown control {name!r}"
+                                f"{suggest(name, names)} (one of: {', '.join(names)})")
+            try:
+                amount = float(m["amount"])
+            except ValueError:
+                raise UserError(f"--edit {item!r}: {m['amount']!r} is not a number") from None
+            if not math.isfinite(amount):
+                raise UserError(f"--edit {item!r}: {name}'s amount must be finite")
+            if any(e.name == name for e in edits):
+                raise UserError(f"--edit: {name} is edited twice (one edit a control)")
+            edits.append(Edit(index[name], name, op, amount))
+    if not edits:
+        raise UserError("--edit: give at least one edit, e.g. mouthSmileLeft+=0.3")
+    return edits
+
+
+def apply_edits(values: np.ndarray, edits: list[Edit],
+                companions: Companions | None = None) -> tuple[np.ndarray, list[str]]:
+    """Expressions (T, E) with `edits` applied to every frame, and with `companions` their
+    companions moved by their regression on each frame's change (clipped to the training
+    range) -> (edited (T, E), the names of the companions that moved)."""
+    values = np.asarray(values, np.float32)
+    new = {e.index: e.apply(values[:, e.index]) for e in edits}
+    if companions is None:
+        out = values.copy()
+        for k, v in new.items():
+            out[:, k] = v
+        return out, []
+    out = np.stack([companions.complete(values[t], {k: float(v[t]) for k, v in new.items()})
+                    for t in range(len(values))]).astype(np.float32)
+    moved = np.any(np.abs(out - values) > 1e-6, axis=0)
+    moved[list(new)] = False
+    return out, [n for n, m in zip(companions.names, moved) if m]

@@ -1,0 +1,116 @@
+"""`render --edit`: controls changed in every frame of a source, the rest as it is; the
+clip as filmed (`--split capture`) edited and set beside its frames."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from flamenerf.data.companions import Companions
+from flamenerf.errors import UserError
+from flamenerf.rendering.edits import apply_edits, parse_edits
+from flamenerf.rendering.videos import RenderOptions
+
+NAMES = ["jawOpen", "mouthSmileLeft", "mouthUpperUpLeft"]
+
+
+def test_each_operation_on_every_frame():
+    v = np.array([[0.2, 0.1, 0.3], [0.6, 0.4, 0.0]], np.float32)
+    for items, want in ((["jawOpen=0.5"], [0.5, 0.5]), (["jawOpen+=0.1"], [0.3, 0.7]),
+                        (["jawOpen-=0.1"], [0.1, 0.5]), (["jawOpen*=0"], [0.0, 0.0]),
+                        (["jawOpen*=1.5"], [0.3, 0.9])):
+        out, moved = apply_edits(v, parse_edits(items, NAMES))
+        np.testing.assert_allclose(out[:, 0], want, atol=1e-6)
+        np.testing.assert_array_equal(out[:, 1:], v[:, 1:])  # the rest as the source has it
+        assert moved == []
+    out, _ = apply_edits(v, parse_edits(["jawOpen=0, mouthSmileLeft+=0.5"], NAMES))
+    np.testing.assert_allclose(out, [[0, 0.6, 0.3], [0, 0.9, 0]], atol=1e-6)
+
+
+def test_companions_follow_each_frames_change():
+    """mouthUpperUpLeft rises with the smile in the training frames, so an edit that raises
+    the smile by 0.2 raises it by its slope (0.5) times 0.2 in every frame."""
+    smile = np.linspace(0, 0.8, 9)
+    train = np.stack([np.zeros(9), smile, 0.1 + 0.5 * smile], -1)
+    follows = np.zeros((3, 3), bool)
+    follows[1, 2] = True
+    comp = Companions(NAMES, follows, train)
+    v = np.array([[0.0, 0.1, 0.15], [0.3, 0.4, 0.3]], np.float32)
+    out, moved = apply_edits(v, parse_edits(["mouthSmileLeft+=0.2"], NAMES), comp)
+    assert moved == ["mouthUpperUpLeft"]
+    np.testing.assert_allclose(out[:, 1], v[:, 1] + 0.2, atol=1e-6)
+    np.testing.assert_allclose(out[:, 2], v[:, 2] + 0.1, atol=1e-3)
+    np.testing.assert_array_equal(out[:, 0], v[:, 0])
+
+
+@pytest.mark.parametrize("item,message", [
+    ("jawOpn=1", "unknown control 'jawOpn'; did you mean 'jawOpen'"),
+    ("jawOpen", "expected name=V, name.=D, name-=D or name.=S"),
+    ("jawOpen+=much", "'much' is not a number"),
+    ("jawOpen=nan", "must be finite"),
+    ("jawOpen=1,jawOpen+=1", "jawOpen is edited twice"),
+    (",", "give at least one edit"),
+])
+def test_bad_edits_say_what_is_wrong(item, message):
+    with pytest.raises(UserError, match=message):
+        parse_edits([item], NAMES)
+
+
+def test_capture_edited_beside_its_frames(toy_run, tmp_path, monkeypatch):
+    """--split capture --edit: the train and val frames in the clip's order, the edited
+    control changed (clamped to the training range) and the others as tracked; the prior's
+    meshes moved as the expression model moves them for the edit; driving frames beside."""
+    from flamenerf.data.video import read_frames
+    from flamenerf.rendering import videos
+    from flamenerf.training.run import load_run
+
+    ds = load_run(toy_run, "cpu").dataset()
+    capture = ds.split("capture")
+    assert [f.frame_index for f in capture] == [0, 1, 2, 3, 4, 5]  # train and val, in order
+    tracked = ds.expression_matrix(capture)
+    jaw = ds.expression_names.index("jawOpen")
+    hi = tracked[[f.frame_index < 4 for f in capture], jaw].max()  # the training range's top
+    seen = {}
+    write = videos.write_videos
+
+    def recording(run, ds, intr, poses, values, verts, *a, **kw):
+        seen.update(values=np.asarray(values).copy(), verts=np.asarray(verts).copy())
+        return write(run, ds, intr, poses, values, verts, *a, **kw)
+
+    from flamenerf.data import prior
+
+    mesh_function = prior.mesh_function
+
+    def shifting(model, ds):  # a mesh model whose jaw moves the mesh down by 0.1 a unit
+        def mesh_of(beta):
+            return ds.face_vertices[0] - np.array([0, 0.1, 0], np.float32) * beta[jaw]
+        mesh_function(model, ds)
+        return mesh_of
+
+    monkeypatch.setattr(videos, "write_videos", recording)
+    monkeypatch.setattr(prior, "mesh_function", shifting)
+    notes = []
+    summary = videos.render_videos(RenderOptions(
+        toy_run, split="capture", edit=["jawOpen+=0.3"], side_by_side=True, device="cpu",
+        companions=False), log=notes.append)
+    assert summary.paths["rgb"].name == "capture_edited_split.mp4"
+    assert len(read_frames(summary.paths["sbs"])) == 6
+    want = np.minimum(tracked[:, jaw] + 0.3, hi)
+    np.testing.assert_allclose(seen["values"][:, jaw], want, atol=1e-6)
+    others = [k for k in range(len(ds.expression_names)) if k != jaw]
+    np.testing.assert_array_equal(seen["values"][:, others], tracked[:, others])
+    assert any("edited jawOpen+=0.3 in every frame" in n for n in notes)
+    assert any("clamped" in n and "jawOpen" in n for n in notes)
+    assert not any("clamped" in n and "mouthSmileLeft" in n for n in notes)
+    shift = (want - tracked[:, jaw])[:, None] * np.array([0, -0.1, 0], np.float32)
+    own = ds.face_vertices[[f.position for f in capture]]
+    np.testing.assert_allclose(seen["verts"], own + shift[:, None], atol=1e-6)
+
+
+def test_an_edit_typo_fails_before_anything_renders(toy_run, tmp_path):
+    from flamenerf.commands.render import render
+
+    with pytest.raises(UserError, match="unknown control 'jawOpn'"):
+        render(RenderOptions(toy_run, out=tmp_path / "x.mp4", split="capture",
+                             edit=["jawOpn+=1"], device="cpu"))
+    assert not (tmp_path / "x.mp4").exists()
