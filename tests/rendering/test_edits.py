@@ -25,6 +25,11 @@ def test_each_operation_on_every_frame():
         assert moved == []
     out, _ = apply_edits(v, parse_edits(["jawOpen=0, mouthSmileLeft+=0.5"], NAMES))
     np.testing.assert_allclose(out, [[0, 0.6, 0.3], [0, 0.9, 0]], atol=1e-6)
+    # `all`: every control the other items do not name
+    out, _ = apply_edits(v, parse_edits(["all*=0", "jawOpen*=1"], NAMES))
+    np.testing.assert_allclose(out, [[0.2, 0, 0], [0.6, 0, 0]], atol=1e-6)
+    out, _ = apply_edits(v, parse_edits(["all*=2"], NAMES))
+    np.testing.assert_allclose(out, 2 * v, atol=1e-6)
 
 
 def test_companions_follow_each_frames_change():
@@ -49,6 +54,7 @@ def test_companions_follow_each_frames_change():
     ("jawOpen+=much", "'much' is not a number"),
     ("jawOpen=nan", "must be finite"),
     ("jawOpen=1,jawOpen+=1", "jawOpen is edited twice"),
+    ("all*=0,all=1", "all is edited twice"),
     (",", "give at least one edit"),
 ])
 def test_bad_edits_say_what_is_wrong(item, message):
@@ -70,13 +76,6 @@ def test_capture_edited_beside_its_frames(toy_run, tmp_path, monkeypatch):
     tracked = ds.expression_matrix(capture)
     jaw = ds.expression_names.index("jawOpen")
     hi = tracked[[f.frame_index < 4 for f in capture], jaw].max()  # the training range's top
-    seen = {}
-    write = videos.write_videos
-
-    def recording(run, ds, intr, poses, values, verts, *a, **kw):
-        seen.update(values=np.asarray(values).copy(), verts=np.asarray(verts).copy())
-        return write(run, ds, intr, poses, values, verts, *a, **kw)
-
     from flamenerf.data import prior
 
     mesh_function = prior.mesh_function
@@ -87,24 +86,24 @@ def test_capture_edited_beside_its_frames(toy_run, tmp_path, monkeypatch):
         mesh_function(model, ds)
         return mesh_of
 
-    monkeypatch.setattr(videos, "write_videos", recording)
     monkeypatch.setattr(prior, "mesh_function", shifting)
     notes = []
-    summary = videos.render_videos(RenderOptions(
-        toy_run, split="capture", edit=["jawOpen+=0.3"], side_by_side=True, device="cpu",
-        companions=False), log=notes.append)
+    opts = RenderOptions(toy_run, split="capture", edit=["jawOpen+=0.3"], side_by_side=True,
+                         device="cpu", companions=False)
+    plan = videos.plan_render(opts, log=notes.append)
+    summary = videos.render_videos(opts, log=lambda _: None)
     assert summary.paths["rgb"].name == "capture_edited_split.mp4"
     assert len(read_frames(summary.paths["sbs"])) == 6
     want = np.minimum(tracked[:, jaw] + 0.3, hi)
-    np.testing.assert_allclose(seen["values"][:, jaw], want, atol=1e-6)
+    np.testing.assert_allclose(plan.values[:, jaw], want, atol=1e-6)
     others = [k for k in range(len(ds.expression_names)) if k != jaw]
-    np.testing.assert_array_equal(seen["values"][:, others], tracked[:, others])
+    np.testing.assert_array_equal(plan.values[:, others], tracked[:, others])
     assert any("edited jawOpen+=0.3 in every frame" in n for n in notes)
     assert any("clamped" in n and "jawOpen" in n for n in notes)
     assert not any("clamped" in n and "mouthSmileLeft" in n for n in notes)
     shift = (want - tracked[:, jaw])[:, None] * np.array([0, -0.1, 0], np.float32)
     own = ds.face_vertices[[f.position for f in capture]]
-    np.testing.assert_allclose(seen["verts"], own + shift[:, None], atol=1e-6)
+    np.testing.assert_allclose(plan.verts, own + shift[:, None], atol=1e-6)
 
 
 def test_an_edit_typo_fails_before_anything_renders(toy_run, tmp_path):

@@ -6,7 +6,9 @@ renders the video as it was shot, with a broader smile throughout, and `--side-b
 puts each filmed frame beside its edit. Edits apply to any source (a driving video, a file).
 
 An item is `name=V` (set to V), `name+=D` / `name-=D` (raise or lower by D) or `name*=S`
-(scale by S: 0 removes the control's motion, 1.5 exaggerates it). With companions
+(scale by S: 0 removes the control's motion, 1.5 exaggerates it). `all` stands for every
+control no other item names: `all*=1.5` exaggerates the whole expression, `all*=0,jawOpen*=1`
+keeps only the jaw's motion. With companions
 (data/companions.py) the controls the tracker reads with an edited one move by their
 regression on its change, frame by frame, as for keyframes; and as for keyframes, the
 edited controls are then clamped to the range the training frames cover unless
@@ -26,6 +28,7 @@ from flamenerf.errors import UserError
 from flamenerf.keyvalues import suggest
 
 OPS = ("+=", "-=", "*=", "=")
+ALL = "all"  # every control no other item names
 _ITEM = re.compile(r"^\s*(?P<name>[^=+*\s-][^=+*\s]*?)\s*(?P<op>\+=|-=|\*=|=)\s*(?P<amount>\S+)\s*$")
 
 
@@ -53,6 +56,7 @@ def parse_edits(items: list[str], names: list[str]) -> list[Edit]:
     within an item -> edits in the order given; a one-line UserError for anything else."""
     index = {n: i for i, n in enumerate(names)}
     edits: list[Edit] = []
+    every: tuple[str, float] | None = None  # `all`'s operation
     for item in items:
         for part in item.split(","):
             if not part.strip():
@@ -62,7 +66,7 @@ def parse_edits(items: list[str], names: list[str]) -> list[Edit]:
                 raise UserError(f"--edit {item!r}: expected name=V, name+=D, name-=D or "
                                 f"name*=S, got {part.strip()!r}")
             name, op = m["name"], m["op"]
-            if name not in index:
+            if name not in index and name != ALL:
                 raise UserError(f"--edit {item!r}: unknown control {name!r}"
                                 f"{suggest(name, names)} (one of: {', '.join(names)})")
             try:
@@ -71,9 +75,15 @@ def parse_edits(items: list[str], names: list[str]) -> list[Edit]:
                 raise UserError(f"--edit {item!r}: {m['amount']!r} is not a number") from None
             if not math.isfinite(amount):
                 raise UserError(f"--edit {item!r}: {name}'s amount must be finite")
-            if any(e.name == name for e in edits):
+            if any(e.name == name for e in edits) or (name == ALL and every is not None):
                 raise UserError(f"--edit: {name} is edited twice (one edit a control)")
-            edits.append(Edit(index[name], name, op, amount))
+            if name == ALL and name not in index:
+                every = (op, amount)
+            else:
+                edits.append(Edit(index[name], name, op, amount))
+    if every is not None:
+        named = {e.name for e in edits}
+        edits += [Edit(j, n, *every) for j, n in enumerate(names) if n not in named]
     if not edits:
         raise UserError("--edit: give at least one edit, e.g. mouthSmileLeft+=0.3")
     return edits

@@ -10,7 +10,7 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
 import numpy as np
 import tyro
@@ -38,8 +38,9 @@ class RenderOptions:
         edit: Change controls in every frame of the source, e.g. `--split capture --edit
             mouthSmileLeft+=0.3,mouthSmileRight+=0.3`: `name=V` sets, `name+=D` /
             `name-=D` raise or lower, `name*=S` scales (0 stills it, 1.5 exaggerates);
-            companions move along and the edited controls are clamped to the training
-            range as for keyframes.
+            `all` is every control no other item names (`all*=0,jawOpen*=1`: only the
+            jaw moves). Companions move along and the edited controls are clamped to the
+            training range as for keyframes.
         camera: static, orbit, spiral, dolly, a JSON file of poses, or auto.
         head_pose: Head pose relative to frame 0's, independent of --camera: `drive` (the
             driving video's head turns, with --drive), keyframes
@@ -153,6 +154,38 @@ class RenderSummary:
                 f"frames at {self.width}x{self.height}, {self.fps:g} fps (expressions: "
                 f"{self.source}; camera: {self.camera}; prior mask dilation "
                 f"{self.dilate_px} px)")
+
+
+@dataclass
+class RenderPlan:
+    """What `render` draws, every choice made: the run, its dataset and the render size;
+    per frame the camera (T, 4, 4), the expression (T, E), the prior's face mesh (T, V, 3)
+    and the head's twist (T, 6) or None; the videos to write and their frame rate."""
+
+    run: Any
+    ds: Dataset
+    intr: Intrinsics
+    poses: np.ndarray
+    values: np.ndarray
+    verts: np.ndarray
+    heads: np.ndarray | None
+    dilate_px: int
+    settings: RenderSettings
+    fps: float
+    paths: dict[str, Path]
+    seq: X.ExpressionSequence
+    label: str  # the expression source's, "_edited" added for an edit
+    camera: str
+
+    def frames(self):
+        """The frames, rendered one at a time with frame 0's codes (an iterator of
+        rendering.reanimate.RenderedFrame)."""
+        from flamenerf.rendering.reanimate import render_sequence
+
+        omega, phi = self.run.frame_codes(0)
+        return render_sequence(self.run.model, self.ds, self.intr, self.poses, self.values,
+                               self.verts, omega, phi, self.dilate_px, heads=self.heads,
+                               settings=self.settings)
 
 
 def render_intrinsics(run, ds: Dataset, size: int | None) -> Intrinsics:
@@ -323,31 +356,29 @@ def posed_vertices(canonical: np.ndarray, T: np.ndarray | None) -> np.ndarray:
     return transform_points(np.linalg.inv(T), canonical).astype(np.float32)
 
 
-def write_videos(run, ds: Dataset, intr: Intrinsics, poses: np.ndarray, values: np.ndarray,
-                 verts: np.ndarray, dilate_px: int, settings: RenderSettings, fps: float,
-                 paths: dict[str, Path], seq: X.ExpressionSequence, names: list[str],
-                 heads: np.ndarray | None = None) -> None:
-    """Render frame 0's codes along poses (T, 4, 4) with expressions values (T, E) and write
-    the result, and with "depth"/"sbs" in `paths` the depth video and driving | result |
-    depth side by side (the expression as bars when the source has no driving image)."""
+def write_videos(plan: RenderPlan) -> None:
+    """Render the plan and write the result, and with "depth"/"sbs" in its paths the depth
+    video and driving | result | depth side by side (the expression as bars when the source
+    has no driving image)."""
     import contextlib
 
     from tqdm import tqdm
 
     from flamenerf.data.video import VideoWriter
     from flamenerf.images import expression_panel, hstack, resize_to_height
-    from flamenerf.rendering.reanimate import depth_image, depth_range, render_sequence
+    from flamenerf.rendering.reanimate import depth_image, depth_range
 
-    omega, phi = run.frame_codes(0)
-    frames = render_sequence(run.model, ds, intr, poses, values, verts, omega, phi, dilate_px,
-                             heads=heads, settings=settings)
+    intr, values, seq = plan.intr, plan.values, plan.seq
+    near, far = plan.run.model.near, plan.run.model.far
     with contextlib.ExitStack() as stack:
-        writers = {k: stack.enter_context(VideoWriter(p, fps)) for k, p in paths.items()}
+        writers = {k: stack.enter_context(VideoWriter(p, plan.fps))
+                   for k, p in plan.paths.items()}
         lo = hi = None
-        for i, fr in enumerate(tqdm(frames, total=len(poses), desc="render", unit="frame")):
+        for i, fr in enumerate(tqdm(plan.frames(), total=len(values), desc="render",
+                                    unit="frame")):
             writers["rgb"].write(fr.rgb)
             if lo is None:
-                lo, hi = depth_range(fr, run.model.near, run.model.far)
+                lo, hi = depth_range(fr, near, far)
             if "depth" in writers or "sbs" in writers:
                 dimg = depth_image(fr, lo, hi)
             if "depth" in writers:
@@ -357,7 +388,8 @@ def write_videos(run, ds: Dataset, intr: Intrinsics, poses: np.ndarray, values: 
                     left = resize_to_height(seq.driving(i), intr.h)
                 else:
                     # what moved since the first frame shows first (a keyframe's, a tour's)
-                    left = expression_panel(values[i], names, intr.h, intr.w, ref=values[0])
+                    left = expression_panel(values[i], plan.run.expression_names, intr.h,
+                                            intr.w, ref=values[0])
                 writers["sbs"].write(hstack([left, fr.rgb, dimg], gap=2))
 
 
@@ -372,6 +404,15 @@ def render_videos(opts: RenderOptions, log=print) -> RenderSummary:
 
 
 def _render_videos(opts: RenderOptions, log) -> RenderSummary:
+    p = plan_render(opts, log)
+    write_videos(p)
+    return RenderSummary(p.paths, len(p.values), p.intr.w, p.intr.h, p.fps, p.label, p.camera,
+                         p.dilate_px)
+
+
+def plan_render(opts: RenderOptions, log=print) -> RenderPlan:
+    """Everything `flamenerf render` decides before it renders (see its --help); checks
+    that the outputs can be written, writes nothing."""
     from flamenerf.data.prior import dataset_dilation, mesh_function
     from flamenerf.outdir import writable_dir
     from flamenerf.runtime import set_threads
@@ -442,6 +483,5 @@ def _render_videos(opts: RenderOptions, log) -> RenderSummary:
     writable_dir(paths["rgb"].parent, "video")
     settings = dataclasses.replace(REFERENCE if opts.exact else FAST,
                                    chunk=opts.chunk or (REFERENCE.chunk if opts.exact else 0))
-    write_videos(run, ds, intr, poses, values, verts, dil, settings, fps, paths, seq, names,
-                 heads)
-    return RenderSummary(paths, n, intr.w, intr.h, fps, label, cam_label, dil)
+    return RenderPlan(run, ds, intr, poses, values, verts, heads, dil, settings, fps, paths,
+                      seq, label, cam_label)
