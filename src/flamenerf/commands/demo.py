@@ -76,4 +76,6 @@ def demo(
     render(RenderOptions(run, out=out / "reanimation.mp4", split="reanimate", camera="auto",
                          fps=4, **videos))
     print(f"done: {out / 'expressions.mp4'} and {out / 'reanimation.mp4'} (each + _depth, "
-          f"_sbs); `flamenerf view {run}` to play with it")
+          f"_sbs); `flamenerf view {run}` to play with it; `flamenerf render {run} --split "
+          "capture --edit jawOpen+=0.5 --side-by-side` renders the filmed clip with its jaw "
+          "opened wider, beside its frames")

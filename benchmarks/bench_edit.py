@@ -1,0 +1,144 @@
+"""How much of an edit of the filmed clip (`render --split S --edit ...`) shows.
+
+Built-in scene runs (`--run`, ground truth): the split's frames (default `val`, which no
+run trained on), each edit applied as `render` applies it (its own plan: frame 0's codes,
+the edited expressions, the prior's meshes moved by the edit), against the scene rendered
+again with the edited expressions at the same cameras. Reported per edit: the face's PSNR
+of the edited render, of the unedited render against the same truth (what a model that
+ignores the edit shows), and the mean change the edit makes on the face's pixels. A
+Nerfies-variant run (no β) shows no edit: its two figures are equal.
+
+Real-clip runs (`--retrack-run`): the capture rendered as filmed and edited (render's
+plans again), both re-tracked by MediaPipe's face landmarker; reported per control: the
+clip's tracked mean, the re-tracked means of the plain and the edited render, and the
+plain render's correlation with the clip.
+
+    python benchmarks/bench_edit.py --run RUN... [--retrack-run RUN...] [--split val]
+        [--threads 2] [--json OUT.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+BUILTIN_EDITS = {
+    "jawOpen+=0.5": ["jawOpen+=0.5"],
+    "smiles=1": ["mouthSmileLeft=1,mouthSmileRight=1"],
+    "browInnerUp=1": ["browInnerUp=1"],
+    "mouthPucker=1": ["mouthPucker=1"],
+    "frowns=1": ["mouthFrownLeft=1,mouthFrownRight=1"],
+}
+REAL_EDIT = ["mouthSmileLeft+=0.3,mouthSmileRight+=0.3"]
+REAL_REPORTED = ("mouthSmileLeft", "mouthSmileRight", "mouthUpperUpLeft", "mouthUpperUpRight",
+                 "jawOpen", "eyeBlinkLeft", "eyeBlinkRight", "browInnerUp", "mouthFrownLeft",
+                 "mouthFrownRight")
+
+
+def plan(run: Path, split: str, edit: list[str] | None, threads: int, out: Path):
+    from flamenerf.rendering.videos import RenderOptions, plan_render
+
+    return plan_render(RenderOptions(run, out=out, split=split, edit=edit, device="cpu",
+                                     threads=threads, overwrite=True), log=lambda _: None)
+
+
+def builtin(run: Path, split: str, threads: int, tmp: Path) -> dict:
+    from flamenerf.evaluation.metrics import psnr
+    from flamenerf.synthetic.scene import scene_from_dataset
+
+    plain = plan(run, split, None, threads, tmp / "x.mp4")
+    scene = scene_from_dataset(plain.ds)
+    frames = plain.ds.split(split)
+    plain_rgb = [f.rgb for f in plain.frames()]
+    out = {}
+    for label, items in BUILTIN_EDITS.items():
+        p = plan(run, split, items, threads, tmp / "x.mp4")
+        rows = []
+        for fr, pred, before, values in zip(frames, p.frames(), plain_rgb, p.values):
+            body = fr.extra.get("body_pose")
+            gt = scene.render(fr.c2w, np.clip(values, 0, 1),
+                              None if body is None else np.asarray(body), p.intr)
+            face = gt.mask
+            rows.append((psnr(pred.rgb, gt.rgb, face), psnr(before, gt.rgb, face),
+                         float(np.abs(pred.rgb - before)[face].mean())))
+        r = np.mean(rows, 0)
+        out[label] = {"psnr_face_edited": round(float(r[0]), 2),
+                      "psnr_face_unedited": round(float(r[1]), 2),
+                      "mean_change_on_face": round(float(r[2]), 4)}
+        print(f"{run.name} {label}: edited {r[0]:.2f} dB, unedited {r[1]:.2f} dB against "
+              f"the edited truth; change {r[2]:.4f}", flush=True)
+    return out
+
+
+def retracked(run: Path, threads: int, tmp: Path) -> dict:
+    from flamenerf.data.dataset import CAPTURE
+    from flamenerf.evaluation.control import Retracker
+
+    track = Retracker()
+    try:
+        reads = {}
+        for label, edit in (("plain", None), ("edited", REAL_EDIT)):
+            p = plan(run, CAPTURE, edit, threads, tmp / "x.mp4")
+            scores = [track(f.rgb) for f in p.frames()]
+            reads[label] = scores
+        clip = p.ds.expression_matrix(p.ds.split(CAPTURE))
+        names = p.ds.expression_names
+    finally:
+        track.close()
+    out = {"edit": REAL_EDIT, "frames": len(clip),
+           "detected": {k: sum(s is not None for s in v) for k, v in reads.items()}}
+    for name in REAL_REPORTED:
+        if name not in names:
+            continue
+        j = names.index(name)
+        ok = [i for i in range(len(clip))
+              if reads["plain"][i] is not None and reads["edited"][i] is not None]
+        plain = np.array([reads["plain"][i][name] for i in ok])
+        edited = np.array([reads["edited"][i][name] for i in ok])
+        out[name] = {"clip": round(float(clip[ok, j].mean()), 3),
+                     "plain": round(float(plain.mean()), 3),
+                     "edited": round(float(edited.mean()), 3),
+                     "plain_vs_clip_correlation": round(float(np.corrcoef(plain,
+                                                                          clip[ok, j])[0, 1]), 3)}
+        print(f"{run.name} {name}: clip {out[name]['clip']}, plain render "
+              f"{out[name]['plain']}, edited {out[name]['edited']}", flush=True)
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--run", type=Path, nargs="*", default=[],
+                    help="built-in scene runs (ground truth)")
+    ap.add_argument("--retrack-run", type=Path, nargs="*", default=[],
+                    help="runs of real clips (re-tracked)")
+    ap.add_argument("--split", default="val")
+    ap.add_argument("--threads", type=int, default=0)
+    ap.add_argument("--json", type=Path)
+    a = ap.parse_args()
+    t0 = time.perf_counter()
+    res = {"what": __doc__.splitlines()[0],
+           "machine": {"cpu": platform.processor() or platform.machine(),
+                       "platform": platform.platform(), "cpus": os.cpu_count()},
+           "command": "python benchmarks/bench_edit.py " + " ".join(sys.argv[1:]),
+           "split": a.split, "builtin": {}, "retracked": {}}
+    with tempfile.TemporaryDirectory() as tmp:
+        for run in a.run:
+            res["builtin"][str(run)] = builtin(run, a.split, a.threads, Path(tmp))
+        for run in a.retrack_run:
+            res["retracked"][str(run)] = retracked(run, a.threads, Path(tmp))
+    res["seconds"] = round(time.perf_counter() - t0, 1)
+    if a.json:
+        a.json.write_text(json.dumps(res, indent=1))
+        print(f"wrote {a.json}")
+
+
+if __name__ == "__main__":
+    main()
