@@ -198,6 +198,20 @@ def test_viewer_controls_without_a_browser(tiny_run, tmp_path):
         assert np.allclose([s.value for s in v.g_sliders], want, atol=1e-4)
         v.set_expression(v.frame0_expression)
         assert np.allclose([s.value for s in v.g_sliders], v.frame0_expression, atol=1e-4)
+        # the Edit box changes every frame of the track, as `render --edit` does
+        jaw = names.index("jawOpen")
+        v.g_frame.value = 3
+        v.set_edit("jawOpen*=0, browInnerUp += 0.05")
+        want = v.tracks[2].frames[3].copy()
+        want[jaw] = 0
+        want[names.index("browInnerUp")] += 0.05
+        assert np.allclose(v.worker.expression(), v.range.clamp(want), atol=1e-6)
+        assert "editing jawOpen*=0" in v.g_edit_note.content
+        v.set_edit("jawOpn=1")  # a typo: said, and the last good edit stays
+        assert "unknown control 'jawOpn'" in v.g_edit_note.content
+        assert np.allclose(v.track_frames(v.tracks[2])[:, jaw], v.range.lo[jaw])  # clamped
+        v.set_edit("")
+        assert v.track_frames(v.tracks[2]) is v.tracks[2].frames
     finally:
         v.stop()
 

@@ -93,6 +93,8 @@ class Viewer:
         self._play_t0 = 0.0
         self._play_frame0 = 0
         self._closing = False
+        self._edits: list = []  # the Edit box's (rendering/edits.py)
+        self._edited: dict[tuple, np.ndarray] = {}  # tracks' frames with them applied
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -211,6 +213,12 @@ class Viewer:
             self.g_frame = gui.add_slider("Frame", min=0, max=max(n - 1, 1), step=1,
                                           initial_value=0, disabled=not self.tracks)
             self.g_loop = gui.add_checkbox("Loop", True)
+            self.g_edit = gui.add_text(
+                "Edit", "", hint="Changes every frame of the track, as `render --edit` does: "
+                "e.g. mouthSmileLeft+=0.3,mouthSmileRight+=0.3 (the capture, smiling more), "
+                "jawOpen*=0 (mouth still), all*=1.5 (every control exaggerated). Empty: the "
+                "track as it is.")
+            self.g_edit_note = gui.add_markdown("")
 
         self.g_mode.on_update(lambda e: self.worker.set_mode(e.target.value))
         self.g_height.on_update(lambda e: self.worker.set_quality(height=e.target.value))
@@ -221,6 +229,7 @@ class Viewer:
         self.g_track.on_update(self._on_track_change)
         self.g_play.on_click(lambda e: self.toggle_play())
         self.g_frame.on_update(self._on_frame_slider)
+        self.g_edit.on_update(lambda e: self.set_edit(e.target.value))
 
     def set_head_pose(self, yaw: float, pitch: float, roll: float) -> None:
         """Turn the head (degrees relative to frame 0's pose) and move the sliders there."""
@@ -298,6 +307,44 @@ class Viewer:
                 return t
         return None
 
+    def set_edit(self, text: str) -> None:
+        """Edit every track's frames (`render --edit`'s items; empty: none); a mistyped
+        edit is shown under the box and leaves the last good one in force."""
+        from flamenerf.errors import UserError
+        from flamenerf.rendering.edits import parse_edits
+
+        items = [text.replace(";", ",")] if text.strip() else []
+        try:
+            self._edits = parse_edits(items, self.names) if items else []
+        except UserError as e:
+            self.g_edit_note.content = f"*{e}*"
+            return
+        self._edited.clear()
+        self.g_edit_note.content = (f"editing {', '.join(map(str, self._edits))}"
+                                    if self._edits else "")
+        t = self.current_track()
+        if t is not None:
+            k = int(min(max(self.g_frame.value, 0), t.num_frames - 1))
+            self.set_expression(self.track_frames(t)[k], pause=False)
+
+    def track_frames(self, t: Track) -> np.ndarray:
+        """A track's expressions (T, E) with the edit applied (with companions and within
+        the clip's range as the checkboxes say, as `render --edit` applies it)."""
+        if not self._edits:
+            return t.frames
+        comp = (self.companions if self.g_companions is not None and self.g_companions.value
+                else None)
+        key = (t.name, comp is not None, self.within())
+        if key not in self._edited:
+            from flamenerf.rendering.edits import apply_edits
+
+            v, _ = apply_edits(t.frames, self._edits, comp)
+            if self.within():
+                cols = [e.index for e in self._edits]
+                v[:, cols] = self.range.clamp(v)[:, cols]
+            self._edited[key] = v
+        return self._edited[key]
+
     def _on_track_change(self, event) -> None:
         self.pause()
         t = self.current_track()
@@ -305,7 +352,7 @@ class Viewer:
             return
         self.g_frame.max = max(t.num_frames - 1, 1)
         self.g_frame.value = 0
-        self.set_expression(t.frames[0], pause=False)
+        self.set_expression(self.track_frames(t)[0], pause=False)
 
     def _on_frame_slider(self, event) -> None:
         if event.client is None:
@@ -314,7 +361,7 @@ class Viewer:
         t = self.current_track()
         if t is not None:
             k = int(min(max(event.target.value, 0), t.num_frames - 1))
-            self.set_expression(t.frames[k], pause=False)
+            self.set_expression(self.track_frames(t)[k], pause=False)
 
     def toggle_play(self) -> None:
         if self._play.is_set():
@@ -362,7 +409,7 @@ class Viewer:
                 else:
                     k = t.num_frames - 1
                     self.pause()
-            v = np.clip(t.frames[k], self.lo, self.hi)
+            v = np.clip(self.track_frames(t)[k], self.lo, self.hi)
             self.worker.set_expression(v)
             now = time.monotonic()
             # the 52 sliders follow at a few Hz; the image follows every frame
