@@ -235,6 +235,49 @@ def test_full_disk_is_one_line_and_leaves_nothing(tmp_path, capsys, monkeypatch)
     assert list(tmp_path.iterdir()) == []  # the temporary folder is gone too
 
 
+@pytest.mark.parametrize("error", [MemoryError(), RuntimeError(
+    "[enforce fail at alloc_cpu.cpp:118] DefaultCPUAllocator: not enough memory")])
+def test_out_of_memory_is_one_line(tmp_path, capsys, monkeypatch, error):
+    """An option asking for more than the machine has (a huge --batch-rays once ended in
+    the allocator's traceback)."""
+    import imageio.v3 as iio
+
+    def short(*a, **k):
+        raise error
+
+    monkeypatch.setattr(iio, "imwrite", short)
+    rc, err = run_cli(capsys, "synth", tmp_path / "sk", *SYNTH)
+    assert rc == 1
+    one_line(err, "out of memory")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_an_unreadable_metrics_file_is_one_line(tmp_path, capsys):
+    (tmp_path / "m.json").write_bytes(b"\xff\xfe\x00binary")
+    rc, err = run_cli(capsys, "compare", tmp_path / "m.json")
+    assert rc == 2
+    one_line(err, "m.json", "not valid JSON")
+
+
+def test_a_video_ffmpeg_cannot_write_names_the_video(tmp_path, monkeypatch):
+    """ffmpeg's own failure is one line naming the video asked for, not its temporary."""
+    import imageio_ffmpeg
+    import numpy as np
+
+    from flamenerf.data.video import VideoWriter
+    from flamenerf.errors import UserError
+
+    def broken(*a, **k):
+        raise BrokenPipeError(32, "Broken pipe")
+        yield
+
+    monkeypatch.setattr(imageio_ffmpeg, "write_frames", broken)
+    with pytest.raises(UserError, match=r"v.mp4: ffmpeg could not write the video \(.*pipe"):
+        with VideoWriter(tmp_path / "v.mp4", 30) as v:
+            v.write(np.zeros((8, 8, 3), np.uint8))
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_stale_synth_folders_are_removed_on_the_next_start(tmp_path, capsys):
     dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
                           capture_output=True, text=True).stdout.strip()
@@ -254,7 +297,8 @@ def test_stale_synth_folders_are_removed_on_the_next_start(tmp_path, capsys):
 
 @pytest.mark.parametrize("args, words", [
     (["render", "{run}", "--fps", "nan"], ["--fps: must be a finite number"]),
-    (["render", "{run}", "--fps", "0"], ["--fps 0.0: must be positive"]),
+    (["render", "{run}", "--fps", "0"], ["--fps: the frame rate must be a number from 0.1"]),
+    (["render", "{run}", "--fps", "1e300"], ["--fps: the frame rate must be a number from"]),
     (["render", "{run}", "--camera", "orbit", "--amplitude", "inf"], ["--amplitude: must be"]),
     (["train", "{data}", "--out", "{tmp}/r", "--downscale", "nan"], ["--downscale: must be"]),
     (["eval", "{run}", "--fit-lr", "-1"], ["--fit-lr -1.0: must be positive"]),
@@ -275,6 +319,17 @@ def test_stale_synth_folders_are_removed_on_the_next_start(tmp_path, capsys):
     # a video that is not there: the folders made for the output are removed again
     (["track", "{tmp}/nope.mp4", "--out", "{tmp}/new/sub/d.json"], ["nope.mp4"]),
     (["track", "{tmp}/nope.mp4", "--out", "{tmp}"], ["is a directory"]),
+    # no upper bound once meant minutes of work and then an allocator's traceback
+    (["render", "{run}", "--frames", "1000000000", "--max-frames", "2"], ["--frames 1000000000"]),
+    (["synth", "{tmp}/s", "--frames", "100000000"], ["--frames 100000000: must be from 1"]),
+    (["synth", "{tmp}/s", "--workers", "100000"], ["--workers 100000"]),
+    (["preprocess", "{tmp}/nope.mp4", "{tmp}/p", "--size", "100000000"], ["--size must be"]),
+    (["preprocess", "{tmp}/nope.mp4", "{tmp}/p", "--far", "1e9"], ["--far 1000000000.0"]),
+    (["render", "{run}", "--threads", "-3"], ["--threads -3: must be >= 0"]),
+    (["eval", "{run}", "--threads", "-3"], ["--threads -3: must be >= 0"]),
+    (["render", "{run}", "--expressions", "jawOpen=1e308"], ["a value of 1e+308"]),
+    (["render", "{run}", "--split", "capture", "--edit", "jawOpen+=1e308"], ["must be finite"]),
+    (["train", "{data}", "--out", "{data}"], ["is a dataset (it holds transforms.json)"]),
 ])
 def test_bad_numbers_are_one_line_before_any_work(args, words, toy_run, toy_dataset, tmp_path,
                                                   capsys):

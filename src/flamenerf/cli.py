@@ -125,6 +125,16 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("flamenerf: interrupted", file=sys.stderr)
         return 130
+    except (MemoryError, RuntimeError) as e:
+        # an option asked for more than the machine has (a huge --batch-rays, --size,
+        # --frames): one line, not the allocator's traceback
+        oom = (isinstance(e, MemoryError) or type(e).__name__ == "OutOfMemoryError"
+               or "DefaultCPUAllocator" in str(e))
+        if not oom or os.environ.get("FLAMENERF_DEBUG"):
+            raise
+        print("flamenerf: error: out of memory: the options ask for more than this machine "
+              "has (lower sizes, frames or rays per step)", file=sys.stderr)
+        return 1
     except OSError as e:
         # the machine said no (full disk, read-only or vanished folder): one line naming
         # the file; FLAMENERF_DEBUG=1 shows the traceback

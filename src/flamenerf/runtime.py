@@ -31,7 +31,10 @@ def reexec_with_tuned_allocator(python_args: list[str]) -> None:
     if all(os.environ.get(k) == v for k, v in TUNED_ALLOCATOR.items()):
         return
     env = dict(os.environ, **TUNED_ALLOCATOR, FLAMENERF_NO_REEXEC="1")
-    os.execve(sys.executable, [sys.executable, *python_args], env)
+    try:
+        os.execve(sys.executable, [sys.executable, *python_args], env)
+    except OSError:  # an interpreter this user may not start again: run untuned, not fail
+        return
 
 
 def pick_device(device: str = "auto") -> torch.device:
@@ -69,7 +72,12 @@ def gpu_inference(device: torch.device) -> bool:
 
 
 def set_threads(threads: int) -> None:
-    """Use `threads` CPU threads for torch; 0 (or less) keeps torch's default."""
+    """Use `threads` CPU threads for torch; 0 keeps torch's default; below 0 is a one-line
+    UserError (--threads)."""
+    if threads < 0:
+        from flamenerf.errors import UserError
+
+        raise UserError(f"--threads {threads}: must be >= 0 (0: torch's default)")
     if threads > 0:
         import torch
 

@@ -60,6 +60,12 @@ def test_corrupted_transforms_is_a_dataset_error_naming_the_file(dataset_dir, tm
     tj.write_text(json.dumps({**meta, "format_version": 99}))
     with pytest.raises(DatasetError, match="transforms.json: format_version 99 is newer"):
         load_dataset(bad)
+    tj.write_text(json.dumps({**meta, "format_version": "1"}))
+    with pytest.raises(DatasetError, match="format_version '1' is not a version number"):
+        load_dataset(bad)
+    tj.write_text(json.dumps({**meta, "prior": "x"}))
+    with pytest.raises(DatasetError, match="transforms.json: 'prior' must be an object"):
+        load_dataset(bad)
 
 
 def test_cameras_expressions_and_frame_indices_are_validated(dataset_dir, tmp_path):
@@ -74,7 +80,8 @@ def test_cameras_expressions_and_frame_indices_are_validated(dataset_dir, tmp_pa
              "transform_matrix must be rigid"),
             ("transform_matrix", np.diag([1.0, 1, -1, 1]).tolist(), "must be rigid"),
             ("expression", [float("nan")] * len(CONTROLS), "not a finite number"),
-            ("frame_index", 10 ** 6, "frame_index 1000000 must be below")):
+            ("frame_index", 10 ** 6, "frame_index 1000000 must be below"),
+            ("depth_path", 5, "field 'depth_path' has the wrong type")):
         m = json.loads(json.dumps(meta))
         m["frames"][1][field] = value
         tj.write_text(json.dumps(m))
@@ -188,3 +195,7 @@ def test_face_mesh_vertices_must_be_finite_and_in_range(dataset_dir, tmp_path):
         np.savez(copy / "face_mesh.npz", faces=faces, vertices=v)
         with pytest.raises(DatasetError, match="face_mesh.npz: 'vertices' must be finite"):
             load_dataset(copy)
+    np.savez(copy / "face_mesh.npz", faces=np.zeros((0, 3), np.int32), vertices=verts)
+    with pytest.raises(DatasetError, match=r"face_mesh.npz: 'faces' must have shape \(F, 3\) "
+                                           "with F > 0"):
+        load_dataset(copy)

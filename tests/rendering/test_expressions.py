@@ -158,6 +158,19 @@ def test_vector_and_named_files(tmp_path):
     (tmp_path / "f.json").write_text(json.dumps([{}, {"jawOpen": 1}]))  # a neutral frame
     np.testing.assert_allclose(X.load_file(tmp_path / "f.json", NAMES).values,
                                [[0, 0, 0], [1, 0, 0]])
+    # what once rendered a flat grey video, or a traceback
+    for name, text, message in (
+            ("nan.csv", "jawOpen\nnan\n", "nan.csv: contains non-finite values"),
+            ("twice.csv", "jawOpen,jawOpen\n1,0\n", "twice.csv: jawOpen is named twice"),
+            ("big.csv", "jawOpen\n1e30\n", "big.csv: a value of 1e\\+30"),
+            ("bin.csv", b"\xff\xfe\x00j\x00a", "bin.csv: not a text CSV file")):
+        f = tmp_path / name
+        f.write_bytes(text if isinstance(text, bytes) else text.encode())
+        with pytest.raises(UserError, match=message):
+            X.load_file(f, NAMES)
+    (tmp_path / "t.json").write_text('{"names": ["jawOpen"], "frames": [[1]], "fps": NaN}')
+    with pytest.raises(UserError, match="t.json: 'fps': the frame rate must be a number"):
+        X.load_file(tmp_path / "t.json", NAMES)
 
 
 def test_the_side_by_sides_bars_show_what_moves_first():

@@ -93,7 +93,7 @@ def eval(  # noqa: A001 - the subcommand's name
                     ("--leakage-dilate-px", leakage_dilate_px)):
         if v is not None and v < 0:
             raise UserError(f"{name} {v}: must be >= 0")
-    from flamenerf.outdir import writable_dir
+    from flamenerf.outdir import folders_kept_only_on_success, writable_dir
 
     out_dir = out if out is not None else Path(run) / "eval"
     r = load_run(run, device)  # first: a folder that is no run gets no eval/ folder
@@ -102,7 +102,6 @@ def eval(  # noqa: A001 - the subcommand's name
         ds.split(split)  # before any work
     except UserError as e:
         raise UserError(f"{e}; --split chooses the frames to evaluate on") from None
-    writable_dir(out_dir, "evaluation")  # before minutes of fitting, not after
     if fit_steps is None:
         fit_steps = 2000 if r.device.type == "cuda" else 300
     opts = EvalOptions(split=split, fit_steps=fit_steps, fit_batch_rays=fit_batch_rays,
@@ -110,7 +109,10 @@ def eval(  # noqa: A001 - the subcommand's name
                        num_images=images, control=control, control_steps=control_steps,
                        drive=None if drive is None else str(drive), drive_frames=drive_frames,
                        captured_directions=captured_directions)
-    res = evaluate_run(r, ds, opts, out_dir)
+    # a failed or interrupted eval leaves no empty folder behind
+    with folders_kept_only_on_success(out_dir):
+        writable_dir(out_dir, "evaluation")  # before minutes of fitting, not after
+        res = evaluate_run(r, ds, opts, out_dir)
     print()
     print(compare_markdown([res]), end="")
     print(f"wrote {out_dir / 'metrics.json'}, {out_dir / 'metrics.md'} and "

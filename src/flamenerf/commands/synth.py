@@ -8,6 +8,10 @@ from typing import Annotated
 import tyro
 
 
+MAX_FRAMES = 100_000  # about an hour at 30 fps, and a few GB of images at 256 px
+MAX_WORKERS = 64  # one process each
+
+
 def synth(
     out: Annotated[Path, tyro.conf.Positional],
     seed: int = 0,
@@ -64,16 +68,16 @@ def synth(
         raise UserError(f"--sway {sway:g}: must be in 0..10 (degrees)")
     if size < 16 or size > 4096:
         raise UserError(f"--size {size}: must be between 16 and 4096")
-    if frames < 1:
-        raise UserError(f"--frames {frames}: must be at least 1")
-    if workers < 0:
-        raise UserError(f"--workers {workers}: must be 0 (one per core) or more")
+    if not 1 <= frames <= MAX_FRAMES:
+        raise UserError(f"--frames {frames}: must be from 1 to {MAX_FRAMES}")
+    if not 0 <= workers <= MAX_WORKERS:
+        raise UserError(f"--workers {workers}: must be 0 (one per core) to {MAX_WORKERS}")
     if not 0 <= seed < 2 ** 63:
         raise UserError(f"--seed {seed}: must be in 0..2^63-1")
-    if reanimate is not None and reanimate < 0:
-        raise UserError(f"--reanimate {reanimate}: must be >= 0")
-    if leakage_steps < 0:
-        raise UserError(f"--leakage-steps {leakage_steps}: must be >= 0")
+    if reanimate is not None and not 0 <= reanimate <= MAX_FRAMES:
+        raise UserError(f"--reanimate {reanimate}: must be from 0 to {MAX_FRAMES}")
+    if not 0 <= leakage_steps <= 100:
+        raise UserError(f"--leakage-steps {leakage_steps}: must be from 0 to 100")
     if out.exists() and not overwrite:
         raise UserError(f"{out}: already exists (pass --overwrite to replace it)")
     total = len(frame_specs(seed, frames, sway, reanimate, leakage_steps, head_motion))

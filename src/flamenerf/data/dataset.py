@@ -288,6 +288,11 @@ def _require(obj: dict, key: str, where: str, kinds: type | tuple[type, ...]) ->
     return val
 
 
+def _optional(obj: dict, key: str, where: str, kinds: type | tuple[type, ...]) -> Any:
+    """obj[key] when present and not null (checked as `_require` checks), else None."""
+    return None if obj.get(key) is None else _require(obj, key, where, kinds)
+
+
 def _numbers(values: list, dtype) -> np.ndarray | None:
     """A JSON list as an array, or None when it holds non-numbers or rows of unequal
     length (numpy would raise, or make an object array of strings)."""
@@ -385,9 +390,13 @@ def load_dataset(root: str | os.PathLike, check_files: bool = True) -> Dataset:
         raise DatasetError(f"{tj}: top level must be a JSON object")
     where = str(tj)
     version = meta.get("format_version", FORMAT_VERSION)
-    if not isinstance(version, int) or version > FORMAT_VERSION:
+    if not isinstance(version, int) or isinstance(version, bool):
+        raise DatasetError(f"{where}: format_version {version!r} is not a version number")
+    if version > FORMAT_VERSION:
         raise DatasetError(f"{where}: format_version {version!r} is newer than this "
                            f"flamenerf reads ({FORMAT_VERSION}); update flamenerf")
+    if not isinstance(meta.get("prior", {}), dict):
+        raise DatasetError(f"{where}: 'prior' must be an object (e.g. {{\"dilation_px\": 1}})")
     num = (int, float)
     intr = Intrinsics(
         w=int(_require(meta, "w", where, int)),
@@ -463,7 +472,7 @@ def load_dataset(root: str | os.PathLike, check_files: bool = True) -> Dataset:
                 c2w=c2w,
                 expression=expr,
                 frame_index=fi,
-                depth_path=fr.get("depth_path"),
+                depth_path=_optional(fr, "depth_path", w, str),
                 extra={k: v for k, v in fr.items() if k not in known},
                 head_pose=_head_pose(fr, w),
             )
@@ -502,8 +511,9 @@ def load_dataset(root: str | os.PathLike, check_files: bool = True) -> Dataset:
         raise DatasetError(f"{mesh_path}: missing array {e}") from None
     except Exception as e:  # noqa: BLE001
         raise DatasetError(f"{mesh_path}: not a readable .npz ({type(e).__name__})") from None
-    if faces.ndim != 2 or faces.shape[1] != 3:
-        raise DatasetError(f"{mesh_path}: 'faces' must have shape (F, 3), got {faces.shape}")
+    if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0:
+        raise DatasetError(f"{mesh_path}: 'faces' must have shape (F, 3) with F > 0, got "
+                           f"{faces.shape}")
     if verts.ndim != 3 or verts.shape[0] != len(frames) or verts.shape[2] != 3:
         raise DatasetError(
             f"{mesh_path}: 'vertices' must have shape ({len(frames)}, V, 3), got {verts.shape}"

@@ -10,6 +10,7 @@ angle for the report. Frame times assume a constant frame rate (`index / fps`).
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import re
@@ -21,6 +22,19 @@ from pathlib import Path
 import numpy as np
 
 from flamenerf.errors import UserError
+
+
+FPS_RANGE = (0.1, 1000.0)  # a frame every ten seconds to far above any player's rate:
+# ffmpeg's muxer fails at extreme rates after printing its own lines
+
+
+def check_fps(fps, where: str) -> float:
+    """A frame rate within FPS_RANGE, else a one-line UserError naming `where`."""
+    lo, hi = FPS_RANGE
+    if isinstance(fps, bool) or not isinstance(fps, (int, float)) or not lo <= fps <= hi:
+        raise UserError(f"{where}: the frame rate must be a number from {lo:g} to {hi:g}, "
+                        f"got {fps!r}")
+    return float(fps)
 
 
 @dataclass
@@ -102,8 +116,8 @@ def select_frames(num_frames: int, native_fps: float, fps: float | None = None,
     tick), then, when more than `max_frames` remain, that many spread evenly over the clip."""
     if num_frames <= 0:
         return np.zeros(0, np.int64)
-    if fps is not None and fps <= 0:
-        raise UserError(f"--fps must be positive, got {fps}")
+    if fps is not None:
+        check_fps(fps, "--fps")
     if max_frames is not None and max_frames <= 0:
         raise UserError(f"--max-frames must be positive, got {max_frames}")
     if fps is None or fps >= native_fps:
@@ -169,8 +183,7 @@ class VideoWriter:
 
     def __init__(self, path: str | os.PathLike, fps: float, quality: int = 8,
                  preset: str = "veryfast"):
-        if fps <= 0:
-            raise UserError(f"--fps must be positive, got {fps}")
+        check_fps(fps, str(path))
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         # the extension stays .mp4 so that ffmpeg picks the container from it
@@ -193,19 +206,36 @@ class VideoWriter:
             self._gen = imageio_ffmpeg.write_frames(
                 str(self.tmp), (w, h), fps=self.fps, quality=self.quality, macro_block_size=2,
                 ffmpeg_log_level="error", output_params=["-preset", self.preset])
-            self._gen.send(None)
+            with self._ffmpeg():
+                self._gen.send(None)
         elif (w, h) != self._size:
             raise ValueError(f"frame size {w}x{h} differs from the video's {self._size}")
-        self._gen.send(np.ascontiguousarray(img))
+        with self._ffmpeg():
+            self._gen.send(np.ascontiguousarray(img))
         self.frames += 1
 
     def close(self) -> Path:
         if self._gen is None:
             raise UserError(f"{self.path}: no frames to write")
-        self._gen.close()
-        self._gen = None
+        with self._ffmpeg():
+            self._gen.close()
+            self._gen = None
+            if not self.tmp.is_file():
+                raise RuntimeError("it wrote no file")
         os.replace(self.tmp, self.path)
         return self.path
+
+    @contextlib.contextmanager
+    def _ffmpeg(self):
+        """ffmpeg's failures (a broken pipe, its own error) as one line naming the video
+        being written, not the temporary file."""
+        try:
+            yield
+        except (OSError, RuntimeError) as e:
+            if isinstance(e, OSError) and e.filename and Path(e.filename) != self.tmp:
+                raise  # the machine's (a full disk elsewhere): cli names that file
+            why = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+            raise UserError(f"{self.path}: ffmpeg could not write the video ({why})") from None
 
     def abort(self) -> None:
         if self._gen is not None:

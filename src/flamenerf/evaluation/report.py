@@ -3,7 +3,6 @@ the layout of the paper's Table 1 (Method, MSE, PSNR) plus our extra columns."""
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -11,6 +10,7 @@ from typing import Any, Callable
 
 from flamenerf.data.captured_views import MAX_ANGLE_DEG
 from flamenerf.errors import UserError
+from flamenerf.io import read_json
 
 FORMAT = "flamenerf-eval"  # metrics.json, written by evaluation/protocol.py
 VERSION = 1
@@ -151,10 +151,7 @@ def load_eval(path: str | Path) -> dict[str, Any]:
     if not p.exists():
         hint = f" (run `flamenerf eval {path}` first)" if Path(path).is_dir() else ""
         raise UserError(f"{p}: file is missing{hint}")
-    try:
-        d = json.loads(p.read_text())
-    except json.JSONDecodeError as e:
-        raise UserError(f"{p}: invalid JSON at line {e.lineno} ({e.msg})") from None
+    d = read_json(p)
     if not isinstance(d, dict) or d.get("format") != FORMAT:
         raise UserError(f"{p}: not a flamenerf eval result (no \"format\": \"{FORMAT}\")")
     version = d.get("version", VERSION)

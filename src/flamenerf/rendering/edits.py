@@ -26,6 +26,7 @@ import numpy as np
 from flamenerf.data.companions import Companions
 from flamenerf.errors import UserError
 from flamenerf.keyvalues import suggest
+from flamenerf.rendering.expressions import MAX_ABS
 
 OPS = ("+=", "-=", "*=", "=")
 ALL = "all"  # every control no other item names
@@ -73,8 +74,9 @@ def parse_edits(items: list[str], names: list[str]) -> list[Edit]:
                 amount = float(m["amount"])
             except ValueError:
                 raise UserError(f"--edit {item!r}: {m['amount']!r} is not a number") from None
-            if not math.isfinite(amount):
-                raise UserError(f"--edit {item!r}: {name}'s amount must be finite")
+            if not math.isfinite(amount) or abs(amount) > MAX_ABS:
+                raise UserError(f"--edit {item!r}: {name}'s amount must be finite and at "
+                                f"most {MAX_ABS:g} in size")
             if any(e.name == name for e in edits) or (name == ALL and every is not None):
                 raise UserError(f"--edit: {name} is edited twice (one edit a control)")
             if name == ALL and name not in index:

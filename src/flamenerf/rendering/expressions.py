@@ -40,6 +40,7 @@ from flamenerf.keyvalues import parse_assignments, suggest
 
 FILE_SUFFIXES = (".json", ".npy", ".csv")
 KEYFRAME_FRAMES = 60  # a keyframe sequence's length unless --frames says
+MAX_ABS = 1e3  # the largest expression value taken (a score is at most 1, FLAME's ~±5)
 # the tour's controls and how far it takes them: a control whose 99th percentile in the
 # training frames is at least MIN_SPAN above its 1st, to whichever of the two is farther
 # from the base (signed controls such as FLAME's go either way). Not eval's 5th-95th
@@ -75,6 +76,9 @@ def map_by_name(values: np.ndarray, src_names: list[str], names: list[str], wher
     The error when no name matches calls the source's columns `what` and ends with `hint`."""
     values = np.asarray(values, np.float32)
     index = {n: i for i, n in enumerate(names)}
+    twice = sorted({n for n in src_names if src_names.count(n) > 1})
+    if twice:
+        raise UserError(f"{where}: {twice[0]} is named twice")
     unknown = [n for n in src_names if n not in index]
     if strict and unknown:
         raise UserError(f"{where}: unknown control {unknown[0]!r}{suggest(unknown[0], names)} "
@@ -97,6 +101,7 @@ def parse_keyframe(item: str, names: list[str], base: np.ndarray,
     index = {n: i for i, n in enumerate(names)}
     values = {index[name]: v for name, v in parse_assignments(
         item, names, "--expressions", "control", " (or a .json/.npy/.csv file)").items()}
+    bounded(np.array(list(values.values())), f"--expressions {item!r}")
     return keyframe(base, values, companions)
 
 
@@ -265,8 +270,18 @@ def load_file(path: Path, names: list[str]) -> ExpressionSequence:
             values = _named_rows(d, names, str(path))
         else:
             values = _vectors(d, str(path), names)
-    return ExpressionSequence(values.astype(np.float32), label=path.stem, fps=fps,
-                              notes=tuple(notes))
+    return ExpressionSequence(bounded(values, str(path)).astype(np.float32), label=path.stem,
+                              fps=fps, notes=tuple(notes))
+
+
+def bounded(values: np.ndarray, where: str) -> np.ndarray:
+    """values, unless one is beyond ±MAX_ABS (a one-line UserError naming `where`): no
+    expression model means such a value, and float32 arithmetic turns it into inf."""
+    v = np.asarray(values)
+    if v.size and float(np.abs(v).max()) > MAX_ABS:
+        raise UserError(f"{where}: a value of {float(np.abs(v).max()):.3g} (expression values "
+                        f"are at most {MAX_ABS:g} in size)")
+    return values
 
 
 def _named_rows(rows: list[dict], names: list[str], where: str) -> np.ndarray:
@@ -289,8 +304,11 @@ def _named_rows(rows: list[dict], names: list[str], where: str) -> np.ndarray:
 def _load_csv(path: Path, names: list[str]) -> tuple[np.ndarray, list[str]]:
     import csv
 
-    with open(path, newline="") as f:
-        rows = [r for r in csv.reader(f) if r and any(c.strip() for c in r)]
+    try:
+        with open(path, newline="", encoding="utf-8") as f:
+            rows = [r for r in csv.reader(f) if r and any(c.strip() for c in r)]
+    except (UnicodeDecodeError, csv.Error):
+        raise UserError(f"{path}: not a text CSV file") from None
     if not rows:
         raise UserError(f"{path}: empty CSV file")
 
@@ -316,6 +334,8 @@ def _load_csv(path: Path, names: list[str]) -> tuple[np.ndarray, list[str]]:
         return _vectors(arr, str(path), names), []
     if arr.ndim != 2 or arr.shape[1] != len(header):
         raise UserError(f"{path}: rows must have {len(header)} values, one per header name")
+    if not np.all(np.isfinite(arr)):
+        raise UserError(f"{path}: contains non-finite values")
     values, unknown = map_by_name(arr, header, names, str(path), strict=False)
     notes = [f"{path}: ignored columns this run lacks ({', '.join(unknown)})"] if unknown else []
     return values, notes

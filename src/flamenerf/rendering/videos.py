@@ -20,6 +20,10 @@ from flamenerf.errors import UserError
 from flamenerf.model.inference import FAST, REFERENCE, RenderSettings
 from flamenerf.rendering import cameras as C
 from flamenerf.rendering import expressions as X
+from flamenerf.data.video import check_fps
+from flamenerf.runtime import set_threads
+
+MAX_FRAMES = 1_000_000
 
 
 @dataclass
@@ -130,10 +134,15 @@ class RenderOptions:
             raise UserError(f"--frames {self.frames}: must be at least 1")
         if self.max_frames is not None and self.max_frames < 1:
             raise UserError(f"--max-frames {self.max_frames}: must be at least 1")
+        if self.threads < 0:
+            set_threads(self.threads)  # its one-line error, before anything is loaded
         if self.chunk < 0:
             raise UserError(f"--chunk {self.chunk}: must be positive (or 0: automatic)")
-        if self.fps is not None and not self.fps > 0:
-            raise UserError(f"--fps {self.fps}: must be positive")
+        if self.fps is not None:
+            check_fps(self.fps, "--fps")
+        if self.frames is not None and self.frames > MAX_FRAMES:
+            raise UserError(f"--frames {self.frames}: at most {MAX_FRAMES} (a video of "
+                            f"{MAX_FRAMES // 30 // 3600} hours at 30 fps)")
         if self.dilate_px is not None and self.dilate_px < 0:
             raise UserError(f"--dilate-px {self.dilate_px}: must be >= 0")
 
@@ -415,7 +424,6 @@ def plan_render(opts: RenderOptions, log=print) -> RenderPlan:
     that the outputs can be written, writes nothing."""
     from flamenerf.data.prior import dataset_dilation, mesh_function
     from flamenerf.outdir import writable_dir
-    from flamenerf.runtime import set_threads
     from flamenerf.training.run import load_run
 
     set_threads(opts.threads)

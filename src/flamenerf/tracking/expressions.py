@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 
 from flamenerf.data.dataset import Dataset
+from flamenerf.data.video import check_fps
 from flamenerf.errors import UserError
 from flamenerf.io import read_json
 
@@ -94,8 +95,7 @@ def load_expressions(path: str | os.PathLike) -> ExpressionTrack:
     if not np.all(np.isfinite(frames)):
         raise UserError(f"{path}: 'frames' contains non-finite values")
     fps = d.get("fps", 30.0)
-    if not isinstance(fps, (int, float)) or fps <= 0:
-        raise UserError(f"{path}: 'fps' must be a positive number")
+    fps = check_fps(fps, f"{path}: 'fps'")
     return ExpressionTrack(names=names, frames=frames, fps=float(fps),
                            kind=str(d.get("kind", "unknown")),
                            source_frames=d.get("source_frames"), times=d.get("times"),

@@ -22,6 +22,7 @@ from typing import Annotated, Any, Literal
 import numpy as np
 import tyro
 
+from flamenerf.data.dataset import MAX_METRES
 from flamenerf.errors import UserError
 from flamenerf.io import jsonable, write_json
 from flamenerf.tracking.clip import (MAX_ERROR, progress_bar, require_enough, solve_scene,
@@ -162,8 +163,11 @@ def preprocess_video(video: str | os.PathLike, out: str | os.PathLike,
 
 
 def check_options(o: PreprocessOptions) -> None:
-    if o.size < 16:
-        raise UserError(f"--size must be at least 16, got {o.size}")
+    if not 16 <= o.size <= 4096:
+        raise UserError(f"--size must be from 16 to 4096, got {o.size}")
+    for name, v in (("--near", o.near), ("--far", o.far)):
+        if v is not None and not 0 <= v <= MAX_METRES:
+            raise UserError(f"{name} {v}: must be from 0 to {MAX_METRES:g} (metres)")
     if o.crop_scale <= 0:
         raise UserError(f"--crop-scale must be positive, got {o.crop_scale}")
     if o.val_every < 0 or o.val_every == 1:
@@ -225,8 +229,9 @@ def scene_bounds(sol, vertices: np.ndarray, opts: PreprocessOptions,
     cam_dist = np.linalg.norm(sol.c2w[:, :3, 3] - head, axis=1)
     near = opts.near if opts.near is not None else 0.5 * float(depth.min())
     far = opts.far if opts.far is not None else opts.far_scale * float(cam_dist.max())
-    if not 0 <= near < far:
-        raise UserError(f"need 0 <= near < far, got near={near:.3f}, far={far:.3f}")
+    if not 0 <= near < far <= MAX_METRES:  # the bounds datasets are read with
+        raise UserError(f"need 0 <= near < far <= {MAX_METRES:g} (metres), got "
+                        f"near={near:.3f}, far={far:.3f}")
     return near, far, cam_dist
 
 
