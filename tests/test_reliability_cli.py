@@ -330,6 +330,9 @@ def test_stale_synth_folders_are_removed_on_the_next_start(tmp_path, capsys):
     (["render", "{run}", "--expressions", "jawOpen=1e308"], ["a value of 1e+308"]),
     (["render", "{run}", "--split", "capture", "--edit", "jawOpen+=1e308"], ["must be finite"]),
     (["train", "{data}", "--out", "{data}"], ["is a dataset (it holds transforms.json)"]),
+    (["track", "{tmp}/v.mp4", "--out", "{tmp}/d.json", "--driver-neutral-frame", "3"],
+     ["--driver-neutral-frame: only with --relative-to"]),
+    (["eval", "{run}", "--drive", "{tmp}/afile"], ["afile: not a readable video"]),
 ])
 def test_bad_numbers_are_one_line_before_any_work(args, words, toy_run, toy_dataset, tmp_path,
                                                   capsys):

@@ -81,7 +81,9 @@ def test_cameras_expressions_and_frame_indices_are_validated(dataset_dir, tmp_pa
             ("transform_matrix", np.diag([1.0, 1, -1, 1]).tolist(), "must be rigid"),
             ("expression", [float("nan")] * len(CONTROLS), "not a finite number"),
             ("frame_index", 10 ** 6, "frame_index 1000000 must be below"),
-            ("depth_path", 5, "field 'depth_path' has the wrong type")):
+            ("depth_path", 5, "field 'depth_path' has the wrong type"),
+            ("file_path", "/etc/passwd", "'/etc/passwd' is outside the dataset"),
+            ("mask_path", "../masks/000000.png", "is outside the dataset")):
         m = json.loads(json.dumps(meta))
         m["frames"][1][field] = value
         tj.write_text(json.dumps(m))

@@ -83,8 +83,10 @@ def eval(  # noqa: A001 - the subcommand's name
         raise UserError(f"--fit-batch-rays {fit_batch_rays}: must be positive")
     if not fit_lr > 0:
         raise UserError(f"--fit-lr {fit_lr}: must be positive")
-    if drive is not None and not Path(drive).is_file():
-        raise UserError(f"--drive {drive}: no such file")
+    if drive is not None:
+        from flamenerf.data.video import probe_video
+
+        probe_video(drive)  # not a video: said now, not after the held-out fit
     if drive_frames < 3:
         raise UserError(f"--drive-frames {drive_frames}: must be at least 3")
     if control_steps < 2:

@@ -59,6 +59,16 @@ def track(
 
     if out.is_dir():
         raise UserError(f"{out}: is a directory; --out names a .json file")
+    if driver_neutral_frame is not None and relative_to is None:
+        raise UserError("--driver-neutral-frame: only with --relative-to (it picks the "
+                        "driver's neutral face for the transfer to that subject)")
+    if driver_neutral_frame is not None:
+        from flamenerf.data.video import probe_video
+
+        n = probe_video(video).num_frames  # before tracking it, not after
+        if not 0 <= driver_neutral_frame < n:
+            raise UserError(f"--driver-neutral-frame {driver_neutral_frame}: {video} has "
+                            f"frames 0 to {n - 1}")
     if out.exists() and not overwrite:
         raise UserError(f"{out}: already exists (pass --overwrite to replace it)")
     with folders_kept_only_on_success(out.parent):

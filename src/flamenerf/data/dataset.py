@@ -541,11 +541,14 @@ def load_dataset(root: str | os.PathLike, check_files: bool = True) -> Dataset:
         face_landmarks=landmarks,
         mesh_model=_read_mesh_model(root / MESH_MODEL_FILE, verts.shape[1], len(names)),
     )
-    if check_files:
-        for fr in frames:
-            for rel in (fr.file_path, fr.mask_path, fr.depth_path):
-                if rel is not None and not (root / rel).exists():
-                    raise DatasetError(f"{root / rel}: file is missing")
+    for fr in frames:
+        for rel in (fr.file_path, fr.mask_path, fr.depth_path):
+            # a dataset reads only its own files, not whatever path it names
+            if rel is not None and (Path(rel).is_absolute() or ".." in Path(rel).parts):
+                raise DatasetError(f"{tj}: frames[{fr.position}]: {rel!r} is outside the "
+                                   "dataset (paths are relative to its folder)")
+            if check_files and rel is not None and not (root / rel).exists():
+                raise DatasetError(f"{root / rel}: file is missing")
     return ds
 
 
