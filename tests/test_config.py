@@ -84,3 +84,32 @@ def test_runs_render_over_the_mean_of_the_backgrounds_they_trained_over():
     assert preset("fast").train.render_background == 0.5
     assert not preset("flame-in-nerf").train.random_background
     assert preset("flame-in-nerf").train.render_background == 0.0
+
+
+@pytest.mark.parametrize("values, words", [
+    ({"train": {"steps": "ten"}}, 'x/config.json: train.steps must be an int, got "ten"'),
+    ({"train": {"steps": True}}, "train.steps must be an int, got true"),
+    ({"model": {"expression_scale": "1"}}, "model.expression_scale must be a number"),
+    ({"model": {"expression_mode": "weird"}}, 'expression_mode must be one of "masked"'),
+    ({"model": {"warp": "x"}}, 'model.warp must be an object, got "x"'),
+    ({"model": {"warp": {"skips": 4}}}, "model.warp.skips must be a list of ints, got 4"),
+    ({"model": {"warp": {"band": "wide"}}}, "model.warp.band must be a number or null"),
+    ({"model": {"mesh_guide": {"neighbours": 0}}}, "neighbours must be at least 1, got 0"),
+    ({"model": {"sampler": {"num_proposal": -4}}}, "num_proposal must be at least 1, got -4"),
+    ({"model": {"expression_scale": 0}}, "expression_scale must be a positive number"),
+    ({"train": {"face_ray_fraction": 1.5}}, "face_ray_fraction must be between 0 and 1"),
+    ({"train": {"lr": -1e-3}}, "train.lr must be a finite number, at least 0"),
+    ([], "the configuration must be an object, got []"),
+])
+def test_from_dict_names_the_file_and_key_of_a_wrong_value(values, words):
+    with pytest.raises(UserError) as e:
+        from_dict(values, "x/config.json")
+    assert words in str(e.value) and "\n" not in str(e.value), str(e.value)
+
+
+def test_from_dict_takes_ints_for_floats_lists_for_tuples_and_null_for_optionals():
+    cfg = from_dict({"model": {"expression_scale": 2, "warp": {"skips": [1, 2], "band": None},
+                               "mesh_guide": {"enabled": None, "max_residual": 0}}})
+    assert cfg.model.expression_scale == 2.0 and isinstance(cfg.model.expression_scale, float)
+    assert cfg.model.warp.skips == (1, 2) and cfg.model.warp.band is None
+    assert cfg.model.mesh_guide.enabled is None and cfg.model.mesh_guide.max_residual == 0.0

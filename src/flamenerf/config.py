@@ -9,6 +9,11 @@ but swaps the costly parts for ones that train in minutes on a CPU (see docs/pre
 from __future__ import annotations
 
 import dataclasses
+import json
+import math
+import os
+import types
+import typing
 from dataclasses import dataclass
 from dataclasses import field as _field
 from typing import Any, Literal
@@ -548,21 +553,145 @@ def parse_variants(text: str) -> list[tuple[str, dict[str, str]]]:
     return out
 
 
-def from_dict(d: dict[str, Any]) -> Config:
-    """Inverse of Config.to_dict; unknown keys are ignored so old runs stay loadable."""
+def from_dict(d: dict[str, Any], source: str | os.PathLike = "config") -> Config:
+    """Inverse of Config.to_dict; unknown keys are ignored so old runs stay loadable. Each
+    value is checked against its field's annotation and `check_ranges`: a run's config.json
+    is a file people edit and copy, and a wrong value otherwise surfaced as a traceback deep
+    in the model (or, for a Literal, silently trained another variant). A one-line
+    UserError naming `source` (the file) and the key otherwise."""
+    from flamenerf.errors import UserError
 
-    def build(cls, values: dict[str, Any]):
-        kwargs = {}
-        for f in dataclasses.fields(cls):
-            if f.name not in values:
+    try:
+        cfg = _build(Config, d, "")
+        _check_ranges(cfg)
+    except _BadValue as e:
+        raise UserError(f"{source}: {e}") from None
+    return cfg
+
+
+class _BadValue(ValueError):
+    """A value of the wrong type or range; the message starts with its key path."""
+
+
+def _build(cls: type, values: Any, key: str) -> Any:
+    if not isinstance(values, dict):
+        raise _BadValue(f"{key or 'the configuration'} must be an object, got "
+                        f"{_shown(values)}")
+    hints = typing.get_type_hints(cls)  # resolves the annotations' strings (__future__)
+    kwargs = {f.name: _value(values[f.name], hints[f.name], _key(key, f.name))
+              for f in dataclasses.fields(cls) if f.name in values}
+    return cls(**kwargs)
+
+
+def _value(v: Any, hint: Any, key: str) -> Any:
+    """`v` as the annotation `hint` takes it (JSON lists become tuples, ints floats), or
+    _BadValue."""
+    if dataclasses.is_dataclass(hint):
+        return _build(hint, v, key)
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if origin in (typing.Union, types.UnionType):
+        if v is None and type(None) in args:
+            return None
+        for arg in (a for a in args if a is not type(None)):
+            try:
+                return _value(v, arg, key)
+            except _BadValue:
                 continue
-            v = values[f.name]
-            if dataclasses.is_dataclass(f.default_factory if f.default_factory is not
-                                        dataclasses.MISSING else None):
-                v = build(f.default_factory, v)
-            elif isinstance(v, list):
-                v = tuple(v)
-            kwargs[f.name] = v
-        return cls(**kwargs)
+    elif origin is Literal:
+        if isinstance(v, str) and v in args:
+            return v
+    elif origin in (tuple, list) and isinstance(v, (list, tuple)):
+        if origin is list or (len(args) == 2 and args[1] is Ellipsis):
+            items = [_value(x, args[0], f"{key}[{i}]") for i, x in enumerate(v)]
+        elif len(v) == len(args):
+            items = [_value(x, a, f"{key}[{i}]") for i, (x, a) in enumerate(zip(v, args))]
+        else:
+            items = None
+        if items is not None:
+            return tuple(items) if origin is tuple else items
+    elif hint is Any:
+        return v
+    elif hint is float and _is_number(v):
+        return float(v)
+    elif hint is int and _is_number(v) and isinstance(v, int):
+        return v
+    elif hint in (bool, str) and isinstance(v, hint):
+        return v
+    raise _BadValue(f"{key} must be {_expected(hint)}, got {_shown(v)}")
 
-    return build(Config, d)
+
+def _key(parent: str, name: str) -> str:
+    return f"{parent}.{name}" if parent else name
+
+
+def _is_number(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool)  # True is an int
+
+
+def _expected(hint: Any) -> str:
+    """What a value of annotation `hint` is, in words, for an error message."""
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if dataclasses.is_dataclass(hint):
+        return "an object"
+    if origin in (typing.Union, types.UnionType):
+        return " or ".join("null" if a is type(None) else _expected(a) for a in args)
+    if origin is Literal:
+        return "one of " + ", ".join(json.dumps(a) for a in args)
+    if origin in (tuple, list):
+        return f"a list of {_expected(args[0]).split(' ', 1)[-1]}s" if args else "a list"
+    return {int: "an int", float: "a number", bool: "true or false",
+            str: "a string"}.get(hint, str(hint))
+
+
+def _shown(v: Any) -> str:
+    """`v` as config.json writes it, cut short."""
+    s = json.dumps(v, default=repr)
+    return s if len(s) <= 40 else s[:37] + "..."
+
+
+# Ranges that the annotations cannot say. Every number must be finite and non-negative
+# (no setting takes a negative one: the seed neither, `train --seed` refuses it); these
+# must also be at least 1 (sizes and counts the model or the training divides by or builds
+# from: 0 gave a traceback deep inside), positive, or a fraction in [0, 1].
+_AT_LEAST_ONE = frozenset({
+    "model.warp.width", "model.field.width", "model.field.hash_levels",
+    "model.field.hash_features", "model.field.hash_log2_size", "model.field.hash_base_res",
+    "model.field.head_width", "model.field.expr_levels", "model.field.expr_base_res",
+    "model.field.expr_features", "model.field.expr_log2_size",
+    "model.field.detail_log2_size", "model.sampler.num_coarse",
+    "model.sampler.num_proposal", "model.sampler.num_main", "model.sampler.proposal_levels",
+    "model.sampler.proposal_log2_size", "model.sampler.proposal_max_res",
+    "model.sampler.proposal_width", "model.mesh_guide.neighbours", "train.steps",
+    "train.batch_rays", "train.accumulate", "train.checkpoint_every", "train.log_every"})
+_POSITIVE = frozenset({"model.expression_scale", "model.head.region_scale",
+                       "train.downscale"})
+_FRACTION = frozenset({"model.sampler.refine_below", "model.expression_regions.threshold",
+                       "train.face_ray_fraction", "train.face_depth_start"})
+
+
+def _check_ranges(obj: Any, key: str = "") -> None:
+    """Raise _BadValue for the first number of `obj` (a Config, or one of its parts at
+    `key`) outside its range (above)."""
+    for f in dataclasses.fields(obj):
+        v, k = getattr(obj, f.name), _key(key, f.name)
+        if dataclasses.is_dataclass(v):
+            _check_ranges(v, k)
+            continue
+        for x in v if isinstance(v, tuple) else (v,):
+            if _is_number(x) and _out_of_range(x, k):
+                raise _BadValue(f"{k} must be {_range(k)}, got {_shown(x)}")
+
+
+def _out_of_range(x: float, key: str) -> bool:
+    if not math.isfinite(x) or x < 0:
+        return True
+    return ((key in _AT_LEAST_ONE and x < 1) or (key in _POSITIVE and x <= 0)
+            or (key in _FRACTION and x > 1))
+
+
+def _range(key: str) -> str:
+    if key in _AT_LEAST_ONE:
+        return "at least 1"
+    if key in _POSITIVE:
+        return "a positive number"
+    return "between 0 and 1" if key in _FRACTION else "a finite number, at least 0"

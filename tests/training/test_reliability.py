@@ -335,9 +335,11 @@ def test_a_damaged_config_json_is_one_line_naming_it(tiny_scene, tmp_path):
     bad = tmp_path / "bad"
     for edit, msg in ((lambda m: [], "no 'config' object"),
                       (lambda m: {**m, "dataset": None}, "'dataset' missing"),
-                      (lambda m: {**m, "config": {**m["config"], "model": None}}, "damaged"),
+                      (lambda m: {**m, "config": {**m["config"], "model": None}},
+                       "model must be an object, got null"),
                       (lambda m: {**m, "config": {**m["config"], "train": {
-                          **m["config"]["train"], "downscale": 0}}}, "downscale 0")):
+                          **m["config"]["train"], "downscale": 0}}},
+                       "train.downscale must be a positive number, got 0")):
         shutil.rmtree(bad, ignore_errors=True)
         shutil.copytree(run, bad)
         (bad / "config.json").write_text(json.dumps(edit(meta)))

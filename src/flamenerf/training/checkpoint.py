@@ -47,14 +47,22 @@ def rng_states(gen: torch.Generator) -> dict[str, Any]:
     }
 
 
-def set_rng_states(st: dict[str, Any], gen: torch.Generator) -> None:
-    gen.set_state(st["generator"])
-    torch.set_rng_state(st["torch_rng"])
-    n = st["numpy_rng"]
-    np.random.set_state((n["kind"], n["keys"].numpy().astype(np.uint32), n["pos"],
-                         n["has_gauss"], n["gauss"]))
-    p = st["python_rng"]
-    random.setstate((p["version"], tuple(p["state"].tolist()), p["gauss_next"]))
+def set_rng_states(st: dict[str, Any], gen: torch.Generator,
+                   path: Path | str = "checkpoint") -> None:
+    """Restore what `rng_states` saved; a state the generators refuse is a one-line error
+    naming the checkpoint `path` (load_checkpoint checks their shapes, not every value)."""
+    try:
+        gen.set_state(st["generator"])
+        torch.set_rng_state(st["torch_rng"])
+        n = st["numpy_rng"]
+        np.random.set_state((n["kind"], n["keys"].numpy().astype(np.uint32), n["pos"],
+                             n["has_gauss"], n["gauss"]))
+        p = st["python_rng"]
+        random.setstate((p["version"], tuple(p["state"].tolist()), p["gauss_next"]))
+    except (KeyError, TypeError, ValueError, RuntimeError, IndexError, AttributeError,
+            OverflowError) as e:
+        raise UserError(f"{path}: not a readable checkpoint (damaged random-number state: "
+                        f"{_first_sentence(e)})") from None
 
 
 # ----------------------------------------------------------------------------- sparse moments
@@ -174,18 +182,98 @@ def load_checkpoint(path: Path) -> dict[str, Any]:
             f"if you trust where this run came from, rewrite it in the safe format with "
             f"`flamenerf convert {run} --trust`") from None
     except Exception as e:  # noqa: BLE001
-        first = str(e).split(".")[0].strip() or type(e).__name__
-        raise UserError(f"{path}: not a readable checkpoint ({type(e).__name__}: "
-                        f"{first})") from None
+        raise UserError(f"{path}: not a readable checkpoint ({_first_sentence(e)})") from None
     missing = [k for k in REQUIRED if not isinstance(st, dict) or k not in st]
     if missing:
         raise UserError(f"{path}: not a readable checkpoint (no {', '.join(missing)})")
+    _check_fields(st, path)
     try:
         st["optimizer"] = unpack_moments(st["optimizer"])
     except (KeyError, TypeError, ValueError, RuntimeError, IndexError) as e:
         raise UserError(f"{path}: not a readable checkpoint (optimiser state: "
                         f"{type(e).__name__})") from None
     return st
+
+
+def _first_sentence(e: BaseException) -> str:
+    """`e` in one short line: an OSError's reason (its message repeats the path), else the
+    first sentence of its first line ("." inside a file name does not end it)."""
+    if isinstance(e, OSError) and e.strerror:
+        return f"{type(e).__name__}: {e.strerror}"
+    line = next((ln.strip() for ln in str(e).splitlines() if ln.strip()), "")
+    first = re.split(r"\.(?:\s|$)", line)[0]
+    if len(first) > 160:
+        first = first[:157] + "..."
+    return f"{type(e).__name__}: {first}" if first else type(e).__name__
+
+
+# ----------------------------------------------------------------------------- field checks
+
+# An archive can pass its checksums and still hold the wrong things (edited, or written by
+# another program): each field is checked here, so that such a file is refused like a
+# damaged one (and load_latest falls back past it) instead of failing later with a traceback.
+
+
+def _is_int(v: Any) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _is_number(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
+def _is_tensor(v: Any, dtype: torch.dtype, shape: tuple[int, ...]) -> bool:
+    return isinstance(v, torch.Tensor) and v.dtype == dtype and tuple(v.shape) == shape
+
+
+def _is_generator_state(v: Any) -> bool:
+    """A CPU torch.Generator's state (also torch's global one)."""
+    return _is_tensor(v, torch.uint8, tuple(torch.get_rng_state().shape))
+
+
+def _is_numpy_rng(v: Any) -> bool:
+    return (isinstance(v, dict) and v.get("kind") == "MT19937"
+            and _is_tensor(v.get("keys"), torch.int64, (624,))
+            and _is_int(v.get("pos")) and 0 <= v["pos"] <= 624
+            and _is_int(v.get("has_gauss")) and _is_number(v.get("gauss")))
+
+
+def _is_python_rng(v: Any) -> bool:
+    return (isinstance(v, dict) and v.get("version") == 3
+            and _is_tensor(v.get("state"), torch.int64, (625,))
+            and (v.get("gauss_next") is None or _is_number(v.get("gauss_next"))))
+
+
+# key -> (test, what it must be); "shard_generators" only where a run had several shards
+_FIELDS = {
+    "step": (lambda v: _is_int(v) and v >= 0, "a step number (an int, at least 0)"),
+    "model": (lambda v: isinstance(v, dict) and all(
+        isinstance(k, str) and isinstance(t, torch.Tensor) for k, t in v.items()),
+        "a dict of tensors"),
+    "model_args": (lambda v: isinstance(v, dict) and all(isinstance(k, str) for k in v),
+                   "a dict"),
+    "optimizer": (lambda v: isinstance(v, dict) and isinstance(v.get("state"), dict)
+                  and isinstance(v.get("param_groups"), list), "an optimiser state"),
+    "generator": (_is_generator_state, "a random-number generator's state"),
+    "torch_rng": (_is_generator_state, "a random-number generator's state"),
+    "numpy_rng": (_is_numpy_rng, "NumPy's random-number state"),
+    "python_rng": (_is_python_rng, "Python's random-number state"),
+    "shard_generators": (lambda v: isinstance(v, list) and len(v) > 0 and all(
+        _is_generator_state(g) for g in v), "a list of random-number generators' states"),
+}
+
+
+def _check_fields(st: dict[str, Any], path: Path) -> None:
+    """A UserError (as for a damaged file) for the first field of the wrong kind."""
+    fmt = st.get("format", FORMAT)  # absent in flamenerf 0.1's, which pickle refuses first
+    if not _is_int(fmt) or fmt != FORMAT:
+        shown = fmt if _is_int(fmt) else f"of type {type(fmt).__name__}"
+        raise UserError(f"{path}: not a readable checkpoint (format {shown}; this flamenerf "
+                        f"reads format {FORMAT}: written by another version?)")
+    for key, (ok, what) in _FIELDS.items():
+        if key in st and not ok(st[key]):
+            raise UserError(f"{path}: not a readable checkpoint (damaged: '{key}' is not "
+                            f"{what})")
 
 
 def _damaged_member(path: Path) -> str | None:
@@ -230,21 +318,34 @@ def convert_legacy(path: Path) -> bool:
         return False
     except LegacyCheckpoint:
         pass
-    st = torch.load(path, map_location="cpu", weights_only=False)
     try:
-        kind, keys, pos, has_gauss, gauss = st["numpy_rng"]
-        version, mt, gauss_next = st["python_rng"]
-    except (TypeError, KeyError, ValueError):
+        st = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as e:  # noqa: BLE001 - a module the pickle names is gone, ...
+        raise UserError(f"{path}: not a readable checkpoint ({_first_sentence(e)})") from None
+    try:
+        st["numpy_rng"], st["python_rng"] = _legacy_rng(st)
+    except (TypeError, KeyError, ValueError, AttributeError, IndexError, OverflowError):
+        # e.g. the states are already the safe dicts (unpacking one gave its keys, and
+        # "keys".astype failed): the file needs pickle for something else
         raise UserError(f"{path}: not a flamenerf checkpoint (no random-number states of "
                         "flamenerf 0.1)") from None
-    st["numpy_rng"] = {"kind": str(kind), "keys": torch.from_numpy(keys.astype(np.int64)),
-                       "pos": int(pos), "has_gauss": int(has_gauss), "gauss": float(gauss)}
-    st["python_rng"] = {"version": int(version), "state": torch.tensor(mt, dtype=torch.int64),
-                        "gauss_next": gauss_next}
     st["format"] = FORMAT
     atomic_write_bytes(Path(path), lambda f: torch.save(st, f))
     load_checkpoint(path)  # what we wrote must pass the safe loader
     return True
+
+
+def _legacy_rng(st: Any) -> tuple[dict[str, Any], dict[str, Any]]:
+    """flamenerf 0.1's pickled NumPy and Python RNG states (the tuples np.random.get_state
+    and random.getstate return) -> the dicts of tensors and numbers that rng_states saves."""
+    if not isinstance(st["numpy_rng"], tuple) or not isinstance(st["python_rng"], tuple):
+        raise TypeError("not flamenerf 0.1's tuples")
+    kind, keys, pos, has_gauss, gauss = st["numpy_rng"]
+    version, mt, gauss_next = st["python_rng"]
+    return ({"kind": str(kind), "keys": torch.from_numpy(np.asarray(keys).astype(np.int64)),
+             "pos": int(pos), "has_gauss": int(has_gauss), "gauss": float(gauss)},
+            {"version": int(version), "state": torch.tensor(mt, dtype=torch.int64),
+             "gauss_next": gauss_next})
 
 
 def load_model_state(model: torch.nn.Module, state: dict[str, Any], path: Path) -> None:
@@ -252,7 +353,7 @@ def load_model_state(model: torch.nn.Module, state: dict[str, Any], path: Path) 
     this version's model (e.g. hash tables stored (F, T), as before the CPU kernel)."""
     try:
         model.load_state_dict(state)
-    except RuntimeError as e:
+    except (RuntimeError, TypeError, AttributeError) as e:  # TypeError: not a dict
         first = next((ln.strip() for ln in str(e).splitlines()[1:] if ln.strip()), str(e))
         if len(first) > 160:
             first = first[:157] + "..."

@@ -24,6 +24,7 @@ from flamenerf.io import atomic_write_text, read_json
 from flamenerf.model.flame_nerf import FlameNeRF
 from flamenerf.model.mlp import bf16_pays, bf16_training
 from flamenerf.outdir import clean_stale_temps, folders_kept_only_on_success, writable_dir
+from flamenerf.runtime import set_threads
 from flamenerf.training.run import run_config
 from flamenerf.training.checkpoint import (LEGACY_TEMP, latest_checkpoint, load_latest,
                                            load_model_state, rng_states, save_checkpoint,
@@ -195,7 +196,13 @@ class Trainer:
         self.quiet = quiet or not ranks.main
 
         def read_run() -> tuple[Config, bool]:
+            if (self.run_dir / "transforms.json").exists():
+                raise UserError(f"{self.run_dir}: is a dataset (it holds transforms.json); "
+                                "give the run its own --out folder")
             ck = latest_checkpoint(self.run_dir)
+            if resume and ck is None and not self.quiet:
+                print(f"note: --resume: {self.run_dir} holds no checkpoint yet; starting a "
+                      "new run there")
             if ck is not None and not resume:
                 raise UserError(f"{self.run_dir}: already holds a run (pass --resume to "
                                 "continue it, or choose another --out)")
@@ -227,8 +234,7 @@ class Trainer:
                 f"--batch-rays {cfg.train.batch_rays}: fewer rays than the step's {shards} "
                 f"shards ({ranks.world} process(es) x accumulate {cfg.train.accumulate})"))
         self.cfg = cfg
-        if cfg.train.num_threads > 0:
-            torch.set_num_threads(cfg.train.num_threads)
+        set_threads(cfg.train.num_threads)
         self.ds = load_dataset(dataset)
         with folders_kept_only_on_success(self.run_dir, remove=ranks.main):
             ranks.on_main(self._prepare_dir)
@@ -343,10 +349,13 @@ class Trainer:
             except ValueError as e:  # a checkpoint from before the per-group learning rates
                 raise UserError(f"{path}: optimiser state does not match this version's "
                                 f"parameter groups ({e}); start a new run") from None
+            except (KeyError, TypeError, IndexError, RuntimeError) as e:  # edited, damaged
+                raise UserError(f"{path}: not a readable checkpoint (damaged optimiser "
+                                f"state: {type(e).__name__})") from None
+            set_rng_states(st, self.gen, path)
         except UserError as e:
             raise self.ranks.failure(e) from None
-        set_rng_states(st, self.gen)
-        self.step = int(st["step"])
+        self.step = st["step"]  # an int: load_checkpoint checked it
         self._saved_step = self.step
         self._restore_streams(st, path)
 
