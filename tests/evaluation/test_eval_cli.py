@@ -93,8 +93,9 @@ def test_eval_drive_reports_the_driving_correlation(toy_run, astronaut_video, tm
     # the driving frames are cut to a square around the face, each as wide as its render
     assert img.shape[1] == 4 * h + 3 * 4
     assert "**Drive**" in (out / "metrics.md").read_text()
-    with pytest.raises(UserError, match="--drive"):
+    with pytest.raises(UserError, match="missing.mp4: file does not exist"):
         eval_cmd(toy_run, out=tmp_path / "e2", drive=tmp_path / "missing.mp4")
+    assert not (tmp_path / "e2").exists()
 
 
 def test_compare_prints_a_table(evaluated, tmp_path, capsys):

@@ -184,8 +184,8 @@ def _train_without_and_with_still_head_poses(toy_dataset, tmp_path, everywhere: 
         assert cfg.model.warp.still_head_only  # `fast`'s default
         if everywhere:
             cfg.model.warp.head_only = cfg.model.warp.still_head_only = False
-        train(data, tmp_path / name, cfg, device="cpu", quiet=True)
-        runs.append(load_run(tmp_path / name, "cpu"))
+        train(data, tmp_path / f"{name}_run", cfg, device="cpu", quiet=True)
+        runs.append(load_run(tmp_path / f"{name}_run", "cpu"))
     assert not runs[0].model.follows_head and runs[1].model.follows_head
     return runs, (toy_dataset, posed)
 
