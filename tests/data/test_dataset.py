@@ -63,6 +63,10 @@ def test_corrupted_transforms_is_a_dataset_error_naming_the_file(dataset_dir, tm
     tj.write_text(json.dumps({**meta, "format_version": "1"}))
     with pytest.raises(DatasetError, match="format_version '1' is not a version number"):
         load_dataset(bad)
+    tj.write_text(json.dumps({**meta, "camera_model": "OPENCV_FISHEYE"}))
+    with pytest.raises(DatasetError, match="camera_model 'OPENCV_FISHEYE': flamenerf reads "
+                                           "pinhole cameras only"):
+        load_dataset(bad)
     tj.write_text(json.dumps({**meta, "prior": "x"}))
     with pytest.raises(DatasetError, match="transforms.json: 'prior' must be an object"):
         load_dataset(bad)

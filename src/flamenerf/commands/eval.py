@@ -89,6 +89,8 @@ def eval(  # noqa: A001 - the subcommand's name
         probe_video(drive)  # not a video: said now, not after the held-out fit
     if drive_frames < 3:
         raise UserError(f"--drive-frames {drive_frames}: must be at least 3")
+    if not 0 <= seed < 2 ** 63:  # as train's and synth's
+        raise UserError(f"--seed {seed}: must be in 0..2^63-1")
     if control_steps < 2:
         raise UserError(f"--control-steps {control_steps}: must be at least 2")
     for name, v in (("--fit-steps", fit_steps), ("--images", images),

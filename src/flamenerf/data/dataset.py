@@ -395,6 +395,10 @@ def load_dataset(root: str | os.PathLike, check_files: bool = True) -> Dataset:
     if version > FORMAT_VERSION:
         raise DatasetError(f"{where}: format_version {version!r} is newer than this "
                            f"flamenerf reads ({FORMAT_VERSION}); update flamenerf")
+    model = meta.get("camera_model", "OPENGL_PINHOLE")
+    if not isinstance(model, str) or not model.upper().endswith("PINHOLE"):
+        raise DatasetError(f"{where}: camera_model {model!r}: flamenerf reads pinhole cameras "
+                           "only (undistort the frames first)")
     if not isinstance(meta.get("prior", {}), dict):
         raise DatasetError(f"{where}: 'prior' must be an object (e.g. {{\"dilation_px\": 1}})")
     num = (int, float)
