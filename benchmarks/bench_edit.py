@@ -10,8 +10,8 @@ Nerfies-variant run (no β) shows no edit: its two figures are equal.
 
 Real-clip runs (`--retrack-run`): the capture rendered as filmed and edited (render's
 plans again), both re-tracked by MediaPipe's face landmarker; reported per control: the
-clip's tracked mean, the re-tracked means of the plain and the edited render, and the
-plain render's correlation with the clip.
+clip's tracked mean, the re-tracked means of the plain and the edited render, the edit's
+commanded mean, and the plain render's correlation with the clip.
 
     python benchmarks/bench_edit.py --run RUN... [--retrack-run RUN...] [--split val]
         [--threads 2] [--json OUT.json]
@@ -84,11 +84,11 @@ def retracked(run: Path, threads: int, tmp: Path) -> dict:
 
     track = Retracker()
     try:
-        reads = {}
+        reads, commanded = {}, {}
         for label, edit in (("plain", None), ("edited", REAL_EDIT)):
             p = plan(run, CAPTURE, edit, threads, tmp / "x.mp4")
             scores = [track(f.rgb) for f in p.frames()]
-            reads[label] = scores
+            reads[label], commanded[label] = scores, p.values
         clip = p.ds.expression_matrix(p.ds.split(CAPTURE))
         names = p.ds.expression_names
     finally:
@@ -106,10 +106,12 @@ def retracked(run: Path, threads: int, tmp: Path) -> dict:
         out[name] = {"clip": round(float(clip[ok, j].mean()), 3),
                      "plain": round(float(plain.mean()), 3),
                      "edited": round(float(edited.mean()), 3),
+                     "edited_commanded": round(float(commanded["edited"][ok, j].mean()), 3),
                      "plain_vs_clip_correlation": round(float(np.corrcoef(plain,
                                                                           clip[ok, j])[0, 1]), 3)}
         print(f"{run.name} {name}: clip {out[name]['clip']}, plain render "
-              f"{out[name]['plain']}, edited {out[name]['edited']}", flush=True)
+              f"{out[name]['plain']}, edited {out[name]['edited']} (commanded "
+              f"{out[name]['edited_commanded']})", flush=True)
     return out
 
 

@@ -129,7 +129,7 @@ def main(argv: list[str] | None = None) -> int:
         # an option asked for more than the machine has (a huge --batch-rays, --size,
         # --frames): one line, not the allocator's traceback
         oom = (isinstance(e, MemoryError) or type(e).__name__ == "OutOfMemoryError"
-               or "DefaultCPUAllocator" in str(e))
+               or "DefaultCPUAllocator" in str(e) or "out of memory" in str(e))  # (MPS)
         if not oom or os.environ.get("FLAMENERF_DEBUG"):
             raise
         print("flamenerf: error: out of memory: the options ask for more than this machine "

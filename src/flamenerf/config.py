@@ -611,9 +611,9 @@ def _value(v: Any, hint: Any, key: str) -> Any:
             return tuple(items) if origin is tuple else items
     elif hint is Any:
         return v
-    elif hint is float and _is_number(v):
+    elif hint is float and is_number(v):
         return float(v)
-    elif hint is int and _is_number(v) and isinstance(v, int):
+    elif hint is int and is_int(v):
         return v
     elif hint in (bool, str) and isinstance(v, hint):
         return v
@@ -624,8 +624,13 @@ def _key(parent: str, name: str) -> str:
     return f"{parent}.{name}" if parent else name
 
 
-def _is_number(v: Any) -> bool:
-    return isinstance(v, (int, float)) and not isinstance(v, bool)  # True is an int
+def is_number(v: Any) -> bool:
+    """An int or a float as JSON gives them (True is an int to Python, not to JSON)."""
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
+def is_int(v: Any) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
 
 
 def _expected(hint: Any) -> str:
@@ -678,7 +683,7 @@ def _check_ranges(obj: Any, key: str = "") -> None:
             _check_ranges(v, k)
             continue
         for x in v if isinstance(v, tuple) else (v,):
-            if _is_number(x) and _out_of_range(x, k):
+            if is_number(x) and _out_of_range(x, k):
                 raise _BadValue(f"{k} must be {_range(k)}, got {_shown(x)}")
 
 

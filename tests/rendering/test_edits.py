@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from flamenerf.data.companions import Companions
+from flamenerf.data.expression_range import ExpressionRange
 from flamenerf.errors import UserError
 from flamenerf.rendering.edits import apply_edits, parse_edits
 from flamenerf.rendering.videos import RenderOptions
@@ -19,16 +20,16 @@ def test_each_operation_on_every_frame():
     for items, want in ((["jawOpen=0.5"], [0.5, 0.5]), (["jawOpen+=0.1"], [0.3, 0.7]),
                         (["jawOpen-=0.1"], [0.1, 0.5]), (["jawOpen*=0"], [0.0, 0.0]),
                         (["jawOpen*=1.5"], [0.3, 0.9])):
-        out, moved = apply_edits(v, parse_edits(items, NAMES))
+        out, moved, _ = apply_edits(v, parse_edits(items, NAMES))
         np.testing.assert_allclose(out[:, 0], want, atol=1e-6)
         np.testing.assert_array_equal(out[:, 1:], v[:, 1:])  # the rest as the source has it
         assert moved == []
-    out, _ = apply_edits(v, parse_edits(["jawOpen=0, mouthSmileLeft+=0.5"], NAMES))
+    out, *_ = apply_edits(v, parse_edits(["jawOpen=0, mouthSmileLeft+=0.5"], NAMES))
     np.testing.assert_allclose(out, [[0, 0.6, 0.3], [0, 0.9, 0]], atol=1e-6)
     # `all`: every control the other items do not name
-    out, _ = apply_edits(v, parse_edits(["all*=0", "jawOpen*=1"], NAMES))
+    out, *_ = apply_edits(v, parse_edits(["all*=0", "jawOpen*=1"], NAMES))
     np.testing.assert_allclose(out, [[0.2, 0, 0], [0.6, 0, 0]], atol=1e-6)
-    out, _ = apply_edits(v, parse_edits(["all*=2"], NAMES))
+    out, *_ = apply_edits(v, parse_edits(["all*=2"], NAMES))
     np.testing.assert_allclose(out, 2 * v, atol=1e-6)
 
 
@@ -41,11 +42,18 @@ def test_companions_follow_each_frames_change():
     follows[1, 2] = True
     comp = Companions(NAMES, follows, train)
     v = np.array([[0.0, 0.1, 0.15], [0.3, 0.4, 0.3]], np.float32)
-    out, moved = apply_edits(v, parse_edits(["mouthSmileLeft+=0.2"], NAMES), comp)
-    assert moved == ["mouthUpperUpLeft"]
+    out, moved, over = apply_edits(v, parse_edits(["mouthSmileLeft+=0.2"], NAMES), comp)
+    assert moved == ["mouthUpperUpLeft"] and over == []
     np.testing.assert_allclose(out[:, 1], v[:, 1] + 0.2, atol=1e-6)
     np.testing.assert_allclose(out[:, 2], v[:, 2] + 0.1, atol=1e-3)
     np.testing.assert_array_equal(out[:, 0], v[:, 0])
+    # clamped to the training range first (the smile's largest is 0.8), and the companion
+    # follows the change that is rendered, not the one asked for
+    out, _, over = apply_edits(v, parse_edits(["mouthSmileLeft+=0.6"], NAMES), comp,
+                               ExpressionRange.of(NAMES, train))
+    np.testing.assert_allclose(out[:, 1], [0.7, 0.8], atol=1e-6)
+    np.testing.assert_allclose(out[:, 2], v[:, 2] + 0.5 * (out[:, 1] - v[:, 1]), atol=1e-3)
+    assert len(over) == 1 and over[0].startswith("mouthSmileLeft 1.00 asked, 0.80 rendered")
 
 
 @pytest.mark.parametrize("item,message", [

@@ -55,7 +55,7 @@ DAMAGE = {
     "model": setter("model", [1, 2]),
     "step": setter("step", "ten"),
     "negative step": setter("step", -3),
-    "format": setter("format", 99),
+    "format": setter("format", 1),
     "generator": setter("generator", torch.zeros(10, dtype=torch.uint8)),
     "torch_rng": setter("torch_rng", torch.zeros(5056, dtype=torch.int64)),
     "numpy keys": rng_setter("numpy_rng", "keys", torch.zeros(5, dtype=torch.int64)),
@@ -90,10 +90,13 @@ def test_the_only_checkpoint_damaged_is_one_line_naming_it(toy_run, tmp_path):
     single_line(e)
 
 
-def test_a_newer_format_is_named(run):
-    rewrite(checkpoints(run)[-1], DAMAGE["format"])
-    with pytest.raises(UserError, match="format 99; this flamenerf reads format 2"):
-        load_checkpoint(checkpoints(run)[-1])
+def test_a_newer_format_is_named_and_never_skipped(run):
+    """A newer version's checkpoint is not passed over for an older one: a resume would
+    train from the older step and then overwrite the newer file."""
+    rewrite(checkpoints(run)[-1], setter("format", 99))
+    with pytest.raises(UserError, match="checkpoint format 99 is newer than this flamenerf "
+                                        "reads"):
+        load_run(run, device="cpu")
 
 
 def test_an_unreadable_checkpoint_is_named_in_full(run, monkeypatch):

@@ -72,6 +72,7 @@ def eval(  # noqa: A001 - the subcommand's name
         seed: Seed of the ω fit's ray sampling.
     """
 
+    from flamenerf.data.dataset import CAPTURE
     from flamenerf.errors import UserError
     from flamenerf.evaluation.protocol import EvalOptions, evaluate_run
     from flamenerf.evaluation.report import compare_markdown
@@ -102,6 +103,9 @@ def eval(  # noqa: A001 - the subcommand's name
     out_dir = out if out is not None else Path(run) / "eval"
     r = load_run(run, device)  # first: a folder that is no run gets no eval/ folder
     ds = r.dataset(dataset, captured_directions)
+    if split == CAPTURE:
+        raise UserError("--split capture: holds the training frames, which the held-out "
+                        "protocol must not see; evaluate on val (the default)")
     try:
         ds.split(split)  # before any work
     except UserError as e:

@@ -34,7 +34,7 @@ def render(opts: Annotated[RenderOptions, tyro.conf.OmitArgPrefixes, tyro.conf.a
     capture filmed from unless --amplitude asks for more (for a moving head: where it
     filmed the head from too; a still camera gives a still path). The prior's mask
     for each frame is the face mesh of that frame's expression (the split's own meshes
-    with --split) rasterised for that camera with the dataset's dilation.
+    with --split, moved by --edit) rasterised for that camera with the dataset's dilation.
 
     Writes OUT (H.264 mp4), plus OUT_depth.mp4 with --depth and OUT_sbs.mp4 (driving |
     result | depth) with --side-by-side. See docs/evaluation.md.

@@ -56,6 +56,7 @@ def synth(
     """
     from tqdm import tqdm
 
+    from flamenerf.data.dataset import MAX_SIZE
     from flamenerf.errors import UserError
     from flamenerf.synthetic.scene import frame_specs, make_scene
 
@@ -66,8 +67,8 @@ def synth(
                         "leave --sway out (or give 0)")
     if not 0 <= sway <= 10:  # a few degrees is the scene's idea; 90 turns the room away
         raise UserError(f"--sway {sway:g}: must be in 0..10 (degrees)")
-    if size < 16 or size > 4096:
-        raise UserError(f"--size {size}: must be between 16 and 4096")
+    if not 16 <= size <= MAX_SIZE:
+        raise UserError(f"--size {size}: must be between 16 and {MAX_SIZE}")
     if not 1 <= frames <= MAX_FRAMES:
         raise UserError(f"--frames {frames}: must be from 1 to {MAX_FRAMES}")
     if not 0 <= workers <= MAX_WORKERS:

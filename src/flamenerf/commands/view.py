@@ -22,7 +22,8 @@ def view(
     to zoom, right-drag to pan; the camera starts at the capture's first frame. One
     slider per expression control, `Reset to neutral`, playback of an expression track
     (a tour of the controls, the dataset's own sequences, or a `flamenerf track` file
-    given with --track), head-pose sliders for runs trained with head poses, RGB or
+    given with --track; its Edit box changes every frame of a track as `render --edit`
+    does), head-pose sliders for runs trained with head poses, RGB or
     depth, and a resolution control: while the view changes it renders at 1/4 of the
     chosen resolution and refines when still. Every image uses frame 0's deformation and
     appearance codes, and as the spatial prior the face mesh of the expression shown.

@@ -47,10 +47,19 @@ class Companions:
         """base (E,) with the controls in `values` ({index: value}) set and each of their
         companions moved from base by its regression on the named controls it follows
         (fitted on the training frames, centred), clipped to its training range. -> (E,)"""
-        out = np.array(base, np.float64, copy=True)
+        out = self.complete_frames(np.asarray(base)[None],
+                                   {k: np.array([v]) for k, v in values.items()})
+        return out[0].astype(np.asarray(base).dtype, copy=False)
+
+    def complete_frames(self, base: np.ndarray, values: Mapping[int, np.ndarray]
+                        ) -> np.ndarray:
+        """`complete` for T frames at once: base (T, E), values {index: (T,)} -> (T, E);
+        the regressions depend only on which controls are named, so they are fitted once."""
+        base = np.asarray(base, np.float64)
+        out = base.copy()
         named = sorted(values)
         for k in named:
-            out[k] = values[k]
+            out[:, k] = values[k]
         x = self.expressions - self.expressions.mean(0)
         rng = ExpressionRange.of(self.names, self.expressions)
         for j in range(len(self.names)):
@@ -61,9 +70,9 @@ class Companions:
             gram = a.T @ a
             gram += RIDGE * max(float(np.trace(gram)), 1e-12) * np.eye(len(ks))
             coef = np.linalg.solve(gram, a.T @ x[:, j])
-            step = np.array([values[k] - base[k] for k in ks]) @ coef
-            out[j] = np.clip(base[j] + step, rng.lo[j], rng.hi[j])
-        return out.astype(np.asarray(base).dtype, copy=False)
+            step = (np.stack([values[k] for k in ks], -1) - base[:, ks]) @ coef
+            out[:, j] = np.clip(base[:, j] + step, rng.lo[j], rng.hi[j])
+        return out
 
 
 def fit_companions(names: list[str], kind: str, num_vertices: int,

@@ -93,8 +93,11 @@ def frame_rate(frames: list[Frame]) -> float | None:
     if len(times) > 1 and all(isinstance(t, (int, float)) for t in times):
         dt = np.diff(np.asarray(times, np.float64))
         dt = dt[dt > 0]
-        if dt.size:  # to a thousandth: times are stored to a microsecond
-            return round(float(1.0 / np.median(dt)), 3)
+        if dt.size:  # to a thousandth (times are stored to a microsecond), and within
+            # what a video can be written at (a few frames spread over a long clip)
+            from flamenerf.data.video import FPS_RANGE
+
+            return round(float(np.clip(1.0 / np.median(dt), *FPS_RANGE)), 3)
     return None
 
 
@@ -133,27 +136,35 @@ class Dataset:
         idx = [f.frame_index for f in self.frames if f.frame_index is not None]
         return (max(idx) + 1) if idx else 1
 
+    def capture(self) -> list[Frame]:
+        """Every capture frame (one with a frame index: train and val) in the order of its
+        code, which is the clip's; [] for a dataset of none."""
+        return sorted((f for f in self.frames if f.frame_index is not None),
+                      key=lambda f: f.frame_index)
+
     def split(self, name: str) -> list[Frame]:
-        """A stored split's frames, or for `capture` (unless stored) every capture frame in
-        the order of its codes: the clip as filmed, train and val frames together."""
-        if name == CAPTURE and name not in self.splits:
-            capture = [f for f in self.frames if f.frame_index is not None]
-            if capture:
-                return sorted(capture, key=lambda f: f.frame_index)
+        """A stored split's frames, or for `capture` (unless stored) `capture()`: the clip
+        as filmed."""
+        if name == CAPTURE and name not in self.splits and self.capture():
+            return self.capture()
         if name not in self.splits:
-            have = sorted(self.splits) + ([CAPTURE] if CAPTURE not in self.splits and any(
-                f.frame_index is not None for f in self.frames) else [])
+            have = sorted(self.splits) + ([CAPTURE] if self.capture() else [])
             raise DatasetError(
                 f"{self.root / 'transforms.json'}: no split named {name!r} "
                 f"(have: {', '.join(have)})"
             )
         return [self.frames[i] for i in self.splits[name]]
 
+    def frame_rate(self) -> float | None:
+        """The clip's frames per second (`frame_rate` of the capture), for any of its
+        splits' videos; None where the frames store no times."""
+        return frame_rate(self.capture())
+
     def training_frames(self) -> list[Frame]:
         """The frames a model of this dataset learns from: the `train` split, or every
-        capture frame (one with a frame index) when there is none."""
+        capture frame when there is none."""
         train = self.split("train") if "train" in self.splits else []
-        return train or [f for f in self.frames if f.frame_index is not None]
+        return train or self.capture()
 
     def load_image(self, frame: Frame) -> np.ndarray:
         """(H, W, 3) float32 in [0, 1]."""
@@ -318,6 +329,7 @@ CAMERA_TOL = 1e-3  # ... and a camera's (files written by other tools in single 
 # control is about 0..1 (blendshapes) or a few units (FLAME), and a focal length a thousand
 # image widths is a 0.06-degree view. (1e30 trained silently on garbage; 1e308 overflowed.)
 MAX_METRES = 1e4
+MAX_SIZE = 4096  # pixels a side that `synth` and `preprocess` make frames of
 MAX_CONTROL = 1e3
 MAX_FOCAL_WIDTHS = 1e3
 

@@ -11,8 +11,8 @@ control no other item names: `all*=1.5` exaggerates the whole expression, `all*=
 keeps only the jaw's motion. With companions
 (data/companions.py) the controls the tracker reads with an edited one move by their
 regression on its change, frame by frame, as for keyframes; and as for keyframes, the
-edited controls are then clamped to the range the training frames cover unless
-`--extrapolate` (rendering/videos.py).
+edited controls are clamped to the range the training frames cover unless `--extrapolate`,
+before their companions follow (rendering/videos.py; the viewer's Edit box alike).
 """
 
 from __future__ import annotations
@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from flamenerf.data.companions import Companions
+from flamenerf.data.expression_range import ExpressionRange
 from flamenerf.errors import UserError
 from flamenerf.keyvalues import suggest
 from flamenerf.rendering.expressions import MAX_ABS
@@ -91,20 +92,29 @@ def parse_edits(items: list[str], names: list[str]) -> list[Edit]:
     return edits
 
 
-def apply_edits(values: np.ndarray, edits: list[Edit],
-                companions: Companions | None = None) -> tuple[np.ndarray, list[str]]:
-    """Expressions (T, E) with `edits` applied to every frame, and with `companions` their
-    companions moved by their regression on each frame's change (clipped to the training
-    range) -> (edited (T, E), the names of the companions that moved)."""
+def apply_edits(values: np.ndarray, edits: list[Edit], companions: Companions | None = None,
+                limits: ExpressionRange | None = None) -> tuple[np.ndarray, list[str], list[str]]:
+    """Expressions (T, E) with `edits` applied to every frame: each edited control clamped
+    to `limits` where given (the training range, unless the user asked to extrapolate),
+    then with `companions` their companions moved by their regression on each frame's
+    (clamped) change, within the training range. -> (edited (T, E), the names of the
+    companions that moved, one line per edited control that was clamped
+    (ExpressionRange.beyond))."""
     values = np.asarray(values, np.float32)
     new = {e.index: e.apply(values[:, e.index]) for e in edits}
+    over: list[str] = []
+    if limits is not None:
+        asked = np.tile(limits.lo, (len(values), 1))  # the unedited controls: in range
+        for k, v in new.items():
+            asked[:, k] = v
+        over = limits.beyond(asked)
+        new = {k: np.clip(v, limits.lo[k], limits.hi[k]) for k, v in new.items()}
     if companions is None:
         out = values.copy()
         for k, v in new.items():
             out[:, k] = v
-        return out, []
-    out = np.stack([companions.complete(values[t], {k: float(v[t]) for k, v in new.items()})
-                    for t in range(len(values))]).astype(np.float32)
+        return out, [], over
+    out = companions.complete_frames(values, new).astype(np.float32)
     moved = np.any(np.abs(out - values) > 1e-6, axis=0)
     moved[list(new)] = False
-    return out, [n for n, m in zip(companions.names, moved) if m]
+    return out, [n for n, m in zip(companions.names, moved) if m], over

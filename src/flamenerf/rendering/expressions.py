@@ -342,9 +342,8 @@ def _load_csv(path: Path, names: list[str]) -> tuple[np.ndarray, list[str]]:
 
 
 def from_split(ds, split: str, panel_hw: tuple[int, int] | None = None) -> ExpressionSequence:
-    """A dataset split's expressions, cameras, per-frame face meshes and images (`capture`:
-    the clip's frames in order, at its frame rate)."""
-    from flamenerf.data.dataset import frame_rate
+    """A dataset split's expressions, cameras, per-frame face meshes and images, at the
+    clip's frame rate (`capture`: the clip's frames in order)."""
     from flamenerf.images import resize_image
 
     frames = ds.split(split)
@@ -359,7 +358,7 @@ def from_split(ds, split: str, panel_hw: tuple[int, int] | None = None) -> Expre
         return (np.clip(img, 0, 1) * 255 + 0.5).astype(np.uint8)
 
     return ExpressionSequence(
-        ds.expression_matrix(frames), label=split, fps=frame_rate(frames),
+        ds.expression_matrix(frames), label=split, fps=ds.frame_rate(),
         cameras=np.stack([f.c2w for f in frames]),
         vertices=ds.face_vertices[[f.position for f in frames]], driving=driving)
 

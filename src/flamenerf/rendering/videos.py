@@ -33,7 +33,8 @@ class RenderOptions:
 
     Attributes:
         run: Run directory (made by `flamenerf train`).
-        out: Output video (default: RUN/renders/SOURCE_CAMERA.mp4).
+        out: Output video (default: RUN/renders/SOURCE_CAMERA.mp4, SOURCE_edited_CAMERA.mp4
+            with --edit).
         expressions: An expression file, name=value[,name=value] keyframes, or `tour`
             (each control the training frames show, in turn).
         split: Take expressions, cameras and face meshes from this dataset split
@@ -71,12 +72,13 @@ class RenderOptions:
             the clip).
         relative: With --drive on a dataset of the same expression model, transfer
             expressions relative to each subject's neutral face.
-        companions: Keyframes also move the controls the tracker reads with the named ones
-            (same part of the face and side, by a regression on the training frames:
+        companions: Keyframes, the tour and --edit also move the controls the tracker
+            reads with the named ones (same part of the face and side, by a regression on
+            the training frames:
             e.g. eyeBlinkLeft brings eyeLookDownLeft, without which the eye barely
             closes). ARKit-named datasets from `preprocess`; others have none.
-        extrapolate: Render keyframes, files and driving videos as given. By default each
-            control is clamped to the range the training frames cover (with a note): past
+        extrapolate: Render keyframes, files, driving videos and edits as given. By default
+            each control is clamped to the range the training frames cover (with a note): past
             it the model has learnt nothing, and a control pushed far beyond (a smile at 1
             on a clip whose largest is 0.3) breaks the face into patches.
         landmarker: face_landmarker.task for --drive (default: as for preprocess).
@@ -246,26 +248,33 @@ def keyframe_companions(opts: RenderOptions, ds: Dataset, names: list[str]):
 
 
 def within_training_range(opts: RenderOptions, ds: Dataset, names: list[str],
-                          values: np.ndarray, log=print, edited: list[int] = ()
-                          ) -> np.ndarray:
-    """What the user asked for (keyframes, a file, a driving video, the `edited` controls),
-    each control clamped to the training frames' range unless --extrapolate
-    (data/expression_range.py); a split's own expressions are taken as they are."""
+                          values: np.ndarray, log=print) -> np.ndarray:
+    """What the user asked for (keyframes, a file, a driving video), each control clamped
+    to the training frames' range unless --extrapolate (data/expression_range.py); a
+    split's own expressions are taken as they are (an edit of them is clamped by
+    `apply_edits`)."""
+    rng = training_limits(opts, ds, names)
+    if opts.split or rng is None:
+        return values
+    over = rng.beyond(values)
+    if over:
+        log(clamp_note(over))
+    return rng.clamp(values) if over else values
+
+
+def training_limits(opts: RenderOptions, ds: Dataset, names: list[str]):
+    """The training frames' range (data/expression_range.ExpressionRange) that what the
+    user asks for is clamped to; None with --extrapolate or another expression model."""
     from flamenerf.data.expression_range import training_range
 
-    if (opts.split and not edited) or opts.extrapolate or ds.expression_names != names:
-        return values
-    rng = training_range(ds)
-    asked = np.ones(len(names), bool)
-    if opts.split:  # only what the edit changed; the split's own values stay
-        asked[:] = False
-        asked[list(edited)] = True
-    over = rng.beyond(np.where(asked, values, rng.lo))
-    if not over:
-        return values
-    log(f"note: clamped to the range the training frames cover, where the model has learnt "
-        f"them (--extrapolate renders them as given): {'; '.join(over)}")
-    return np.where(asked, rng.clamp(values), values).astype(values.dtype)
+    if opts.extrapolate or ds.expression_names != names:
+        return None
+    return training_range(ds)
+
+
+def clamp_note(over: list[str]) -> str:
+    return ("note: clamped to the range the training frames cover, where the model has "
+            f"learnt them (--extrapolate renders them as given): {'; '.join(over)}")
 
 
 def held_expression(base: np.ndarray, num: int, label: str) -> X.ExpressionSequence:
@@ -457,12 +466,16 @@ def plan_render(opts: RenderOptions, log=print) -> RenderPlan:
     if edits:
         from flamenerf.rendering.edits import apply_edits
 
-        source, (values, moved) = values, apply_edits(values, edits, comp)
+        source = values
+        values, moved, over = apply_edits(values, edits, comp,
+                                          training_limits(opts, ds, names))
         label = f"{label}_edited"
         log(f"note: edited {', '.join(map(str, edits))} in every frame"
             + (f", moving with them {', '.join(moved)} (--no-companions to leave them)"
                if moved else ""))
-    values = within_training_range(opts, ds, names, values, log, [e.index for e in edits])
+        if over:
+            log(clamp_note(over))
+    values = within_training_range(opts, ds, names, values, log)
     T = head_transforms(opts, run, ds, n, log, seq)
     if seq.vertices is not None and not opts.head_pose and not edits:
         verts = seq.vertices[:n]  # a split's own (posed) meshes

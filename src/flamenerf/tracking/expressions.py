@@ -137,7 +137,7 @@ def transfer_to_subject(track: ExpressionTrack, subject: Dataset,
             f"{subject.root}: its expression model ({subject.expression_kind}, "
             f"{subject.expression_dim} values) differs from this track's ({track.kind}, "
             f"{len(track.names)}); use the same --face-model")
-    capture = [f for f in subject.frames if f.frame_index is not None]
+    capture = subject.capture()
     s_neutral, s_used = estimate_neutral(subject.expression_matrix(capture))
     if driver_neutral_frame is not None:
         if driver_neutral_frame not in (track.source_frames or []):

@@ -22,7 +22,7 @@ from typing import Annotated, Any, Literal
 import numpy as np
 import tyro
 
-from flamenerf.data.dataset import MAX_METRES
+from flamenerf.data.dataset import MAX_METRES, MAX_SIZE
 from flamenerf.errors import UserError
 from flamenerf.io import jsonable, write_json
 from flamenerf.tracking.clip import (MAX_ERROR, progress_bar, require_enough, solve_scene,
@@ -163,8 +163,8 @@ def preprocess_video(video: str | os.PathLike, out: str | os.PathLike,
 
 
 def check_options(o: PreprocessOptions) -> None:
-    if not 16 <= o.size <= 4096:
-        raise UserError(f"--size must be from 16 to 4096, got {o.size}")
+    if not 16 <= o.size <= MAX_SIZE:
+        raise UserError(f"--size must be from 16 to {MAX_SIZE}, got {o.size}")
     for name, v in (("--near", o.near), ("--far", o.far)):
         if v is not None and not 0 <= v <= MAX_METRES:
             raise UserError(f"{name} {v}: must be from 0 to {MAX_METRES:g} (metres)")

@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from flamenerf.config import is_int, is_number
 from flamenerf.errors import UserError, warn
 from flamenerf.io import atomic_write_bytes
 
@@ -160,6 +161,11 @@ class LegacyCheckpoint(UserError):
     """A checkpoint that only loads with pickle (flamenerf 0.1, or tampered with)."""
 
 
+class NewerCheckpoint(UserError):
+    """A checkpoint of a format this flamenerf does not read (a newer version's): never
+    skipped for an older one, which a resume would then train past and overwrite."""
+
+
 def load_checkpoint(path: Path) -> dict[str, Any]:
     """Load with weights_only=True; one-line errors for unreadable and pickle-needing
     files."""
@@ -214,14 +220,6 @@ def _first_sentence(e: BaseException) -> str:
 # damaged one (and load_latest falls back past it) instead of failing later with a traceback.
 
 
-def _is_int(v: Any) -> bool:
-    return isinstance(v, int) and not isinstance(v, bool)
-
-
-def _is_number(v: Any) -> bool:
-    return isinstance(v, (int, float)) and not isinstance(v, bool)
-
-
 def _is_tensor(v: Any, dtype: torch.dtype, shape: tuple[int, ...]) -> bool:
     return isinstance(v, torch.Tensor) and v.dtype == dtype and tuple(v.shape) == shape
 
@@ -234,19 +232,19 @@ def _is_generator_state(v: Any) -> bool:
 def _is_numpy_rng(v: Any) -> bool:
     return (isinstance(v, dict) and v.get("kind") == "MT19937"
             and _is_tensor(v.get("keys"), torch.int64, (624,))
-            and _is_int(v.get("pos")) and 0 <= v["pos"] <= 624
-            and _is_int(v.get("has_gauss")) and _is_number(v.get("gauss")))
+            and is_int(v.get("pos")) and 0 <= v["pos"] <= 624
+            and is_int(v.get("has_gauss")) and is_number(v.get("gauss")))
 
 
 def _is_python_rng(v: Any) -> bool:
     return (isinstance(v, dict) and v.get("version") == 3
             and _is_tensor(v.get("state"), torch.int64, (625,))
-            and (v.get("gauss_next") is None or _is_number(v.get("gauss_next"))))
+            and (v.get("gauss_next") is None or is_number(v.get("gauss_next"))))
 
 
 # key -> (test, what it must be); "shard_generators" only where a run had several shards
 _FIELDS = {
-    "step": (lambda v: _is_int(v) and v >= 0, "a step number (an int, at least 0)"),
+    "step": (lambda v: is_int(v) and v >= 0, "a step number (an int, at least 0)"),
     "model": (lambda v: isinstance(v, dict) and all(
         isinstance(k, str) and isinstance(t, torch.Tensor) for k, t in v.items()),
         "a dict of tensors"),
@@ -266,9 +264,14 @@ _FIELDS = {
 def _check_fields(st: dict[str, Any], path: Path) -> None:
     """A UserError (as for a damaged file) for the first field of the wrong kind."""
     fmt = st.get("format", FORMAT)  # absent in flamenerf 0.1's, which pickle refuses first
-    if not _is_int(fmt) or fmt != FORMAT:
-        shown = fmt if _is_int(fmt) else f"of type {type(fmt).__name__}"
-        raise UserError(f"{path}: not a readable checkpoint (format {shown}; this flamenerf "
+    if not is_int(fmt):
+        raise UserError(f"{path}: not a readable checkpoint (format of type "
+                        f"{type(fmt).__name__})")
+    if fmt > FORMAT:
+        raise NewerCheckpoint(f"{path}: checkpoint format {fmt} is newer than this flamenerf "
+                              f"reads ({FORMAT}); update flamenerf")
+    if fmt != FORMAT:
+        raise UserError(f"{path}: not a readable checkpoint (format {fmt}; this flamenerf "
                         f"reads format {FORMAT}: written by another version?)")
     for key, (ok, what) in _FIELDS.items():
         if key in st and not ok(st[key]):
@@ -297,7 +300,7 @@ def load_latest(run_dir: Path) -> tuple[Path, dict[str, Any]] | None:
     for p in reversed(cks):
         try:
             st = load_checkpoint(p)
-        except LegacyCheckpoint:
+        except (LegacyCheckpoint, NewerCheckpoint):
             raise
         except UserError as e:
             bad.append((p, e))

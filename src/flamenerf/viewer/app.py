@@ -328,22 +328,24 @@ class Viewer:
             self.set_expression(self.track_frames(t)[k], pause=False)
 
     def track_frames(self, t: Track) -> np.ndarray:
-        """A track's expressions (T, E) with the edit applied (with companions and within
-        the clip's range as the checkboxes say, as `render --edit` applies it)."""
-        if not self._edits:
+        """A track's expressions (T, E) with the edit applied as `render --edit` applies it
+        (companions and the clip's range as the checkboxes say). Called from the GUI and
+        the playback threads: the edit is part of the cache's key, and the result is the
+        caller's even when the other thread clears the cache meanwhile."""
+        edits = self._edits
+        if not edits:
             return t.frames
         comp = (self.companions if self.g_companions is not None and self.g_companions.value
                 else None)
-        key = (t.name, comp is not None, self.within())
-        if key not in self._edited:
+        limits = self.range if self.within() else None
+        key = (t.name, tuple(edits), comp is not None, limits is not None)
+        v = self._edited.get(key)
+        if v is None:
             from flamenerf.rendering.edits import apply_edits
 
-            v, _ = apply_edits(t.frames, self._edits, comp)
-            if self.within():
-                cols = [e.index for e in self._edits]
-                v[:, cols] = self.range.clamp(v)[:, cols]
+            v = apply_edits(t.frames, edits, comp, limits)[0]
             self._edited[key] = v
-        return self._edited[key]
+        return v
 
     def _on_track_change(self, event) -> None:
         self.pause()

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from flamenerf.data.dataset import CAPTURE, Dataset, frame_rate
+from flamenerf.data.dataset import Dataset
 
 
 @dataclass
@@ -28,9 +28,8 @@ class Track:
 def dataset_tracks(ds: Dataset) -> list[Track]:
     """`capture`: every frame of the video in order (train + val); then each split."""
     out: list[Track] = []
-    capture = (ds.split(CAPTURE) if any(f.frame_index is not None for f in ds.frames)
-               else [])
-    fps = frame_rate(capture) or 30.0
+    capture = ds.capture()
+    fps = ds.frame_rate() or 30.0
     if capture:
         out.append(Track(f"capture ({len(capture)} frames)", ds.expression_matrix(capture), fps))
     for name in sorted(ds.splits, key=lambda s: (s not in ("train", "val"), s)):
