@@ -303,6 +303,8 @@ def test_stale_synth_folders_are_removed_on_the_next_start(tmp_path, capsys):
     (["train", "{data}", "--out", "{tmp}/r", "--downscale", "nan"], ["--downscale: must be"]),
     (["eval", "{run}", "--fit-lr", "-1"], ["--fit-lr -1.0: must be positive"]),
     (["eval", "{run}", "--seed", "-1"], ["--seed -1"]),
+    (["eval", "{run}", "--split", "capture"], ["--split capture: holds the training frames"]),
+    (["compare", "{run}", "--out", "{tmp}/afile/x.md"], ["afile: is a file"]),
     (["synth", "{tmp}/s", "--seed", "-1"], ["--seed -1"]),
     (["demo", "--out", "{tmp}/d", "--train-size", "0"], ["--train-size 0", "--size"]),
     (["demo", "--out", "{tmp}/d", "--steps", "0"], ["--steps 0"]),

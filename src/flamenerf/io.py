@@ -36,7 +36,10 @@ def atomic_write_bytes(path: str | os.PathLike, write: Callable[[BinaryIO], obje
     """Call `write(f)` on a temporary file in `path`'s directory, then rename it over `path`."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=temp_prefix(path.name), dir=path.parent)
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=temp_prefix(path.name), dir=path.parent)
+    except OSError as e:  # name the file asked for, not our temporary's name
+        raise OSError(e.errno, e.strerror, str(path)) from None
     try:
         with os.fdopen(fd, "wb") as f:
             write(f)

@@ -44,6 +44,10 @@ def compare(
         raise UserError(f"--out {out}: is a folder; give a file name")
     if out is not None and out.exists() and not overwrite:
         raise UserError(f"{out}: already exists (pass --overwrite to replace it)")
+    if out is not None:  # before the table is printed, not after
+        from flamenerf.outdir import writable_dir
+
+        writable_dir(out.parent, "table")
     results = [load_eval(r) for r in runs]
     table = (compare_latex if latex else compare_markdown)(results, labels)
     print(table, end="")
