@@ -9,7 +9,7 @@ import pytest
 from flamenerf.data.companions import Companions
 from flamenerf.data.expression_range import ExpressionRange
 from flamenerf.errors import UserError
-from flamenerf.rendering.edits import apply_edits, parse_edits
+from flamenerf.rendering.edits import apply_edits, describe, parse_edits
 from flamenerf.rendering.videos import RenderOptions
 
 NAMES = ["jawOpen", "mouthSmileLeft", "mouthUpperUpLeft"]
@@ -53,7 +53,20 @@ def test_companions_follow_each_frames_change():
                                ExpressionRange.of(NAMES, train))
     np.testing.assert_allclose(out[:, 1], [0.7, 0.8], atol=1e-6)
     np.testing.assert_allclose(out[:, 2], v[:, 2] + 0.5 * (out[:, 1] - v[:, 1]), atol=1e-3)
-    assert len(over) == 1 and over[0].startswith("mouthSmileLeft 1.00 asked, 0.80 rendered")
+    # said per control, with the frames it held back
+    assert over == ["mouthSmileLeft in 1 of 2 frames (asked up to 1.00; the clip: 0.00-0.80)"]
+
+
+def test_edits_as_people_type_them():
+    """Spaces around the operator (a shell makes three words of them), a pair's stem for
+    both sides, a name in another case, `all` without MediaPipe's `_neutral`."""
+    names = ["jawOpen", "mouthSmileLeft", "mouthSmileRight", "_neutral"]
+    assert [str(e) for e in parse_edits(["mouthSmileLeft", "+=", "0.3"], names)] == [
+        "mouthSmileLeft+=0.3"]
+    assert [str(e) for e in parse_edits(["mouthSmile+=0.3 jawopen=-0.2"], names)] == [
+        "mouthSmileLeft+=0.3", "mouthSmileRight+=0.3", "jawOpen=-0.2"]
+    assert [e.name for e in parse_edits(["all*=2"], names)] == names[:3]
+    assert describe(["mouthSmile += 0.3,", "all*=0"]) == "mouthSmile+=0.3, all*=0"
 
 
 @pytest.mark.parametrize("item,message", [

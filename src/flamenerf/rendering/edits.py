@@ -30,8 +30,11 @@ from flamenerf.keyvalues import suggest
 from flamenerf.rendering.expressions import MAX_ABS
 
 OPS = ("+=", "-=", "*=", "=")
-ALL = "all"  # every control no other item names
-_ITEM = re.compile(r"^\s*(?P<name>[^=+*\s-][^=+*\s]*?)\s*(?P<op>\+=|-=|\*=|=)\s*(?P<amount>\S+)\s*$")
+ALL = "all"  # every control no other item names (not MediaPipe's `_neutral`)
+# one edit: a name, an operator and an amount, with or without spaces between them; items
+# are separated by commas or spaces (a shell splits `jawOpen += 0.3` into three words)
+_ITEM = re.compile(r"(?P<name>[^\s,=+*-][^\s,=+*]*?)\s*(?P<op>\+=|-=|\*=|=)\s*"
+                   r"(?P<amount>[^\s,]+)")
 
 
 @dataclass(frozen=True)
@@ -54,42 +57,63 @@ class Edit:
 
 
 def parse_edits(items: list[str], names: list[str]) -> list[Edit]:
-    """`--edit` values, each `name=V`, `name+=D`, `name-=D` or `name*=S`, comma-separated
-    within an item -> edits in the order given; a one-line UserError for anything else."""
-    index = {n: i for i, n in enumerate(names)}
+    """`--edit` values, each `name=V`, `name+=D`, `name-=D` or `name*=S`, separated by
+    commas or spaces -> edits in the order given; a one-line UserError for anything else.
+    A name is a control's (in any case), `all`, or a pair's stem (`mouthSmile` for
+    mouthSmileLeft and mouthSmileRight)."""
+    text = " ".join(items)
     edits: list[Edit] = []
     every: tuple[str, float] | None = None  # `all`'s operation
-    for item in items:
-        for part in item.split(","):
-            if not part.strip():
-                continue
-            m = _ITEM.match(part)
-            if not m:
-                raise UserError(f"--edit {item!r}: expected name=V, name+=D, name-=D or "
-                                f"name*=S, got {part.strip()!r}")
-            name, op = m["name"], m["op"]
-            if name not in index and name != ALL:
-                raise UserError(f"--edit {item!r}: unknown control {name!r}"
-                                f"{suggest(name, names)} (one of: {', '.join(names)})")
-            try:
-                amount = float(m["amount"])
-            except ValueError:
-                raise UserError(f"--edit {item!r}: {m['amount']!r} is not a number") from None
-            if not math.isfinite(amount) or abs(amount) > MAX_ABS:
-                raise UserError(f"--edit {item!r}: {name}'s amount must be finite and at "
-                                f"most {MAX_ABS:g} in size")
-            if any(e.name == name for e in edits) or (name == ALL and every is not None):
+    rest = _ITEM.sub(" ", text).replace(",", " ").strip()
+    if rest:
+        raise UserError(f"--edit {text!r}: expected name=V, name+=D, name-=D or name*=S, "
+                        f"got {rest.split()[0]!r}")
+    for m in _ITEM.finditer(text):
+        op = m["op"]
+        try:
+            amount = float(m["amount"])
+        except ValueError:
+            raise UserError(f"--edit {m[0]!r}: {m['amount']!r} is not a number") from None
+        if not math.isfinite(amount) or abs(amount) > MAX_ABS:
+            raise UserError(f"--edit {m[0]!r}: the amount must be finite and at most "
+                            f"{MAX_ABS:g} in size")
+        if m["name"] == ALL and ALL not in names:
+            if every is not None:
+                raise UserError(f"--edit: {ALL} is edited twice (one edit a control)")
+            every = (op, amount)
+            continue
+        for name in _controls(m["name"], names, m[0]):
+            if any(e.name == name for e in edits):
                 raise UserError(f"--edit: {name} is edited twice (one edit a control)")
-            if name == ALL and name not in index:
-                every = (op, amount)
-            else:
-                edits.append(Edit(index[name], name, op, amount))
+            edits.append(Edit(names.index(name), name, op, amount))
     if every is not None:
         named = {e.name for e in edits}
-        edits += [Edit(j, n, *every) for j, n in enumerate(names) if n not in named]
+        edits += [Edit(j, n, *every) for j, n in enumerate(names)
+                  if n not in named and not n.startswith("_")]
     if not edits:
         raise UserError("--edit: give at least one edit, e.g. mouthSmileLeft+=0.3")
     return edits
+
+
+def _controls(name: str, names: list[str], item: str) -> list[str]:
+    """The controls an edit's `name` means: itself, the one of that name in another case,
+    or both sides of a pair's stem; else a one-line UserError that suggests the nearest."""
+    if name in names:
+        return [name]
+    folded = [n for n in names if n.lower() == name.lower()]
+    if len(folded) == 1:
+        return folded
+    sides = [name + side for side in ("Left", "Right")]
+    if all(n in names for n in sides):
+        return sides
+    close = suggest(name, names)
+    raise UserError(f"--edit {item!r}: unknown control {name!r}{close}"
+                    + ("" if close else f" (one of: {', '.join(names)})"))
+
+
+def describe(items: list[str]) -> str:
+    """The edit as typed, tidied: `mouthSmile+=0.3, jawOpen*=0`."""
+    return ", ".join(m[0].replace(" ", "") for m in _ITEM.finditer(" ".join(items)))
 
 
 def apply_edits(values: np.ndarray, edits: list[Edit], companions: Companions | None = None,
@@ -104,10 +128,7 @@ def apply_edits(values: np.ndarray, edits: list[Edit], companions: Companions | 
     new = {e.index: e.apply(values[:, e.index]) for e in edits}
     over: list[str] = []
     if limits is not None:
-        asked = np.tile(limits.lo, (len(values), 1))  # the unedited controls: in range
-        for k, v in new.items():
-            asked[:, k] = v
-        over = limits.beyond(asked)
+        over = _clamped(new, limits)
         new = {k: np.clip(v, limits.lo[k], limits.hi[k]) for k, v in new.items()}
     if companions is None:
         out = values.copy()
@@ -118,3 +139,21 @@ def apply_edits(values: np.ndarray, edits: list[Edit], companions: Companions | 
     moved = np.any(np.abs(out - values) > 1e-6, axis=0)
     moved[list(new)] = False
     return out, [n for n, m in zip(companions.names, moved) if m], over
+
+
+def _clamped(new: dict[int, np.ndarray], limits: ExpressionRange, tol: float = 0.02,
+             shown: int = 6) -> list[str]:
+    """One line per edited control that leaves the range in some frames (by more than
+    `tol`), saying in how many: an edit asks for a value per frame, and one side of a pair
+    may be held back in every frame while the other never is."""
+    lines = []
+    for k, v in new.items():
+        lo, hi = limits.lo[k], limits.hi[k]
+        out = (v > hi + tol) | (v < lo - tol)
+        if out.any():
+            far = v[out][np.argmax(np.abs(v[out] - np.clip(v[out], lo, hi)))]
+            lines.append(f"{limits.names[k]} in {int(out.sum())} of {len(v)} frames (asked "
+                         f"up to {far:.2f}; the clip: {lo:.2f}-{hi:.2f})")
+    if len(lines) > shown:
+        lines = lines[:shown] + [f"and {len(lines) - shown} more controls"]
+    return lines

@@ -44,8 +44,9 @@ class RenderOptions:
             mouthSmileLeft+=0.3,mouthSmileRight+=0.3`: `name=V` sets, `name+=D` /
             `name-=D` raise or lower, `name*=S` scales (0 stills it, 1.5 exaggerates);
             `all` is every control no other item names (`all*=0,jawOpen*=1`: only the
-            jaw moves). Companions move along and the edited controls are clamped to the
-            training range as for keyframes.
+            jaw moves), a pair's stem both sides (`mouthSmile+=0.3`). Companions move
+            along and the edited controls are clamped to the training range in each frame
+            as for keyframes (a note says in how many).
         camera: static, orbit, spiral, dolly, a JSON file of poses, or auto.
         head_pose: Head pose relative to frame 0's, independent of --camera: `drive` (the
             driving video's head turns, with --drive), keyframes
@@ -324,7 +325,8 @@ def output_paths(opts: RenderOptions, source: str, camera: str) -> dict[str, Pat
         paths["sbs"] = out.with_name(f"{out.stem}_sbs.mp4")
     for p in paths.values():
         if p.exists() and not opts.overwrite:
-            raise UserError(f"{p}: already exists (pass --overwrite to replace it)")
+            raise UserError(f"{p}: already exists (pass --overwrite to replace it, or --out "
+                            "to name another)")
         if p.is_dir():
             raise UserError(f"{p}: is a folder, not a video file")
     return paths
@@ -464,13 +466,16 @@ def plan_render(opts: RenderOptions, log=print) -> RenderPlan:
             f"its first controls (--frames sets the tour's whole length)")
     values, poses, label = seq.values[:n], poses[:n], seq.label
     if edits:
-        from flamenerf.rendering.edits import apply_edits
+        from flamenerf.rendering.edits import apply_edits, describe
 
         source = values
         values, moved, over = apply_edits(values, edits, comp,
                                           training_limits(opts, ds, names))
         label = f"{label}_edited"
-        log(f"note: edited {', '.join(map(str, edits))} in every frame"
+        held = not (opts.split or opts.drive or opts.expressions)
+        log(f"note: edited {describe(opts.edit)} in every frame"
+            + (" of frame 0's expression, held (give --split capture, --drive or "
+               "--expressions for a sequence to edit)" if held else "")
             + (f", moving with them {', '.join(moved)} (--no-companions to leave them)"
                if moved else ""))
         if over:

@@ -311,7 +311,7 @@ class Viewer:
         """Edit every track's frames (`render --edit`'s items; empty: none); a mistyped
         edit is shown under the box and leaves the last good one in force."""
         from flamenerf.errors import UserError
-        from flamenerf.rendering.edits import parse_edits
+        from flamenerf.rendering.edits import describe, parse_edits
 
         items = [text.replace(";", ",")] if text.strip() else []
         try:
@@ -320,8 +320,7 @@ class Viewer:
             self.g_edit_note.content = f"*{e}*"
             return
         self._edited.clear()
-        self.g_edit_note.content = (f"editing {', '.join(map(str, self._edits))}"
-                                    if self._edits else "")
+        self.g_edit_note.content = f"editing {describe(items)}" if self._edits else ""
         t = self.current_track()
         if t is not None:
             k = int(min(max(self.g_frame.value, 0), t.num_frames - 1))
