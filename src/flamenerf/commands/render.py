@@ -24,8 +24,8 @@ def render(opts: Annotated[RenderOptions, tyro.conf.OmitArgPrefixes, tyro.conf.a
     `capture`: the clip as filmed); --drive VIDEO (tracked like `flamenerf track`). Named
     controls are mapped onto the run's; missing ones are 0. Without any, frame 0's
     expression is held. --edit changes controls in every frame of the source: `--split
-    capture --edit mouthSmileLeft+=0.3,mouthSmileRight+=0.3 --side-by-side` is the clip
-    with a broader smile, beside the frames as filmed.
+    capture --edit mouthSmile+=0.3 --side-by-side` is the clip with a broader smile (both
+    sides), beside the frames as filmed.
 
     Camera paths (--camera): static (frame 0's camera), orbit (around the head, at the
     capture's distance and height), spiral, dolly, or a JSON file of camera-to-world

@@ -215,7 +215,7 @@ class Viewer:
             self.g_loop = gui.add_checkbox("Loop", True)
             self.g_edit = gui.add_text(
                 "Edit", "", hint="Changes every frame of the track, as `render --edit` does: "
-                "e.g. mouthSmileLeft+=0.3,mouthSmileRight+=0.3 (the capture, smiling more), "
+                "e.g. mouthSmile+=0.3 (both sides: the capture, smiling more), "
                 "jawOpen*=0 (mouth still), all*=1.5 (every control exaggerated). Empty: the "
                 "track as it is.")
             self.g_edit_note = gui.add_markdown("")
