@@ -250,8 +250,13 @@ def _register(frames, opts: BackgroundOptions, tmp: Path, focal: float | None,
         if change is not None and change < opts.still_change:
             # nothing to register, and the background's pixels stay put: a still camera
             # (were it moving, a wall this plain would look the same from anywhere near)
-            return _empty(ids, "still", f"{why}, and its pixels do not change between frames "
-                          f"(mean |Δ| {change:.1f}/255)", **kw)
+            # said as the finding it is, not as the failure to register that led to it
+            return _empty(ids, "still", f"the background's pixels do not change between "
+                          f"frames (mean |Δ| {change:.1f}/255), so the camera stood still; "
+                          f"too little texture to register ({features_median:.0f} features per "
+                          f"frame outside the person, median), which a still camera does not "
+                          f"need",
+                          **kw)
         return _empty(ids, "failed", why, **kw)
 
     matching = pycolmap.FeatureMatchingOptions()
