@@ -145,8 +145,9 @@ class Dataset:
     def split(self, name: str) -> list[Frame]:
         """A stored split's frames, or for `capture` (unless stored) `capture()`: the clip
         as filmed."""
-        if name == CAPTURE and name not in self.splits and self.capture():
-            return self.capture()
+        capture = self.capture() if name == CAPTURE and name not in self.splits else []
+        if capture:
+            return capture
         if name not in self.splits:
             have = sorted(self.splits) + ([CAPTURE] if self.capture() else [])
             raise DatasetError(
@@ -329,9 +330,9 @@ CAMERA_TOL = 1e-3  # ... and a camera's (files written by other tools in single 
 # control is about 0..1 (blendshapes) or a few units (FLAME), and a focal length a thousand
 # image widths is a 0.06-degree view. (1e30 trained silently on garbage; 1e308 overflowed.)
 MAX_METRES = 1e4
-MAX_SIZE = 4096  # pixels a side that `synth` and `preprocess` make frames of
 MAX_CONTROL = 1e3
 MAX_FOCAL_WIDTHS = 1e3
+MAX_SIZE = 4096  # pixels a side that `synth` and `preprocess` make frames of
 
 
 def _face_landmarks(meta: dict, where: str, num_vertices: int) -> dict[str, list[int]] | None:

@@ -24,10 +24,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from flamenerf.data.companions import Companions
+from flamenerf.data.dataset import MAX_CONTROL
 from flamenerf.data.expression_range import ExpressionRange
 from flamenerf.errors import UserError
 from flamenerf.keyvalues import suggest
-from flamenerf.rendering.expressions import MAX_ABS
 
 OPS = ("+=", "-=", "*=", "=")
 ALL = "all"  # every control no other item names (not MediaPipe's `_neutral`)
@@ -74,9 +74,9 @@ def parse_edits(items: list[str], names: list[str]) -> list[Edit]:
             amount = float(m["amount"])
         except ValueError:
             raise UserError(f"--edit {m[0]!r}: {m['amount']!r} is not a number") from None
-        if not math.isfinite(amount) or abs(amount) > MAX_ABS:
+        if not math.isfinite(amount) or abs(amount) > MAX_CONTROL:
             raise UserError(f"--edit {m[0]!r}: the amount must be finite and at most "
-                            f"{MAX_ABS:g} in size")
+                            f"{MAX_CONTROL:g} in size")
         if m["name"] == ALL and ALL not in names:
             if every is not None:
                 raise UserError(f"--edit: {ALL} is edited twice (one edit a control)")
@@ -122,8 +122,8 @@ def apply_edits(values: np.ndarray, edits: list[Edit], companions: Companions | 
     to `limits` where given (the training range, unless the user asked to extrapolate),
     then with `companions` their companions moved by their regression on each frame's
     (clamped) change, within the training range. -> (edited (T, E), the names of the
-    companions that moved, one line per edited control that was clamped
-    (ExpressionRange.beyond))."""
+    companions that moved, one line per edited control that was clamped, with the frames
+    it was clamped in)."""
     values = np.asarray(values, np.float32)
     new = {e.index: e.apply(values[:, e.index]) for e in edits}
     over: list[str] = []

@@ -40,7 +40,6 @@ from flamenerf.keyvalues import parse_assignments, suggest
 
 FILE_SUFFIXES = (".json", ".npy", ".csv")
 KEYFRAME_FRAMES = 60  # a keyframe sequence's length unless --frames says
-MAX_ABS = 1e3  # the largest expression value taken (a score is at most 1, FLAME's ~±5)
 # the tour's controls and how far it takes them: a control whose 99th percentile in the
 # training frames is at least MIN_SPAN above its 1st, to whichever of the two is farther
 # from the base (signed controls such as FLAME's go either way). Not eval's 5th-95th
@@ -275,12 +274,15 @@ def load_file(path: Path, names: list[str]) -> ExpressionSequence:
 
 
 def bounded(values: np.ndarray, where: str) -> np.ndarray:
-    """values, unless one is beyond ±MAX_ABS (a one-line UserError naming `where`): no
-    expression model means such a value, and float32 arithmetic turns it into inf."""
+    """values, unless one is beyond ±MAX_CONTROL (a one-line UserError naming `where`), as
+    datasets' expressions are refused: no expression model means such a value, and float32
+    arithmetic turns it into inf."""
+    from flamenerf.data.dataset import MAX_CONTROL
+
     v = np.asarray(values)
-    if v.size and float(np.abs(v).max()) > MAX_ABS:
+    if v.size and float(np.abs(v).max()) > MAX_CONTROL:
         raise UserError(f"{where}: a value of {float(np.abs(v).max()):.3g} (expression values "
-                        f"are at most {MAX_ABS:g} in size)")
+                        f"are at most {MAX_CONTROL:g} in size)")
     return values
 
 
