@@ -62,6 +62,8 @@ DAMAGE = {
     "python state": rng_setter("python_rng", "state", torch.zeros(7, dtype=torch.int64)),
     "optimizer": setter("optimizer", "x"),
     "shard_generators": setter("shard_generators", [torch.zeros(3, dtype=torch.uint8)]),
+    "a NaN weight": lambda st: next(t for t in st["model"].values()
+                                    if t.is_floating_point()).view(-1).__setitem__(0, float("nan")),
 }
 
 

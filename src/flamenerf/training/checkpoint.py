@@ -277,6 +277,12 @@ def _check_fields(st: dict[str, Any], path: Path) -> None:
         if key in st and not ok(st[key]):
             raise UserError(f"{path}: not a readable checkpoint (damaged: '{key}' is not "
                             f"{what})")
+    # a NaN or inf weight renders a flat grey image everywhere it is read; training stops
+    # before saving one (its loss check), so such a file was damaged or written elsewhere
+    for name, t in st["model"].items():
+        if t.is_floating_point() and not bool(torch.isfinite(t).all()):
+            raise UserError(f"{path}: not a readable checkpoint (damaged: the model's "
+                            f"'{name}' holds NaN or infinite values)")
 
 
 def _damaged_member(path: Path) -> str | None:
