@@ -110,6 +110,13 @@ def text_strip(text: str, width: int, height: int = 14, align: str = "center") -
     return np.asarray(im, np.float32) / 255
 
 
+def titled_row(panels: list[np.ndarray], titles: list[str], gap: int = 0) -> np.ndarray:
+    """Panels of one height side by side (`hstack`), each under its title."""
+    panels = [_as_float_rgb(p) for p in panels]
+    heads = hstack([text_strip(t, p.shape[1]) for t, p in zip(titles, panels)], gap)
+    return vstack([heads, hstack(panels, gap)])
+
+
 def panel_rows(expr: np.ndarray, max_rows: int, ref: np.ndarray | None = None
                ) -> tuple[list[int], np.ndarray]:
     """The controls an expression panel shows, in the model's order: those that differ

@@ -9,7 +9,7 @@ import pytest
 from flamenerf.data.companions import Companions
 from flamenerf.data.expression_range import ExpressionRange
 from flamenerf.errors import UserError
-from flamenerf.rendering.edits import apply_edits, describe, parse_edits
+from flamenerf.rendering.edits import apply_edits, describe, file_tag, parse_edits
 from flamenerf.rendering.videos import RenderOptions
 
 NAMES = ["jawOpen", "mouthSmileLeft", "mouthUpperUpLeft"]
@@ -83,6 +83,13 @@ def test_bad_edits_say_what_is_wrong(item, message):
         parse_edits([item], NAMES)
 
 
+def test_each_edit_gets_its_own_file_name():
+    assert file_tag(["mouthSmile += 0.3,", "jawOpen*=0"]) == "mouthSmile+0.3_jawOpenx0"
+    assert file_tag(["browInnerUp-=0.2 eyeBlinkLeft=1"]) == "browInnerUp-0.2_eyeBlinkLeft=1"
+    assert file_tag(["all*=1.5"]) != file_tag(["all*=2"])
+    assert file_tag([",".join(f"c{i}+=0.1" for i in range(20))]) == "edited"  # too long
+
+
 def test_capture_edited_beside_its_frames(toy_run, tmp_path, monkeypatch):
     """--split capture --edit: the train and val frames in the clip's order, the edited
     control changed (clamped to the training range) and the others as tracked; the prior's
@@ -113,7 +120,7 @@ def test_capture_edited_beside_its_frames(toy_run, tmp_path, monkeypatch):
                          device="cpu", companions=False)
     plan = videos.plan_render(opts, log=notes.append)
     summary = videos.render_videos(opts, log=lambda _: None)
-    assert summary.paths["rgb"].name == "capture_edited_split.mp4"
+    assert summary.paths["rgb"].name == "capture_jawOpen+0.3_split.mp4"
     assert len(read_frames(summary.paths["sbs"])) == 6
     want = np.minimum(tracked[:, jaw] + 0.3, hi)
     np.testing.assert_allclose(plan.values[:, jaw], want, atol=1e-6)

@@ -17,10 +17,13 @@ def test_orbit_with_depth_and_side_by_side(toy_run, tmp_path):
     out = tmp_path / "v.mp4"
     render(RenderOptions(toy_run, out=out, expressions=["jawOpen=1"], camera="orbit", frames=5,
                          depth=True, side_by_side=True, device="cpu"))
-    for name, min_w in (("v.mp4", 16), ("v_depth.mp4", 16), ("v_sbs.mp4", 3 * 16)):
+    for name, h, min_w in (("v.mp4", 16, 16), ("v_depth.mp4", 16, 16),
+                           ("v_sbs.mp4", 16 + 14, 3 * 16)):  # the panels under their titles
         frames = read_frames(tmp_path / name)
         assert len(frames) == 5, name
-        assert frames[0].shape[0] == 16 and frames[0].shape[1] >= min_w
+        assert frames[0].shape[0] == h and frames[0].shape[1] >= min_w
+    titles = read_frames(tmp_path / "v_sbs.mp4")[0][:14].astype(int)
+    assert np.median(titles) > 200 and titles.min() < 100  # black text on white
     assert sorted(p.name for p in tmp_path.iterdir()) == ["v.mp4", "v_depth.mp4", "v_sbs.mp4"]
     # the orbit moves the camera, so frames differ
     f = read_frames(out)

@@ -112,6 +112,11 @@ class StillCamera:
             return self.head is None and head is None
         return torch.equal(self.head, head)
 
+    def same_codes(self, deform_code: torch.Tensor, appearance_code: torch.Tensor) -> bool:
+        """Whether these codes are this renderer's."""
+        return (torch.equal(self.args[3], deform_code)
+                and torch.equal(self.args[4], appearance_code))
+
     def pixels(self, expression: torch.Tensor, face_mask: np.ndarray) -> np.ndarray | None:
         """The flat pixels the next image must render; None: all of them."""
         if self.last is None or not self.args[0].expression_confined:

@@ -116,6 +116,20 @@ def describe(items: list[str]) -> str:
     return ", ".join(m[0].replace(" ", "") for m in _ITEM.finditer(" ".join(items)))
 
 
+_FILE_OPS = {"+=": "+", "-=": "-", "*=": "x", "=": "="}  # `*` is a shell's wildcard
+
+
+def file_tag(items: list[str], longest: int = 60) -> str:
+    """The edit as a part of a file name, so that two edits of one clip get two videos:
+    `mouthSmile+0.3_jawOpenx0` for `mouthSmile+=0.3, jawOpen*=0`; `edited` where that
+    would be longer than `longest` characters or hold a character a file name should not."""
+    tag = "_".join(f"{m['name']}{_FILE_OPS[m['op']]}{m['amount']}"
+                   for m in _ITEM.finditer(" ".join(items)))
+    if not tag or len(tag) > longest or not re.fullmatch(r"[\w.+=-]+", tag):
+        return "edited"
+    return tag
+
+
 def apply_edits(values: np.ndarray, edits: list[Edit], companions: Companions | None = None,
                 limits: ExpressionRange | None = None) -> tuple[np.ndarray, list[str], list[str]]:
     """Expressions (T, E) with `edits` applied to every frame: each edited control clamped

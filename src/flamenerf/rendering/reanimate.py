@@ -32,23 +32,29 @@ def render_sequence(model: FlameNeRF, ds: Dataset, intr: Intrinsics, cameras: np
                     heads: np.ndarray | None = None, settings: RenderSettings = FAST
                     ) -> Iterator[RenderedFrame]:
     """cameras (T, 4, 4); expressions (T, E); vertices (T, V, 3) world (posed by the
-    frame's head pose), or (V, 3) for one mesh for every frame (frame 0's); ω (code_dim,),
-    φ (appearance_dim,); heads (T, 6): each frame's head twist (data/head_pose.py), or
-    None for the head at frame 0's pose. The inference path by default: ω is fixed, so the
-    warp's bake serves every frame.
+    frame's head pose), or (V, 3) for one mesh for every frame (frame 0's); ω (code_dim,)
+    and φ (appearance_dim,) for every frame, or (T, code_dim) and (T, appearance_dim):
+    each frame's own (`Run.clip_codes`); heads (T, 6): each frame's head twist
+    (data/head_pose.py), or None for the head at frame 0's pose. The inference path by
+    default: with one ω the warp's bake serves every frame (`settings.warp_grid`; give 0
+    with a code per frame, which would bake each).
 
-    A frame whose camera and head pose are the previous frame's (a still camera: `render`'s
-    default for a drive or keyframes) renders only the pixels inside the prior's silhouette
-    of either frame and keeps the others, which β does not reach (`expression_confined`)."""
+    A frame whose camera, head pose and codes are the previous frame's (a still camera:
+    `render`'s default for a drive or keyframes) renders only the pixels inside the prior's
+    silhouette of either frame and keeps the others, which β does not reach
+    (`expression_confined`)."""
     T = len(cameras)
-    still = None  # the renderer of the current camera and head pose
+    per_frame = omega.dim() == 2
+    still = None  # the renderer of the current camera, head pose and codes
     for i in range(T):
         verts = vertices[i] if vertices.ndim == 3 else vertices
         mask = prior_mask(ds, verts, cameras[i], intr, dilate_px)
         beta = torch.as_tensor(np.asarray(expressions[i], np.float32))
         head = None if heads is None else torch.as_tensor(np.asarray(heads[i], np.float32))
-        if still is None or not still.same_view(intr, cameras[i], head):
-            still = StillCamera(model, intr, np.asarray(cameras[i]).copy(), omega, phi, head,
+        w, a = (omega[i], phi[i]) if per_frame else (omega, phi)
+        if (still is None or not still.same_view(intr, cameras[i], head)
+                or not still.same_codes(w, a)):
+            still = StillCamera(model, intr, np.asarray(cameras[i]).copy(), w, a, head,
                                 chunk, settings)
         out = still(beta, mask)
         yield RenderedFrame(out["rgb"].numpy(), out["depth"].numpy(), out["acc"].numpy(), mask)

@@ -33,8 +33,8 @@ class RenderOptions:
 
     Attributes:
         run: Run directory (made by `flamenerf train`).
-        out: Output video (default: RUN/renders/SOURCE_CAMERA.mp4, SOURCE_edited_CAMERA.mp4
-            with --edit).
+        out: Output video (default: RUN/renders/SOURCE_CAMERA.mp4; with --edit
+            SOURCE_EDIT_CAMERA.mp4, e.g. capture_mouthSmile+0.3_split.mp4).
         expressions: An expression file, name=value[,name=value] keyframes, or `tour`
             (each control the training frames show, in turn).
         split: Take expressions, cameras and face meshes from this dataset split
@@ -47,6 +47,11 @@ class RenderOptions:
             jaw moves), a pair's stem both sides (`mouthSmile+=0.3`). Companions move
             along and the edited controls are clamped to the training range in each frame
             as for keyframes (a note says in how many).
+        codes: Each frame's deformation and appearance codes: `own` (with --split of the
+            run's own dataset: a training frame's trained codes, a held-out frame's
+            between its neighbours', so the clip's own small motions and light stay),
+            `first` (frame 0's for every frame, as every other source renders), or `auto`
+            (own with --split of the run's dataset, else first).
         camera: static, orbit, spiral, dolly, a JSON file of poses, or auto.
         head_pose: Head pose relative to frame 0's, independent of --camera: `drive` (the
             driving video's head turns, with --drive), keyframes
@@ -64,8 +69,9 @@ class RenderOptions:
         expression_base: What keyframes start from and return to, and which controls
             they leave unchanged: frame 0's expression (reference) or all zeros.
         depth: Also write a colour-mapped depth video.
-        side_by_side: Also write driving | result | depth (the expression as bars when
-            there is no driving image).
+        side_by_side: Also write driving | result | depth, each under its title (the
+            filmed frame with --split, the expression as bars when there is no driving
+            image).
         dataset: Dataset with the face mesh and cameras (default: the run's own).
         dilate_px: Dilation of the prior's mask in dataset pixels (default: the
             dataset's own, estimated from its masks where it does not store one).
@@ -104,6 +110,7 @@ class RenderOptions:
     split: str | None = None
     drive: Path | None = None
     edit: list[str] | None = None
+    codes: Literal["auto", "first", "own"] = "auto"
     camera: str = "auto"
     head_pose: list[str] | None = None
     frames: int | None = None
@@ -148,6 +155,9 @@ class RenderOptions:
                             f"{MAX_FRAMES // 30 // 3600} hours at 30 fps)")
         if self.dilate_px is not None and self.dilate_px < 0:
             raise UserError(f"--dilate-px {self.dilate_px}: must be >= 0")
+        if self.codes == "own" and not self.split:
+            raise UserError("--codes own: takes each frame's codes from a split of the run's "
+                            "dataset; give --split (e.g. --split capture)")
 
 
 @dataclass
@@ -171,8 +181,9 @@ class RenderSummary:
 @dataclass
 class RenderPlan:
     """What `render` draws, every choice made: the run, its dataset and the render size;
-    per frame the camera (T, 4, 4), the expression (T, E), the prior's face mesh (T, V, 3)
-    and the head's twist (T, 6) or None; the videos to write and their frame rate."""
+    per frame the camera (T, 4, 4), the expression (T, E), the prior's face mesh (T, V, 3),
+    the head's twist (T, 6) or None and the codes ω (T, code_dim), φ (T, appearance_dim)
+    or None (frame 0's); the videos to write and their frame rate."""
 
     run: Any
     ds: Dataset
@@ -186,15 +197,17 @@ class RenderPlan:
     fps: float
     paths: dict[str, Path]
     seq: X.ExpressionSequence
-    label: str  # the expression source's, "_edited" added for an edit
+    label: str  # the expression source's, the edit's `file_tag` added
     camera: str
+    codes: tuple[Any, Any] | None = None
+    edited: bool = False  # --edit changed the source's expressions
 
     def frames(self):
-        """The frames, rendered one at a time with frame 0's codes (an iterator of
+        """The frames, rendered one at a time (an iterator of
         rendering.reanimate.RenderedFrame)."""
         from flamenerf.rendering.reanimate import render_sequence
 
-        omega, phi = self.run.frame_codes(0)
+        omega, phi = self.codes if self.codes is not None else self.run.frame_codes(0)
         return render_sequence(self.run.model, self.ds, self.intr, self.poses, self.values,
                                self.verts, omega, phi, self.dilate_px, heads=self.heads,
                                settings=self.settings)
@@ -312,6 +325,19 @@ def camera_poses(opts: RenderOptions, seq: X.ExpressionSequence, rig: C.CameraRi
     return poses, Path(camera).stem, seq
 
 
+def own_codes(opts: RenderOptions, run) -> bool:
+    """Whether each frame renders with its own codes (--codes; `auto`: with --split of
+    the run's own dataset, whose frames the codes belong to)."""
+    if opts.codes == "first" or not opts.split:
+        return False
+    own_dataset = (opts.dataset is None
+                   or Path(opts.dataset).resolve() == Path(run.meta["dataset"]).resolve())
+    if opts.codes == "own" and not own_dataset:
+        raise UserError(f"--codes own: {opts.dataset} is not the dataset {opts.run} was "
+                        "trained on, whose frames the codes belong to")
+    return own_dataset
+
+
 def output_paths(opts: RenderOptions, source: str, camera: str) -> dict[str, Path]:
     """The videos to write, refusing to replace existing ones without --overwrite."""
     out = (opts.out if opts.out is not None
@@ -385,11 +411,13 @@ def write_videos(plan: RenderPlan) -> None:
     from tqdm import tqdm
 
     from flamenerf.data.video import VideoWriter
-    from flamenerf.images import expression_panel, hstack, resize_to_height
+    from flamenerf.images import expression_panel, resize_to_height, titled_row
     from flamenerf.rendering.reanimate import depth_image, depth_range
 
     intr, values, seq = plan.intr, plan.values, plan.seq
     near, far = plan.run.model.near, plan.run.model.far
+    titles = [("filmed" if seq.cameras is not None else "driving") if seq.driving is not None
+              else "expression", "edited" if plan.edited else "render", "depth"]
     with contextlib.ExitStack() as stack:
         writers = {k: stack.enter_context(VideoWriter(p, plan.fps))
                    for k, p in plan.paths.items()}
@@ -410,7 +438,7 @@ def write_videos(plan: RenderPlan) -> None:
                     # what moved since the first frame shows first (a keyframe's, a tour's)
                     left = expression_panel(values[i], plan.run.expression_names, intr.h,
                                             intr.w, ref=values[0])
-                writers["sbs"].write(hstack([left, fr.rgb, dimg], gap=2))
+                writers["sbs"].write(titled_row([left, fr.rgb, dimg], titles, gap=2))
 
 
 def render_videos(opts: RenderOptions, log=print) -> RenderSummary:
@@ -466,12 +494,12 @@ def plan_render(opts: RenderOptions, log=print) -> RenderPlan:
             f"its first controls (--frames sets the tour's whole length)")
     values, poses, label = seq.values[:n], poses[:n], seq.label
     if edits:
-        from flamenerf.rendering.edits import apply_edits, describe
+        from flamenerf.rendering.edits import apply_edits, describe, file_tag
 
         source = values
         values, moved, over = apply_edits(values, edits, comp,
                                           training_limits(opts, ds, names))
-        label = f"{label}_edited"
+        label = f"{label}_{file_tag(opts.edit)}"
         held = not (opts.split or opts.drive or opts.expressions)
         log(f"note: edited {describe(opts.edit)} in every frame"
             + (" of frame 0's expression, held (give --split capture, --drive or "
@@ -509,5 +537,10 @@ def plan_render(opts: RenderOptions, log=print) -> RenderPlan:
     writable_dir(paths["rgb"].parent, "video")
     settings = dataclasses.replace(REFERENCE if opts.exact else FAST,
                                    chunk=opts.chunk or (REFERENCE.chunk if opts.exact else 0))
+    codes = None
+    if own_codes(opts, run):
+        codes = run.clip_codes(ds, ds.split(opts.split)[:n])
+        # a bake per frame's ω would cost what the exact warp costs, and stay in memory
+        settings = dataclasses.replace(settings, warp_grid=0)
     return RenderPlan(run, ds, intr, poses, values, verts, heads, dil, settings, fps, paths,
-                      seq, label, cam_label)
+                      seq, label, cam_label, codes, bool(edits))

@@ -6,10 +6,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 
 from flamenerf.config import Config, from_dict
-from flamenerf.data.dataset import Dataset, Intrinsics, load_dataset
+from flamenerf.data.dataset import Dataset, Frame, Intrinsics, load_dataset
 from flamenerf.errors import UserError
 from flamenerf.model.flame_nerf import FlameNeRF
 from flamenerf.io import read_json
@@ -61,6 +62,31 @@ class Run:
         i = torch.tensor([frame_index], device=self.device)
         w, a = self.model.codes(i)
         return w[0].detach(), a[0].detach()
+
+    def clip_codes(self, ds: Dataset, frames: list[Frame]) -> tuple[torch.Tensor, torch.Tensor]:
+        """Each frame's own ω (T, code_dim) and φ (T, appearance_dim): a training frame's
+        trained codes; a held-out capture frame's (never trained, so still at their
+        initial values) interpolated in clip order between the nearest training frames'
+        on either side (the nearest one past either end); a frame outside the capture,
+        frame 0's."""
+        trained = sorted({f.frame_index for f in ds.training_frames()
+                          if f.frame_index is not None})
+        if not trained:
+            trained = [0]
+        at = np.asarray([0 if f.frame_index is None else f.frame_index for f in frames],
+                        np.float64)
+        idx = np.asarray(trained, np.float64)
+        # the two trained neighbours and the weight of the upper one (0 at an exact match)
+        hi = np.clip(np.searchsorted(idx, at), 1, len(idx) - 1) if len(idx) > 1 else \
+            np.zeros(len(at), np.int64)
+        lo = np.maximum(hi - 1, 0)
+        span = np.maximum(idx[hi] - idx[lo], 1e-9)
+        t = np.clip((at - idx[lo]) / span, 0.0, 1.0) if len(idx) > 1 else np.zeros(len(at))
+        w, a = self.model.codes(torch.as_tensor(np.asarray(trained), device=self.device))
+        t_ = torch.as_tensor(t, dtype=w.dtype, device=self.device)[:, None]
+        lo_, hi_ = torch.as_tensor(lo), torch.as_tensor(hi)
+        mix = lambda c: ((1 - t_) * c[lo_] + t_ * c[hi_]).detach()  # noqa: E731
+        return mix(w), mix(a)
 
 
 def run_config(meta: Any, where: Path) -> Config:
