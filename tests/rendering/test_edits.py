@@ -141,3 +141,39 @@ def test_an_edit_typo_fails_before_anything_renders(toy_run, tmp_path):
         render(RenderOptions(toy_run, out=tmp_path / "x.mp4", split="capture",
                              edit=["jawOpn+=1"], device="cpu"))
     assert not (tmp_path / "x.mp4").exists()
+
+
+def test_an_edit_window_eases_in_and_out():
+    from flamenerf.rendering.edits import EditWindow
+
+    w = EditWindow.parse("1:2").weights(30, 10.0)  # 3 s at 10 fps
+    assert np.all(w[:10] == 0) and np.all(w[21:] == 0)  # before 1 s and after 2 s
+    assert np.all(w[13:18] == 1) and 0 < w[11] < w[12] < 1  # eased over 0.3 s
+    assert np.all(np.diff(w[10:14]) > 0)
+    np.testing.assert_array_equal(EditWindow.parse("2:").weights(30, 10.0)[:20], 0)
+    assert EditWindow.parse(":1").weights(30, 10.0)[0] == 1  # no ease at the video's start
+    for text, message in (("2:1", "after the start"), ("x:1", "not a number"),
+                          ("1", "START:END"), ("-1:2", "0 or more")):
+        with pytest.raises(UserError, match=message):
+            EditWindow.parse(text)
+    with pytest.raises(UserError, match="the video is 3 s long"):
+        EditWindow.parse("5:6").weights(30, 10.0)
+
+
+def test_a_capture_edited_only_during_a_window(toy_run, tmp_path):
+    """The frames outside --edit-during as tracked; inside, the edit (clamped as always);
+    the note and the file's name say when."""
+    from flamenerf.rendering.videos import plan_render
+
+    notes = []
+    opts = RenderOptions(toy_run, split="capture", edit=["jawOpen-=0.05"], edit_during="1:",
+                         fps=2.0, device="cpu", companions=False)  # frames at 0, 0.5, ... 2.5 s
+    plan = plan_render(opts, log=notes.append)
+    tracked = plan.ds.expression_matrix(plan.ds.split("capture"))
+    jaw = plan.ds.expression_names.index("jawOpen")
+    np.testing.assert_array_equal(plan.values[:3], tracked[:3])  # before 1 s: as tracked
+    np.testing.assert_allclose(plan.values[3:, jaw], tracked[3:, jaw] - 0.05, atol=1e-6)
+    assert plan.paths["rgb"].name == "capture_jawOpen-0.05_1-s_split.mp4"
+    assert any("from frame 3 to 5 (1: s" in n for n in notes), notes
+    with pytest.raises(UserError, match="--edit-during: limits an --edit"):
+        RenderOptions(toy_run, split="capture", edit_during="1:2").check()

@@ -116,6 +116,64 @@ def describe(items: list[str]) -> str:
     return ", ".join(m[0].replace(" ", "") for m in _ITEM.finditer(" ".join(items)))
 
 
+EASE_S = 0.3  # seconds an edit limited in time takes to come in and to go
+
+
+@dataclass(frozen=True)
+class EditWindow:
+    """When an edit applies (`--edit-during START:END`, seconds of the video; either end
+    may be left out): fully between them, eased in and out over `EASE_S` inside them."""
+
+    start: float | None
+    end: float | None
+
+    @classmethod
+    def parse(cls, text: str) -> "EditWindow":
+        parts = text.split(":")
+        if len(parts) != 2:
+            raise UserError(f"--edit-during {text!r}: expected START:END in seconds (e.g. "
+                            "2:4.5; 2: to the end, :3 from the start)")
+        ends = []
+        for p in parts:
+            try:
+                v = float(p) if p.strip() else None
+            except ValueError:
+                raise UserError(f"--edit-during {text!r}: {p!r} is not a number of "
+                                "seconds") from None
+            if v is not None and (not math.isfinite(v) or v < 0):
+                raise UserError(f"--edit-during {text!r}: times are seconds from the "
+                                "start, 0 or more")
+            ends.append(v)
+        if ends[0] is not None and ends[1] is not None and ends[1] <= ends[0]:
+            raise UserError(f"--edit-during {text!r}: the end must come after the start")
+        return cls(*ends)
+
+    def weights(self, n: int, fps: float) -> np.ndarray:
+        """How much of the edit each of n frames at `fps` shows (n,), in [0, 1]; a
+        UserError when the window misses every frame."""
+        t = np.arange(n) / fps
+        lo = 0.0 if self.start is None else self.start
+        hi = t[-1] + 1.0 / fps if self.end is None else self.end
+        ease = min(EASE_S, (hi - lo) / 2)
+        w = np.ones(n)
+        if self.start is not None and self.start > 0:
+            w = np.minimum(w, np.clip((t - lo) / ease, 0, 1) if ease > 0 else t >= lo)
+        if self.end is not None:
+            w = np.minimum(w, np.clip((hi - t) / ease, 0, 1) if ease > 0 else t < hi)
+        w = w * w * (3 - 2 * w)  # smooth: no jolt where the edit comes in or goes
+        if not w.any():
+            raise UserError(f"--edit-during {self}: the video is {n / fps:.3g} s long, so "
+                            "no frame lies in it")
+        return w.astype(np.float32)
+
+    def __str__(self) -> str:
+        return ":".join("" if v is None else f"{v:g}" for v in (self.start, self.end))
+
+    def file_tag(self) -> str:
+        """`2-4.5s`, `2-s`, `0-3s`: the window in a file's name."""
+        return f"{self.start or 0:g}-{'' if self.end is None else f'{self.end:g}'}s"
+
+
 _FILE_OPS = {"+=": "+", "-=": "-", "*=": "x", "=": "="}  # `*` is a shell's wildcard
 
 

@@ -47,6 +47,9 @@ class RenderOptions:
             jaw moves), a pair's stem both sides (`mouthSmile+=0.3`). Companions move
             along and the edited controls are clamped to the training range in each frame
             as for keyframes (a note says in how many).
+        edit_during: Apply --edit only between START:END seconds of the video (e.g.
+            `2:4.5`; `2:` to the end, `:3` from the start), easing it in and out over
+            0.3 s; the other frames as the source has them.
         codes: Each frame's deformation and appearance codes: `own` (with --split of the
             run's own dataset: a training frame's trained codes, a held-out frame's
             between its neighbours', so the clip's own small motions and light stay),
@@ -110,6 +113,7 @@ class RenderOptions:
     split: str | None = None
     drive: Path | None = None
     edit: list[str] | None = None
+    edit_during: str | None = None
     codes: Literal["auto", "first", "own"] = "auto"
     camera: str = "auto"
     head_pose: list[str] | None = None
@@ -155,6 +159,12 @@ class RenderOptions:
                             f"{MAX_FRAMES // 30 // 3600} hours at 30 fps)")
         if self.dilate_px is not None and self.dilate_px < 0:
             raise UserError(f"--dilate-px {self.dilate_px}: must be >= 0")
+        if self.edit_during is not None:
+            from flamenerf.rendering.edits import EditWindow
+
+            if not self.edit:
+                raise UserError("--edit-during: limits an --edit in time; give one")
+            EditWindow.parse(self.edit_during)  # its one-line error, before anything loads
         if self.codes == "own" and not self.split:
             raise UserError("--codes own: takes each frame's codes from a split of the run's "
                             "dataset; give --split (e.g. --split capture)")
@@ -493,15 +503,28 @@ def plan_render(opts: RenderOptions, log=print) -> RenderPlan:
         log(f"note: --max-frames {n} keeps the tour's first {n} of {len(seq)} frames, so only "
             f"its first controls (--frames sets the tour's whole length)")
     values, poses, label = seq.values[:n], poses[:n], seq.label
+    fps = opts.fps or seq.fps or 30.0
     if edits:
-        from flamenerf.rendering.edits import apply_edits, describe, file_tag
+        from flamenerf.rendering.edits import EditWindow, apply_edits, describe, file_tag
 
-        source = values
-        values, moved, over = apply_edits(values, edits, comp,
-                                          training_limits(opts, ds, names))
-        label = f"{label}_{file_tag(opts.edit)}"
+        source, label = values, f"{label}_{file_tag(opts.edit)}"
+        where = "in every frame"
+        if opts.edit_during is None:
+            values, moved, over = apply_edits(values, edits, comp,
+                                              training_limits(opts, ds, names))
+        else:  # edited where the window is, blended in and out at its ends
+            window = EditWindow.parse(opts.edit_during)
+            w = window.weights(len(values), fps)
+            inside = w > 0
+            edited, moved, over = apply_edits(values[inside], edits, comp,
+                                              training_limits(opts, ds, names))
+            values = values.copy()
+            values[inside] += w[inside, None] * (edited - values[inside])
+            label += f"_{window.file_tag()}"
+            a, b = np.flatnonzero(inside)[[0, -1]]
+            where = f"from frame {a} to {b} ({window} s, eased in and out)"
         held = not (opts.split or opts.drive or opts.expressions)
-        log(f"note: edited {describe(opts.edit)} in every frame"
+        log(f"note: edited {describe(opts.edit)} {where}"
             + (" of frame 0's expression, held (give --split capture, --drive or "
                "--expressions for a sequence to edit)" if held else "")
             + (f", moving with them {', '.join(moved)} (--no-companions to leave them)"
@@ -531,7 +554,6 @@ def plan_render(opts: RenderOptions, log=print) -> RenderPlan:
     if opts.head_pose:
         cam_label = f"{cam_label}_head"
     dil = dataset_dilation(ds) if opts.dilate_px is None else opts.dilate_px
-    fps = opts.fps or seq.fps or 30.0
 
     paths = output_paths(opts, label, cam_label)
     writable_dir(paths["rgb"].parent, "video")
