@@ -1,12 +1,15 @@
 """How much of an edit of the filmed clip (`render --split S --edit ...`) shows.
 
 Built-in scene runs (`--run`, ground truth): the split's frames (default `val`, which no
-run trained on), each edit applied as `render` applies it (its own plan: frame 0's codes,
-the edited expressions, the prior's meshes moved by the edit), against the scene rendered
-again with the edited expressions at the same cameras. Reported per edit: the face's PSNR
-of the edited render, of the unedited render against the same truth (what a model that
-ignores the edit shows), and the mean change the edit makes on the face's pixels. A
-Nerfies-variant run (no β) shows no edit: its two figures are equal.
+run trained on), each edit applied as `render` applies it (its own plan: the codes
+`--codes` names, the edited expressions, the prior's meshes moved by the edit), against the
+scene rendered again with the edited expressions at the same cameras. Reported per edit:
+the face's PSNR of the edited render, of the unedited render against the same truth (what
+a model that ignores the edit shows), and the mean change the edit makes on the face's
+pixels. A Nerfies-variant run (no β) shows no edit: its two figures are equal.
+
+`--codes first own` renders each with frame 0's codes and with each frame's own (render's
+`--codes`); results are keyed by it.
 
 Real-clip runs (`--retrack-run`): the capture rendered as filmed and edited (render's
 plans again), both re-tracked by MediaPipe's face landmarker; reported per control: the
@@ -14,7 +17,7 @@ clip's tracked mean, the re-tracked means of the plain and the edited render, th
 commanded mean, and the plain render's correlation with the clip.
 
     python benchmarks/bench_edit.py --run RUN... [--retrack-run RUN...] [--split val]
-        [--threads 2] [--json OUT.json]
+        [--codes auto|first|own ...] [--threads 2] [--json OUT.json]
 """
 
 from __future__ import annotations
@@ -43,24 +46,26 @@ REAL_REPORTED = ("mouthSmileLeft", "mouthSmileRight", "mouthUpperUpLeft", "mouth
                  "mouthFrownRight")
 
 
-def plan(run: Path, split: str, edit: list[str] | None, threads: int, out: Path):
+def plan(run: Path, split: str, edit: list[str] | None, threads: int, out: Path,
+         codes: str = "auto"):
     from flamenerf.rendering.videos import RenderOptions, plan_render
 
     return plan_render(RenderOptions(run, out=out, split=split, edit=edit, device="cpu",
-                                     threads=threads, overwrite=True), log=lambda _: None)
+                                     threads=threads, overwrite=True, codes=codes),
+                       log=lambda _: None)
 
 
-def builtin(run: Path, split: str, threads: int, tmp: Path) -> dict:
+def builtin(run: Path, split: str, threads: int, tmp: Path, codes: str) -> dict:
     from flamenerf.evaluation.metrics import psnr
     from flamenerf.synthetic.scene import scene_from_dataset
 
-    plain = plan(run, split, None, threads, tmp / "x.mp4")
+    plain = plan(run, split, None, threads, tmp / "x.mp4", codes)
     scene = scene_from_dataset(plain.ds)
     frames = plain.ds.split(split)
     plain_rgb = [f.rgb for f in plain.frames()]
     out = {}
     for label, items in BUILTIN_EDITS.items():
-        p = plan(run, split, items, threads, tmp / "x.mp4")
+        p = plan(run, split, items, threads, tmp / "x.mp4", codes)
         rows = []
         for fr, pred, before, values in zip(frames, p.frames(), plain_rgb, p.values):
             body = fr.extra.get("body_pose")
@@ -73,27 +78,50 @@ def builtin(run: Path, split: str, threads: int, tmp: Path) -> dict:
         out[label] = {"psnr_face_edited": round(float(r[0]), 2),
                       "psnr_face_unedited": round(float(r[1]), 2),
                       "mean_change_on_face": round(float(r[2]), 4)}
-        print(f"{run.name} {label}: edited {r[0]:.2f} dB, unedited {r[1]:.2f} dB against "
+        print(f"{run.name} {codes} codes {label}: edited {r[0]:.2f} dB, unedited {r[1]:.2f} dB against "
               f"the edited truth; change {r[2]:.4f}", flush=True)
     return out
 
 
-def retracked(run: Path, threads: int, tmp: Path) -> dict:
+def clip_psnr(p, frame, rgb: np.ndarray) -> tuple[float, float]:
+    """PSNR of a render of a capture frame against the filmed frame: whole, and on the
+    face's silhouette."""
+    from flamenerf.evaluation.metrics import psnr
+    from flamenerf.images import resize_image
+
+    h, w = rgb.shape[:2]
+    img, mask = p.ds.load_image(frame), p.ds.load_mask(frame)
+    if img.shape[:2] != (h, w):
+        img = resize_image(img, w, h)
+        mask = resize_image(mask.astype(np.float32)[..., None].repeat(3, -1), w, h)[..., 0] > 0.5
+    return psnr(rgb, img), psnr(rgb, img, mask)
+
+
+def retracked(run: Path, threads: int, tmp: Path, codes: str) -> dict:
     from flamenerf.data.dataset import CAPTURE
     from flamenerf.evaluation.control import Retracker
 
     track = Retracker()
     try:
-        reads, commanded = {}, {}
+        reads, commanded, fidelity = {}, {}, []
         for label, edit in (("plain", None), ("edited", REAL_EDIT)):
-            p = plan(run, CAPTURE, edit, threads, tmp / "x.mp4")
-            scores = [track(f.rgb) for f in p.frames()]
+            p = plan(run, CAPTURE, edit, threads, tmp / "x.mp4", codes)
+            scores = []
+            for fr, rendered in zip(p.ds.split(CAPTURE), p.frames()):
+                scores.append(track(rendered.rgb))
+                if label == "plain":  # the filmed frame is the plain render's truth
+                    fidelity.append(clip_psnr(p, fr, rendered.rgb))
             reads[label], commanded[label] = scores, p.values
         clip = p.ds.expression_matrix(p.ds.split(CAPTURE))
         names = p.ds.expression_names
     finally:
         track.close()
+    fid = np.mean(fidelity, 0)
+    print(f"{run.name} {codes} codes: plain render against the clip {fid[0]:.2f} dB, face "
+          f"{fid[1]:.2f} dB", flush=True)
     out = {"edit": REAL_EDIT, "frames": len(clip),
+           "plain_psnr_vs_clip": round(float(fid[0]), 2),
+           "plain_psnr_vs_clip_face": round(float(fid[1]), 2),
            "detected": {k: sum(s is not None for s in v) for k, v in reads.items()}}
     for name in REAL_REPORTED:
         if name not in names:
@@ -109,7 +137,7 @@ def retracked(run: Path, threads: int, tmp: Path) -> dict:
                      "edited_commanded": round(float(commanded["edited"][ok, j].mean()), 3),
                      "plain_vs_clip_correlation": round(float(np.corrcoef(plain,
                                                                           clip[ok, j])[0, 1]), 3)}
-        print(f"{run.name} {name}: clip {out[name]['clip']}, plain render "
+        print(f"{run.name} {codes} codes {name}: clip {out[name]['clip']}, plain render "
               f"{out[name]['plain']}, edited {out[name]['edited']} (commanded "
               f"{out[name]['edited_commanded']})", flush=True)
     return out
@@ -122,6 +150,8 @@ def main() -> None:
     ap.add_argument("--retrack-run", type=Path, nargs="*", default=[],
                     help="runs of real clips (re-tracked)")
     ap.add_argument("--split", default="val")
+    ap.add_argument("--codes", nargs="+", default=["auto"], choices=["auto", "first", "own"],
+                    help="render's --codes: each frame's own or frame 0's (several: each)")
     ap.add_argument("--threads", type=int, default=0)
     ap.add_argument("--json", type=Path)
     a = ap.parse_args()
@@ -132,10 +162,13 @@ def main() -> None:
            "command": "python benchmarks/bench_edit.py " + " ".join(sys.argv[1:]),
            "split": a.split, "builtin": {}, "retracked": {}}
     with tempfile.TemporaryDirectory() as tmp:
-        for run in a.run:
-            res["builtin"][str(run)] = builtin(run, a.split, a.threads, Path(tmp))
-        for run in a.retrack_run:
-            res["retracked"][str(run)] = retracked(run, a.threads, Path(tmp))
+        for codes in a.codes:
+            for run in a.run:
+                res["builtin"].setdefault(codes, {})[str(run)] = builtin(
+                    run, a.split, a.threads, Path(tmp), codes)
+            for run in a.retrack_run:
+                res["retracked"].setdefault(codes, {})[str(run)] = retracked(
+                    run, a.threads, Path(tmp), codes)
     res["seconds"] = round(time.perf_counter() - t0, 1)
     if a.json:
         a.json.write_text(json.dumps(res, indent=1))

@@ -11,8 +11,8 @@ from flamenerf.rendering.videos import RenderOptions
 
 def render(opts: Annotated[RenderOptions, tyro.conf.OmitArgPrefixes, tyro.conf.arg(name="")]
            ) -> None:
-    """Render a re-animation video: frame 0's codes, driven by expressions, along a camera
-    path.
+    """Render a re-animation video: frame 0's codes (a split's frames: their own), driven by
+    expressions, along a camera path.
 
     Expressions come from one of: --expressions FILE (.json: a `flamenerf track` file, a
     list of vectors, or {name: value} objects; .npy; .csv with an optional header of
@@ -25,7 +25,7 @@ def render(opts: Annotated[RenderOptions, tyro.conf.OmitArgPrefixes, tyro.conf.a
     controls are mapped onto the run's; missing ones are 0. Without any, frame 0's
     expression is held. --edit changes controls in every frame of the source: `--split
     capture --edit mouthSmile+=0.3 --side-by-side` is the clip with a broader smile (both
-    sides), beside the frames as filmed.
+    sides), beside the frames as filmed; `--edit-during 2:4` only from 2 s to 4 s.
 
     Camera paths (--camera): static (frame 0's camera), orbit (around the head, at the
     capture's distance and height), spiral, dolly, or a JSON file of camera-to-world

@@ -47,14 +47,14 @@ class RenderOptions:
             jaw moves), a pair's stem both sides (`mouthSmile+=0.3`). Companions move
             along and the edited controls are clamped to the training range in each frame
             as for keyframes (a note says in how many).
-        edit_during: Apply --edit only between START:END seconds of the video (e.g.
-            `2:4.5`; `2:` to the end, `:3` from the start), easing it in and out over
-            0.3 s; the other frames as the source has them.
-        codes: Each frame's deformation and appearance codes: `own` (with --split of the
+        edit_during: Apply --edit only between START:END seconds of the video (as in 2:4.5;
+            the end left out: to the end, the start: from the start), eased in and out
+            over a third of a second; the other frames as the source has them.
+        codes: Each frame's deformation and appearance codes: own (with --split of the
             run's own dataset: a training frame's trained codes, a held-out frame's
             between its neighbours', so the clip's own small motions and light stay),
-            `first` (frame 0's for every frame, as every other source renders), or `auto`
-            (own with --split of the run's dataset, else first).
+            first (frame 0's for every frame, as every other source renders), or auto:
+            own with --split of the run's dataset, else first.
         camera: static, orbit, spiral, dolly, a JSON file of poses, or auto.
         head_pose: Head pose relative to frame 0's, independent of --camera: `drive` (the
             driving video's head turns, with --drive), keyframes
