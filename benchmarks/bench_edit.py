@@ -11,10 +11,12 @@ pixels. A Nerfies-variant run (no β) shows no edit: its two figures are equal.
 `--codes first own` renders each with frame 0's codes and with each frame's own (render's
 `--codes`); results are keyed by it.
 
-Real-clip runs (`--retrack-run`): the capture rendered as filmed and edited (render's
-plans again), both re-tracked by MediaPipe's face landmarker; reported per control: the
-clip's tracked mean, the re-tracked means of the plain and the edited render, the edit's
-commanded mean, and the plain render's correlation with the clip.
+Real-clip runs (`--retrack-run`): the capture rendered as filmed, with a broader smile and
+with every control stilled (`all*=0`; render's plans again), each re-tracked by MediaPipe's
+face landmarker; reported: the plain render's PSNR against the filmed frames (training
+and held-out frames apart), and per control the clip's tracked mean, the re-tracked means
+of each render, each edit's commanded mean, and the plain render's correlation with the
+clip.
 
     python benchmarks/bench_edit.py --run RUN... [--retrack-run RUN...] [--split val]
         [--codes auto|first|own ...] [--threads 2] [--json OUT.json]
@@ -40,7 +42,9 @@ BUILTIN_EDITS = {
     "mouthPucker=1": ["mouthPucker=1"],
     "frowns=1": ["mouthFrownLeft=1,mouthFrownRight=1"],
 }
-REAL_EDIT = ["mouthSmileLeft+=0.3,mouthSmileRight+=0.3"]
+# re-tracked edits of a real clip: one that adds (a smile) and one that removes every
+# expression (what a frame's own ω could keep, if it had learnt part of the frame's face)
+REAL_EDITS = {"edited": ["mouthSmileLeft+=0.3,mouthSmileRight+=0.3"], "stilled": ["all*=0"]}
 REAL_REPORTED = ("mouthSmileLeft", "mouthSmileRight", "mouthUpperUpLeft", "mouthUpperUpRight",
                  "jawOpen", "eyeBlinkLeft", "eyeBlinkRight", "browInnerUp", "mouthFrownLeft",
                  "mouthFrownRight")
@@ -104,42 +108,50 @@ def retracked(run: Path, threads: int, tmp: Path, codes: str) -> dict:
     track = Retracker()
     try:
         reads, commanded, fidelity = {}, {}, []
-        for label, edit in (("plain", None), ("edited", REAL_EDIT)):
+        trained = None
+        for label, edit in (("plain", None), *REAL_EDITS.items()):
             p = plan(run, CAPTURE, edit, threads, tmp / "x.mp4", codes)
+            trained = {f.frame_index for f in p.ds.training_frames()}
             scores = []
             for fr, rendered in zip(p.ds.split(CAPTURE), p.frames()):
                 scores.append(track(rendered.rgb))
                 if label == "plain":  # the filmed frame is the plain render's truth
-                    fidelity.append(clip_psnr(p, fr, rendered.rgb))
+                    fidelity.append((*clip_psnr(p, fr, rendered.rgb), fr.frame_index in
+                                     trained))
             reads[label], commanded[label] = scores, p.values
         clip = p.ds.expression_matrix(p.ds.split(CAPTURE))
         names = p.ds.expression_names
     finally:
         track.close()
-    fid = np.mean(fidelity, 0)
-    print(f"{run.name} {codes} codes: plain render against the clip {fid[0]:.2f} dB, face "
-          f"{fid[1]:.2f} dB", flush=True)
-    out = {"edit": REAL_EDIT, "frames": len(clip),
-           "plain_psnr_vs_clip": round(float(fid[0]), 2),
-           "plain_psnr_vs_clip_face": round(float(fid[1]), 2),
+    fid = np.asarray(fidelity)
+    vs_clip = {}
+    for part, rows in (("all", fid), ("train", fid[fid[:, 2] == 1]),
+                       ("held_out", fid[fid[:, 2] == 0])):
+        if len(rows):
+            m = rows[:, :2].mean(0)
+            vs_clip[part] = {"frames": len(rows), "psnr": round(float(m[0]), 2),
+                             "psnr_face": round(float(m[1]), 2)}
+            print(f"{run.name} {codes} codes: plain render against the clip, {part} frames "
+                  f"({len(rows)}): {m[0]:.2f} dB, face {m[1]:.2f} dB", flush=True)
+    out = {"edits": REAL_EDITS, "frames": len(clip), "plain_vs_clip": vs_clip,
            "detected": {k: sum(s is not None for s in v) for k, v in reads.items()}}
     for name in REAL_REPORTED:
         if name not in names:
             continue
         j = names.index(name)
-        ok = [i for i in range(len(clip))
-              if reads["plain"][i] is not None and reads["edited"][i] is not None]
-        plain = np.array([reads["plain"][i][name] for i in ok])
-        edited = np.array([reads["edited"][i][name] for i in ok])
+        ok = [i for i in range(len(clip)) if all(r[i] is not None for r in reads.values())]
+        got = {k: np.array([r[i][name] for i in ok]) for k, r in reads.items()}
         out[name] = {"clip": round(float(clip[ok, j].mean()), 3),
-                     "plain": round(float(plain.mean()), 3),
-                     "edited": round(float(edited.mean()), 3),
-                     "edited_commanded": round(float(commanded["edited"][ok, j].mean()), 3),
-                     "plain_vs_clip_correlation": round(float(np.corrcoef(plain,
+                     "plain_vs_clip_correlation": round(float(np.corrcoef(got["plain"],
                                                                           clip[ok, j])[0, 1]), 3)}
+        for k, v in got.items():
+            out[name][k] = round(float(v.mean()), 3)
+            if k in REAL_EDITS:
+                out[name][f"{k}_commanded"] = round(float(commanded[k][ok, j].mean()), 3)
         print(f"{run.name} {codes} codes {name}: clip {out[name]['clip']}, plain render "
-              f"{out[name]['plain']}, edited {out[name]['edited']} (commanded "
-              f"{out[name]['edited_commanded']})", flush=True)
+              f"{out[name]['plain']}, " + ", ".join(
+                  f"{k} {out[name][k]} (commanded {out[name][f'{k}_commanded']})"
+                  for k in REAL_EDITS), flush=True)
     return out
 
 
