@@ -177,3 +177,18 @@ def test_a_capture_edited_only_during_a_window(toy_run, tmp_path):
     assert any("from frame 3 to 5 (1: s" in n for n in notes), notes
     with pytest.raises(UserError, match="--edit-during: limits an --edit"):
         RenderOptions(toy_run, split="capture", edit_during="1:2").check()
+
+
+def test_an_edit_changes_the_source_as_rendered_not_as_asked(toy_run, tmp_path):
+    """A source beyond the training range is clamped first, then edited: `jawOpen-=D` on a
+    jaw held at the range's top lowers it from there (it was clamped back to the top)."""
+    from flamenerf.data.expression_range import training_range
+    from flamenerf.rendering.videos import plan_render
+
+    notes = []
+    plan = plan_render(RenderOptions(toy_run, expressions=["jawOpen=5"], edit=["jawOpen-=0.01"],
+                                     device="cpu", companions=False), log=notes.append)
+    jaw = plan.ds.expression_names.index("jawOpen")
+    top = training_range(plan.ds).hi[jaw]
+    assert plan.values[:, jaw].max() == pytest.approx(top - 0.01, abs=1e-6)
+    assert sum("clamped" in n for n in notes) == 1  # the keyframe's; the edit stays inside

@@ -504,6 +504,9 @@ def plan_render(opts: RenderOptions, log=print) -> RenderPlan:
             f"its first controls (--frames sets the tour's whole length)")
     values, poses, label = seq.values[:n], poses[:n], seq.label
     fps = opts.fps or seq.fps or 30.0
+    # the source as the model has learnt it, then the edit of it (clamped on its own), so
+    # that `jawOpen-=0.3` lowers a drive's jaw from where the render shows it
+    values = within_training_range(opts, ds, names, values, log)
     if edits:
         from flamenerf.rendering.edits import EditWindow, apply_edits, describe, file_tag
 
@@ -531,7 +534,6 @@ def plan_render(opts: RenderOptions, log=print) -> RenderPlan:
                if moved else ""))
         if over:
             log(clamp_note(over))
-    values = within_training_range(opts, ds, names, values, log)
     T = head_transforms(opts, run, ds, n, log, seq)
     if seq.vertices is not None and not opts.head_pose and not edits:
         verts = seq.vertices[:n]  # a split's own (posed) meshes
