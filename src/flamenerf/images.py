@@ -104,17 +104,26 @@ def text_strip(text: str, width: int, height: int = 14, align: str = "center") -
 
     im = Image.new("RGB", (max(1, width), height), (255, 255, 255))
     dr = ImageDraw.Draw(im)
-    tw = dr.textlength(text)
-    x = max(1, (width - tw) / 2) if align == "center" else 2
+    x = max(1, (width - text_width(text)) / 2) if align == "center" else 2
     dr.text((x, max(0, (height - 11) // 2)), text, fill=(0, 0, 0))
     return np.asarray(im, np.float32) / 255
 
 
 def titled_row(panels: list[np.ndarray], titles: list[str], gap: int = 0) -> np.ndarray:
-    """Panels of one height side by side (`hstack`), each under its title."""
+    """Panels of one height side by side (`hstack`), each under its title; without titles
+    where one would not fit above its panel (a cut title reads as another word)."""
     panels = [_as_float_rgb(p) for p in panels]
+    if any(text_width(t) + 2 > p.shape[1] for t, p in zip(titles, panels)):
+        return hstack(panels, gap)
     heads = hstack([text_strip(t, p.shape[1]) for t, p in zip(titles, panels)], gap)
     return vstack([heads, hstack(panels, gap)])
+
+
+def text_width(text: str) -> float:
+    """Pixels `text` takes in `text_strip`'s font."""
+    from PIL import Image, ImageDraw
+
+    return ImageDraw.Draw(Image.new("RGB", (1, 1))).textlength(text)
 
 
 def panel_rows(expr: np.ndarray, max_rows: int, ref: np.ndarray | None = None

@@ -57,19 +57,73 @@ def test_a_split_renders_each_frame_with_its_own_codes(toy_run, tmp_path):
     # frame 0's codes render the last training frame otherwise
     assert np.abs(alone(len(train) - 1, plan.run.frame_codes(0)) - frames[-1]).max() > 1e-5
 
-def test_own_codes_need_a_split_of_the_runs_dataset(toy_run, toy_dataset, tmp_path):
+def test_own_codes_need_a_split_of_capture_frames(toy_run, toy_dataset, tmp_path):
     import shutil
 
-    other = tmp_path / "copy"  # the same frames, but not the run's: its codes are not theirs
-    shutil.copytree(toy_dataset, other)
-    assert plan_render(RenderOptions(toy_run, out=tmp_path / "x.mp4", device="cpu"),
-                       log=lambda _: None).codes is None  # no split: frame 0's
+    def plan(**kw):
+        return plan_render(RenderOptions(toy_run, out=tmp_path / "x.mp4", device="cpu", **kw),
+                           log=lambda _: None)
+
+    assert plan().codes is None  # no split: frame 0's
     with pytest.raises(UserError, match="--codes own: .* give --split"):
         RenderOptions(toy_run, codes="own").check()
-    with pytest.raises(UserError, match="is not the dataset"):
-        plan_render(RenderOptions(toy_run, out=tmp_path / "x.mp4", split="train",
-                                  dataset=other, codes="own", device="cpu"),
-                    log=lambda _: None)
-    assert plan_render(RenderOptions(toy_run, out=tmp_path / "x.mp4", split="train",
-                                     dataset=other, device="cpu"),
-                       log=lambda _: None).codes is None  # auto: frame 0's
+    # a re-animation split's frames have no codes: auto keeps the bake, own says why
+    p = plan(split="reanimate")
+    assert p.codes is None and p.settings.warp_grid > 0
+    with pytest.raises(UserError, match="--split reanimate: its frames have no codes"):
+        plan(split="reanimate", codes="own")
+    other = tmp_path / "copy"  # the same frames, but not the run's dataset
+    shutil.copytree(toy_dataset, other)
+    assert plan(split="train", dataset=other).codes is None  # auto: frame 0's
+    assert plan(split="train", dataset=other, codes="own").codes is not None  # as asked
+    assert plan(split="train", max_frames=2).codes[0].shape[0] == 2
+
+
+def test_a_moved_dataset_keeps_own_codes(toy_run, toy_dataset, tmp_path):
+    """A run whose dataset is no longer where it trained, rendered with --dataset (the
+    README's advice for a moved dataset), still gets each frame's own codes."""
+    import json
+    import shutil
+
+    run = tmp_path / "run"
+    shutil.copytree(toy_run, run)
+    meta = json.loads((run / "config.json").read_text())
+    meta["dataset"] = str(tmp_path / "gone")
+    (run / "config.json").write_text(json.dumps(meta))
+    p = plan_render(RenderOptions(run, out=tmp_path / "x.mp4", split="train",
+                                  dataset=toy_dataset, device="cpu"), log=lambda _: None)
+    assert p.codes is not None
+
+
+def test_a_still_camera_reuses_what_the_codes_do_not_change(toy_run, tmp_path):
+    """Own codes along a static camera: a frame whose codes are the last one's keeps the
+    pixels outside the face (`StillCamera.same_codes`), and each frame is exactly what
+    it renders alone."""
+    from flamenerf.model import render_image
+    from flamenerf.rendering.reanimate import render_sequence
+
+    plan = plan_render(RenderOptions(toy_run, out=tmp_path / "x.mp4", split="capture",
+                                     camera="static", device="cpu"), log=lambda _: None)
+    w, a = plan.codes
+    # frames 4 and 5 are held out past the last training frame, 3: both take its codes
+    assert torch.equal(w[3], w[4]) and torch.equal(w[4], w[5]) and not torch.equal(w[3], w[2])
+    made = []
+    real = render_image.StillCamera
+
+    class Counting(real):
+        def __init__(self, *args, **kw):
+            made.append(1)
+            super().__init__(*args, **kw)
+
+    import flamenerf.rendering.reanimate as R
+    R.StillCamera, saved = Counting, R.StillCamera
+    try:
+        frames = [f.rgb for f in plan.frames()]
+    finally:
+        R.StillCamera = saved
+    assert len(made) == 4  # frames 0-3 each their own codes; 4 and 5 reuse 3's renderer
+    for i in range(6):
+        alone = next(render_sequence(plan.run.model, plan.ds, plan.intr, plan.poses[i:i + 1],
+                                     plan.values[i:i + 1], plan.verts[i:i + 1], w[i], a[i],
+                                     plan.dilate_px, settings=plan.settings)).rgb
+        np.testing.assert_allclose(frames[i], alone, atol=1e-6)

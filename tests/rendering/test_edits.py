@@ -84,10 +84,13 @@ def test_bad_edits_say_what_is_wrong(item, message):
 
 
 def test_each_edit_gets_its_own_file_name():
-    assert file_tag(["mouthSmile += 0.3,", "jawOpen*=0"]) == "mouthSmile+0.3_jawOpenx0"
-    assert file_tag(["browInnerUp-=0.2 eyeBlinkLeft=1"]) == "browInnerUp-0.2_eyeBlinkLeft=1"
-    assert file_tag(["all*=1.5"]) != file_tag(["all*=2"])
-    assert file_tag([",".join(f"c{i}+=0.1" for i in range(20))]) == "edited"  # too long
+    names = NAMES + ["browInnerUp", "eyeBlinkLeft"]
+    assert file_tag(["mouthSmile += .3,", "JAWOPEN*=0"], names) == "mouthSmile+0.3_jawOpenx0"
+    assert file_tag(["browInnerUp-=0.2 eyeBlinkLeft=1"], names) == \
+        "browInnerUp-0.2_eyeBlinkLeft=1"
+    assert file_tag(["all*=1.5"], names) != file_tag(["all*=2"], names)
+    assert file_tag([",".join(f"c{i}+=0.1" for i in range(20))], names) == "edited"  # long
+    assert file_tag(["a/b+=1"], ["a/b"]) == "edited"  # no folders made of a control's name
 
 
 def test_capture_edited_beside_its_frames(toy_run, tmp_path, monkeypatch):
@@ -158,6 +161,8 @@ def test_an_edit_window_eases_in_and_out():
             EditWindow.parse(text)
     with pytest.raises(UserError, match="the video is 3 s long"):
         EditWindow.parse("5:6").weights(30, 10.0)
+    with pytest.raises(UserError, match=r"no frame falls inside it .*every 0\.1 s"):
+        EditWindow.parse("1:1.05").weights(30, 10.0)  # between two frames
 
 
 def test_a_capture_edited_only_during_a_window(toy_run, tmp_path):

@@ -64,6 +64,8 @@ DAMAGE = {
     "shard_generators": setter("shard_generators", [torch.zeros(3, dtype=torch.uint8)]),
     "a NaN weight": lambda st: next(t for t in st["model"].values()
                                     if t.is_floating_point()).view(-1).__setitem__(0, float("nan")),
+    "an inf weight": lambda st: [t for t in st["model"].values()
+                                 if t.is_floating_point()][-1].view(-1).__setitem__(0, float("inf")),
 }
 
 

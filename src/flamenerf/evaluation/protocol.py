@@ -327,12 +327,9 @@ def evaluate_run(run, ds: Dataset, opts: EvalOptions, out_dir: Path | None = Non
     frames = ds.split(opts.split)
     if not frames:
         raise UserError(f"{ds.root / 'transforms.json'}: split {opts.split!r} is empty")
-    if any(f.frame_index is None for f in frames):
-        raise UserError(f"--split {opts.split}: its frames have no codes of their own (use a "
-                        "capture split such as val)")
-    if max(f.frame_index for f in frames) >= model.deform_codes.num_embeddings:
-        raise UserError(f"{ds.root}: frame indices exceed this run's code table "
-                        "(a different capture than the run was trained on?)")
+    why = run.codes_error(ds, frames)
+    if why is not None:
+        raise UserError(f"--split {opts.split}: {why}")
     torch.manual_seed(opts.seed)
     log(f"held-out: fitting ω of {len(frames)} {opts.split} frames "
         f"({opts.fit_steps} steps x {opts.fit_batch_rays} rays) at {intr.w}x{intr.h}")

@@ -151,19 +151,24 @@ class EditWindow:
     def weights(self, n: int, fps: float) -> np.ndarray:
         """How much of the edit each of n frames at `fps` shows (n,), in [0, 1]; a
         UserError when the window misses every frame."""
+        from flamenerf.rendering.expressions import ease
+
         t = np.arange(n) / fps
         lo = 0.0 if self.start is None else self.start
         hi = t[-1] + 1.0 / fps if self.end is None else self.end
-        ease = min(EASE_S, (hi - lo) / 2)
+        span = min(EASE_S, (hi - lo) / 2)
         w = np.ones(n)
         if self.start is not None and self.start > 0:
-            w = np.minimum(w, np.clip((t - lo) / ease, 0, 1) if ease > 0 else t >= lo)
+            w = np.minimum(w, (t - lo) / span if span > 0 else t >= lo)
         if self.end is not None:
-            w = np.minimum(w, np.clip((hi - t) / ease, 0, 1) if ease > 0 else t < hi)
-        w = w * w * (3 - 2 * w)  # smooth: no jolt where the edit comes in or goes
+            w = np.minimum(w, (hi - t) / span if span > 0 else t < hi)
+        w = ease(w)
         if not w.any():
-            raise UserError(f"--edit-during {self}: the video is {n / fps:.3g} s long, so "
-                            "no frame lies in it")
+            length = n / fps
+            raise UserError(f"--edit-during {self}: " + (
+                f"the video is {length:.3g} s long" if lo >= length else
+                f"no frame falls inside it once eased in and out (frames every "
+                f"{1 / fps:.3g} s)"))
         return w.astype(np.float32)
 
     def __str__(self) -> str:
@@ -177,12 +182,14 @@ class EditWindow:
 _FILE_OPS = {"+=": "+", "-=": "-", "*=": "x", "=": "="}  # `*` is a shell's wildcard
 
 
-def file_tag(items: list[str], longest: int = 60) -> str:
+def file_tag(items: list[str], names: list[str], longest: int = 60) -> str:
     """The edit as a part of a file name, so that two edits of one clip get two videos:
-    `mouthSmile+0.3_jawOpenx0` for `mouthSmile+=0.3, jawOpen*=0`; `edited` where that
-    would be longer than `longest` characters or hold a character a file name should not."""
-    tag = "_".join(f"{m['name']}{_FILE_OPS[m['op']]}{m['amount']}"
-                   for m in _ITEM.finditer(" ".join(items)))
+    `mouthSmile+0.3_jawOpenx0` for `mouthSmile += .3, JAWOPEN*=0` (a control's own
+    spelling, a stem or `all` as typed); `edited` where that would be longer than `longest`
+    characters or hold a character a file name should not. `items` parse (`parse_edits`)."""
+    by_case = {n.lower(): n for n in names}
+    tag = "_".join(f"{by_case.get(m['name'].lower(), m['name'])}{_FILE_OPS[m['op']]}"
+                   f"{float(m['amount']):g}" for m in _ITEM.finditer(" ".join(items)))
     if not tag or len(tag) > longest or not re.fullmatch(r"[\w.+=-]+", tag):
         return "edited"
     return tag

@@ -116,14 +116,20 @@ def keyframe(base: np.ndarray, values: dict[int, float],
     return vec
 
 
+def ease(u: np.ndarray) -> np.ndarray:
+    """0 -> 1 for u in [0, 1], with no jolt at either end (cosine): how keyframes and an
+    edit limited in time come in and go."""
+    return (1 - np.cos(np.pi * np.clip(u, 0.0, 1.0))) / 2
+
+
 def keyframe_sequence(keys: np.ndarray, base: np.ndarray, num: int) -> np.ndarray:
-    """Ease (cosine) base -> keys[0] -> ... -> keys[-1] -> base over `num` frames."""
+    """Ease base -> keys[0] -> ... -> keys[-1] -> base over `num` frames."""
     pts = np.concatenate([base[None], np.asarray(keys, np.float32), base[None]])
     if num == 1:
         return pts[1:2].copy()
     u = np.arange(num) / (num - 1) * (len(pts) - 1)
     seg = np.minimum(np.floor(u).astype(int), len(pts) - 2)
-    w = (1 - np.cos(np.pi * (u - seg))) / 2
+    w = ease(u - seg)
     return (pts[seg] * (1 - w[:, None]) + pts[seg + 1] * w[:, None]).astype(np.float32)
 
 

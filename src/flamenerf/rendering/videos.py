@@ -48,13 +48,14 @@ class RenderOptions:
             along and the edited controls are clamped to the training range in each frame
             as for keyframes (a note says in how many).
         edit_during: Apply --edit only between START:END seconds of the video (as in 2:4.5;
-            the end left out: to the end, the start: from the start), eased in and out
-            over a third of a second; the other frames as the source has them.
-        codes: Each frame's deformation and appearance codes: own (with --split of the
-            run's own dataset: a training frame's trained codes, a held-out frame's
-            between its neighbours', so the clip's own small motions and light stay),
-            first (frame 0's for every frame, as every other source renders), or auto:
-            own with --split of the run's dataset, else first.
+            the end left out: to the end, the start: from the start), eased in and out over
+            0.3 s inside them; the other frames as the source has them.
+        codes: Each frame's deformation and appearance codes: own (with --split of
+            capture frames: a training frame's trained codes, a held-out frame's between
+            its neighbours', so the clip's own small motions and light stay), first (the
+            codes of frame 0 for every frame, as every other source renders), or auto: own
+            with a split of capture frames of the run's own dataset (or of the one given
+            with --dataset where the run's has moved), else first.
         camera: static, orbit, spiral, dolly, a JSON file of poses, or auto.
         head_pose: Head pose relative to frame 0's, independent of --camera: `drive` (the
             driving video's head turns, with --drive), keyframes
@@ -335,17 +336,21 @@ def camera_poses(opts: RenderOptions, seq: X.ExpressionSequence, rig: C.CameraRi
     return poses, Path(camera).stem, seq
 
 
-def own_codes(opts: RenderOptions, run) -> bool:
-    """Whether each frame renders with its own codes (--codes; `auto`: with --split of
-    the run's own dataset, whose frames the codes belong to)."""
+def own_codes(opts: RenderOptions, run, ds: Dataset, frames: list) -> bool:
+    """Whether the split's `frames` render with their own codes (--codes). `auto`: where
+    they have codes in this run (capture frames, `Run.codes_error`) of its own dataset, or
+    of the one given with --dataset where the run's is no longer where it trained (moved);
+    `own` needs only the codes."""
     if opts.codes == "first" or not opts.split:
         return False
-    own_dataset = (opts.dataset is None
-                   or Path(opts.dataset).resolve() == Path(run.meta["dataset"]).resolve())
-    if opts.codes == "own" and not own_dataset:
-        raise UserError(f"--codes own: {opts.dataset} is not the dataset {opts.run} was "
-                        "trained on, whose frames the codes belong to")
-    return own_dataset
+    why = run.codes_error(ds, frames)
+    if why is not None:
+        if opts.codes == "own":
+            raise UserError(f"--codes own: --split {opts.split}: {why}")
+        return False
+    trained_on = Path(run.meta["dataset"])
+    return (opts.codes == "own" or opts.dataset is None or not trained_on.exists()
+            or Path(opts.dataset).resolve() == trained_on.resolve())
 
 
 def output_paths(opts: RenderOptions, source: str, camera: str) -> dict[str, Path]:
@@ -510,7 +515,7 @@ def plan_render(opts: RenderOptions, log=print) -> RenderPlan:
     if edits:
         from flamenerf.rendering.edits import EditWindow, apply_edits, describe, file_tag
 
-        source, label = values, f"{label}_{file_tag(opts.edit)}"
+        source, label = values, f"{label}_{file_tag(opts.edit, names)}"
         where = "in every frame"
         if opts.edit_during is None:
             values, moved, over = apply_edits(values, edits, comp,
@@ -562,9 +567,14 @@ def plan_render(opts: RenderOptions, log=print) -> RenderPlan:
     settings = dataclasses.replace(REFERENCE if opts.exact else FAST,
                                    chunk=opts.chunk or (REFERENCE.chunk if opts.exact else 0))
     codes = None
-    if own_codes(opts, run):
-        codes = run.clip_codes(ds, ds.split(opts.split)[:n])
+    if opts.split and own_codes(opts, run, ds, ds.split(opts.split)[:n]):
+        frames = ds.split(opts.split)[:n]
+        codes = run.clip_codes(ds, frames)
         # a bake per frame's ω would cost what the exact warp costs, and stay in memory
         settings = dataclasses.replace(settings, warp_grid=0)
+        trained = {f.frame_index for f in ds.training_frames()}
+        between = sum(f.frame_index not in trained for f in frames)
+        log("note: each frame with its own codes (--codes first: frame 0's)"
+            + (f"; {between} held-out frames with their neighbours'" if between else ""))
     return RenderPlan(run, ds, intr, poses, values, verts, heads, dil, settings, fps, paths,
                       seq, label, cam_label, codes, bool(edits))

@@ -63,20 +63,30 @@ class Run:
         w, a = self.model.codes(i)
         return w[0].detach(), a[0].detach()
 
+    def codes_error(self, ds: Dataset, frames: list[Frame]) -> str | None:
+        """Why `frames` of `ds` have no codes of their own in this run, or None: frames
+        outside the capture (a re-animation split) have none, and a capture longer than
+        the run's code table is another capture than the one it was trained on."""
+        if any(f.frame_index is None for f in frames):
+            return "its frames have no codes of their own (use a capture split such as val)"
+        if max(f.frame_index for f in frames) >= self.model.deform_codes.num_embeddings:
+            return (f"{ds.root}: frame indices exceed this run's code table (a different "
+                    "capture than the run was trained on?)")
+        return None
+
     def clip_codes(self, ds: Dataset, frames: list[Frame]) -> tuple[torch.Tensor, torch.Tensor]:
-        """Each frame's own ω (T, code_dim) and φ (T, appearance_dim): a training frame's
-        trained codes; a held-out capture frame's (never trained, so still at their
+        """Each capture frame's own ω (T, code_dim) and φ (T, appearance_dim): a training
+        frame's trained codes; a held-out frame's (never trained, so still at their
         initial values) interpolated in clip order between the nearest training frames'
-        on either side (the nearest one past either end); a frame outside the capture,
-        frame 0's."""
+        on either side (the nearest one's past either end). `frames` must have codes
+        (`codes_error`)."""
         trained = sorted({f.frame_index for f in ds.training_frames()
                           if f.frame_index is not None})
         if not trained:
             trained = [0]
-        at = np.asarray([0 if f.frame_index is None else f.frame_index for f in frames],
-                        np.float64)
+        at = np.asarray([f.frame_index for f in frames], np.float64)
         idx = np.asarray(trained, np.float64)
-        # the two trained neighbours and the weight of the upper one (0 at an exact match)
+        # the trained neighbours below and above, and how far towards the upper one
         hi = np.clip(np.searchsorted(idx, at), 1, len(idx) - 1) if len(idx) > 1 else \
             np.zeros(len(at), np.int64)
         lo = np.maximum(hi - 1, 0)

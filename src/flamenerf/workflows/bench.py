@@ -296,7 +296,8 @@ def _prior_figure(o: BenchOptions, ds, methods: dict[str, Any], train_size: int)
 
     from flamenerf.data.scene import FrameSet
     from flamenerf.evaluation.protocol import DIFF_GAIN, pick_sweep_frames, render_frames
-    from flamenerf.images import abs_diff, hstack, resize_to_height, text_strip, vstack
+    from flamenerf.images import (abs_diff, hstack, resize_to_height, text_strip, titled_row,
+                                  vstack)
     from flamenerf.io import save_png
     from flamenerf.training.run import load_run
 
@@ -315,11 +316,9 @@ def _prior_figure(o: BenchOptions, ds, methods: dict[str, Any], train_size: int)
 
     labels = ["neutral"] + [str(fs.frames[i].extra.get("leakage_control")) for i in
                             range(1, fs.n)]
-    gt_row = row(list(fs.images.numpy()))
+    gt_row = titled_row([resize_to_height(i, h) for i in fs.images.numpy()], labels, gap=2)
     width = gt_row.shape[1]
-    heads = hstack([text_strip(lab, resize_to_height(fs.images[0].numpy(), h).shape[1])
-                    for lab in labels], gap=2)
-    parts = [heads, text_strip("ground truth", width), gt_row]
+    parts = [text_strip("ground truth", width), gt_row]
     for name, title in (("flame-in-nerf", "with the spatial ray prior (FLAME-in-NeRF)"),
                         ("no-prior", "without the prior")):
         r = runs[name]
