@@ -179,7 +179,7 @@ def test_a_capture_edited_only_during_a_window(toy_run, tmp_path):
     np.testing.assert_array_equal(plan.values[:3], tracked[:3])  # before 1 s: as tracked
     np.testing.assert_allclose(plan.values[3:, jaw], tracked[3:, jaw] - 0.05, atol=1e-6)
     assert plan.paths["rgb"].name == "capture_jawOpen-0.05_1-s_split.mp4"
-    assert any("from frame 3 to 5 (1: s" in n for n in notes), notes
+    assert any("from frame 3 to 5 (1 s to the end, eased" in n for n in notes), notes
     with pytest.raises(UserError, match="--edit-during: limits an --edit"):
         RenderOptions(toy_run, split="capture", edit_during="1:2").check()
 

@@ -174,6 +174,13 @@ class EditWindow:
     def __str__(self) -> str:
         return ":".join("" if v is None else f"{v:g}" for v in (self.start, self.end))
 
+    def describe(self) -> str:
+        """`3-6 s`, `8.5 s to the end`, `the start to 3 s`."""
+        a = "the start" if self.start is None else f"{self.start:g} s"
+        b = "the end" if self.end is None else f"{self.end:g} s"
+        return f"{self.start:g}-{self.end:g} s" if self.start is not None and \
+            self.end is not None else f"{a} to {b}"
+
     def file_tag(self) -> str:
         """`2-4.5s`, `2-s`, `0-3s`: the window in a file's name."""
         return f"{self.start or 0:g}-{'' if self.end is None else f'{self.end:g}'}s"

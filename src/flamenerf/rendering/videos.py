@@ -530,7 +530,7 @@ def plan_render(opts: RenderOptions, log=print) -> RenderPlan:
             values[inside] += w[inside, None] * (edited - values[inside])
             label += f"_{window.file_tag()}"
             a, b = np.flatnonzero(inside)[[0, -1]]
-            where = f"from frame {a} to {b} ({window} s, eased in and out)"
+            where = f"from frame {a} to {b} ({window.describe()}, eased in and out)"
         held = not (opts.split or opts.drive or opts.expressions)
         log(f"note: edited {describe(opts.edit)} {where}"
             + (" of frame 0's expression, held (give --split capture, --drive or "
@@ -574,7 +574,8 @@ def plan_render(opts: RenderOptions, log=print) -> RenderPlan:
         settings = dataclasses.replace(settings, warp_grid=0)
         trained = {f.frame_index for f in ds.training_frames()}
         between = sum(f.frame_index not in trained for f in frames)
-        log("note: each frame with its own codes (--codes first: frame 0's)"
-            + (f"; {between} held-out frames with their neighbours'" if between else ""))
+        log("note: each frame renders with its own codes"
+            + (f" ({between} held-out frames with their neighbours')" if between else "")
+            + "; --codes first renders all with frame 0's")
     return RenderPlan(run, ds, intr, poses, values, verts, heads, dil, settings, fps, paths,
                       seq, label, cam_label, codes, bool(edits))
