@@ -28,6 +28,11 @@ def test_load_dataset_reads_every_split(dataset_dir):
     for k, f in enumerate(ds.split("capture")):
         f.extra["time"] = round(k / 15, 6)
     assert frame_rate(ds.split("capture")) == 15.0
+    # frames spread unevenly (every 2nd or 3rd of a 30 fps clip) play in the clip's time
+    t = np.cumsum([0] + [2 if k % 2 else 3 for k in range(11)]) / 30
+    for f, tk in zip(ds.split("capture"), t):
+        f.extra["time"] = round(float(tk), 6)
+    assert frame_rate(ds.split("capture")) == round(11 / t[-1], 3)
     assert [f.frame_index for f in ds.split("val")] == [5]
     assert all(f.frame_index is None for f in ds.split("reanimate") + ds.split("leakage"))
     assert len(ds.split("leakage")) == 1 + len(CONTROLS)

@@ -8,6 +8,7 @@ import pytest
 
 from flamenerf.data.video import VideoWriter, iter_frames, probe_video, select_frames
 from flamenerf.errors import UserError
+from media import clip_with_sound
 
 
 def test_probe_and_decode(astronaut_video):
@@ -60,3 +61,22 @@ def test_an_aborted_video_leaves_nothing(tmp_path):
             v.write(np.zeros((9, 9, 3)))  # odd sizes are padded
             raise RuntimeError("boom")
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_video_carries_a_clips_sound_cut_to_its_length(tmp_path):
+    from flamenerf.data.video import Soundtrack, has_sound
+
+    clip = clip_with_sound(tmp_path / "clip.mp4")
+    assert has_sound(clip)
+    out = tmp_path / "out.mp4"
+    with VideoWriter(out, fps=10, sound=Soundtrack(clip, 1.0)) as v:
+        for _ in range(12):  # 1.2 s
+            v.write(np.zeros((16, 16, 3), np.uint8))
+    assert has_sound(out)
+    assert abs(probe_video(out).duration - 1.2) < 0.1
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["clip.mp4", "out.mp4"]
+    silent = tmp_path / "silent.mp4"  # a source without sound: a warning, a silent video
+    with VideoWriter(silent, fps=10, sound=Soundtrack(out.with_name("missing.mp4"), 0)) as v:
+        v.write(np.zeros((16, 16, 3), np.uint8))
+    assert silent.is_file() and not has_sound(silent)
+    assert not any(".tmp." in p.name for p in tmp_path.iterdir())

@@ -125,3 +125,42 @@ def test_side_by_side_panels_carry_titles_where_they_fit(toy_run, tmp_path):
     assert sbs.shape[0] == 80 + 14  # the panels under a strip of titles
     titles = sbs[:14].astype(int)
     assert np.median(titles) > 200 and titles.min() < 100  # black text on white
+
+
+def test_the_capture_carries_the_clips_sound(toy_dataset, toy_run, tmp_path):
+    """--split capture of a preprocessed clip (frame times, the source video) at its own
+    pace: the video and the side by side carry the clip's sound from the first frame's
+    time; another --fps, --no-sound or a source that is gone: silent, with a note."""
+    import json
+    import shutil
+
+    from flamenerf.data.video import has_sound, probe_video
+    from media import clip_with_sound
+
+    data = tmp_path / "data"
+    shutil.copytree(toy_dataset, data)
+    meta = json.loads((data / "transforms.json").read_text())
+    meta["source"]["video"] = str(clip_with_sound(tmp_path / "clip.mp4", 2.0))
+    for f in meta["frames"]:
+        if f.get("frame_index") is not None:
+            f["time"] = 0.5 + f["frame_index"] / 10  # the clip's frames at 10 fps from 0.5 s
+    (data / "transforms.json").write_text(json.dumps(meta))
+    notes = []
+
+    def render_to(name, **kw):
+        from flamenerf.rendering.videos import render_videos
+
+        render_videos(RenderOptions(toy_run, out=tmp_path / name, split="capture",
+                                    dataset=data, device="cpu", **kw), log=notes.append)
+        return tmp_path / name
+
+    out = render_to("v.mp4", side_by_side=True)
+    assert has_sound(out) and has_sound(tmp_path / "v_sbs.mp4")
+    assert abs(probe_video(out).duration - 0.6) < 0.1  # 6 frames at 10 fps
+    assert any("with the clip's sound" in n and "from 0.50 s" in n for n in notes)
+    assert not has_sound(render_to("fast.mp4", fps=20))
+    assert any("no sound: --fps 20 plays the clip at another pace" in n for n in notes)
+    assert not has_sound(render_to("quiet.mp4", sound=False))
+    (tmp_path / "clip.mp4").unlink()
+    assert not has_sound(render_to("gone.mp4"))
+    assert any("no sound: the clip" in n and "no longer there" in n for n in notes)

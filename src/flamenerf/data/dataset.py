@@ -88,16 +88,17 @@ class Frame:
 
 def frame_rate(frames: list[Frame]) -> float | None:
     """Frames per second of frames in clip order, from their `time`s (`preprocess` stores
-    them); None where a frame has none (the built-in scene's)."""
+    them): the rate at which they play in the time the clip took, first to last (frames
+    spread unevenly over a clip, or a dropped one, keep the clip's length, so that its
+    sound stays in step); None where a frame has none (the built-in scene's)."""
     times = [f.extra.get("time") for f in frames]
     if len(times) > 1 and all(isinstance(t, (int, float)) for t in times):
-        dt = np.diff(np.asarray(times, np.float64))
-        dt = dt[dt > 0]
-        if dt.size:  # to a thousandth (times are stored to a microsecond), and within
+        span = float(times[-1]) - float(times[0])
+        if span > 0:  # to a thousandth (times are stored to a microsecond), and within
             # what a video can be written at (a few frames spread over a long clip)
             from flamenerf.data.video import FPS_RANGE
 
-            return round(float(np.clip(1.0 / np.median(dt), *FPS_RANGE)), 3)
+            return round(float(np.clip((len(times) - 1) / span, *FPS_RANGE)), 3)
     return None
 
 

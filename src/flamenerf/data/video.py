@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from flamenerf.errors import UserError
+from flamenerf.errors import UserError, warn
 
 
 FPS_RANGE = (0.1, 1000.0)  # a frame every ten seconds to far above any player's rate:
@@ -172,6 +172,36 @@ def even_pad(img: np.ndarray) -> np.ndarray:
     return img
 
 
+@dataclass(frozen=True)
+class Soundtrack:
+    """The sound of the video `source` from `start` seconds on: what a video of the clip's
+    own frames, played at the clip's pace, carries."""
+
+    source: Path
+    start: float
+
+
+def has_sound(path: str | os.PathLike) -> bool:
+    """Whether a video file has an audio stream."""
+    return any(ln.lstrip().startswith("Stream") and " Audio: " in ln
+               for ln in _header(Path(path)).splitlines())
+
+
+def add_sound(video: Path, sound: Soundtrack, duration: float, out: Path) -> str | None:
+    """Write `video` with `sound` cut to `duration` seconds to `out` (the picture copied,
+    not encoded again); None on success, else ffmpeg's reason."""
+    r = subprocess.run(
+        [_ffmpeg(), "-hide_banner", "-nostdin", "-y", "-loglevel", "error", "-i", str(video),
+         "-ss", f"{sound.start:.6f}", "-i", str(sound.source), "-map", "0:v:0", "-map",
+         "1:a:0", "-c:v", "copy", "-c:a", "aac", "-t", f"{duration:.6f}", str(out)],
+        capture_output=True, text=True, errors="replace")
+    if r.returncode == 0 and out.is_file():
+        return None
+    out.unlink(missing_ok=True)
+    lines = [ln.strip() for ln in r.stderr.splitlines() if ln.strip()]
+    return lines[-1] if lines else f"ffmpeg exit status {r.returncode}"
+
+
 class VideoWriter:
     """Frames in, one mp4 out. Use as a context manager: on success the temporary file is
     renamed to `path`; on an exception it is deleted.
@@ -182,8 +212,11 @@ class VideoWriter:
     """
 
     def __init__(self, path: str | os.PathLike, fps: float, quality: int = 8,
-                 preset: str = "veryfast"):
+                 preset: str = "veryfast", sound: Soundtrack | None = None):
+        """`sound`: added to the video when it closes, cut to its length (a warning and a
+        silent video where ffmpeg cannot)."""
         check_fps(fps, str(path))
+        self.sound = sound
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         # the extension stays .mp4 so that ffmpeg picks the container from it
@@ -222,6 +255,19 @@ class VideoWriter:
             self._gen = None
             if not self.tmp.is_file():
                 raise RuntimeError("it wrote no file")
+        if self.sound is not None:
+            mixed = self.tmp.with_name(self.tmp.name.replace(".tmp.mp4", ".sound.tmp.mp4"))
+            try:
+                why = add_sound(self.tmp, self.sound, self.frames / self.fps, mixed)
+                if why is None:
+                    os.replace(mixed, self.tmp)
+                else:
+                    warn(f"{self.path}: written without the sound of {self.sound.source} "
+                         f"(ffmpeg: {why})")
+            except BaseException:  # Ctrl-C while mixing: neither temporary file stays
+                mixed.unlink(missing_ok=True)
+                self.tmp.unlink(missing_ok=True)
+                raise
         os.replace(self.tmp, self.path)
         return self.path
 

@@ -100,6 +100,9 @@ class RenderOptions:
             to 2 degrees; data/captured_views.py): outside the captured range the view
             direction's encoding extrapolates (pale faces, lips without their red). Off:
             at the direction asked.
+        sound: With --split capture of a clip played at its own pace, carry the clip's
+            sound (from its first frame's time) in the video and the side by side, where
+            the source video `preprocess` read is still there and has sound.
         exact: Render with the training forward pass (what `flamenerf eval`'s PSNR uses)
             instead of the inference path, which is several times faster on a CPU and
             within 0.05 dB of it on the built-in scene (docs/bench/render.md).
@@ -134,6 +137,7 @@ class RenderOptions:
     landmarker: Path | None = None
     chunk: int = 0
     captured_directions: bool = True
+    sound: bool = True
     exact: bool = False
     device: str = "auto"
     threads: int = 0
@@ -212,6 +216,7 @@ class RenderPlan:
     camera: str
     codes: tuple[Any, Any] | None = None
     edited: bool = False  # --edit changed the source's expressions
+    sound: Any = None  # data/video.Soundtrack: the clip's, for the video and side by side
 
     def frames(self):
         """The frames, rendered one at a time (an iterator of
@@ -353,6 +358,34 @@ def own_codes(opts: RenderOptions, run, ds: Dataset, frames: list) -> bool:
             or Path(opts.dataset).resolve() == trained_on.resolve())
 
 
+def clip_sound(opts: RenderOptions, ds: Dataset, frames: list, fps: float, log=print):
+    """The clip's sound (data/video.Soundtrack) for a render of its capture `frames` in
+    order at `fps`, or None: only the whole capture's frames (or its first ones, with
+    --max-frames) at the clip's own pace keep step with it; a note where the sound was
+    wanted but cannot come."""
+    from flamenerf.data.dataset import CAPTURE
+    from flamenerf.data.video import Soundtrack, has_sound
+
+    times = [f.extra.get("time") for f in frames]
+    if (not opts.sound or opts.split != CAPTURE or not times
+            or not all(isinstance(t, (int, float)) for t in times)):
+        return None  # the built-in scene's frames store no times: it has no sound
+    src = ds.source.get("video") if isinstance(ds.source, dict) else None
+    rate = ds.frame_rate()
+    if rate is not None and abs(fps - rate) > 1e-3:
+        log(f"note: no sound: --fps {fps:g} plays the clip at another pace than its own "
+            f"({rate:g} fps)")
+        return None
+    if not isinstance(src, str) or not Path(src).is_file():
+        log(f"note: no sound: the clip {src} is no longer there (--no-sound hides this)")
+        return None
+    if not has_sound(src):
+        return None
+    log(f"note: with the clip's sound ({src}, from {times[0]:.2f} s; --no-sound leaves it "
+        "out)")
+    return Soundtrack(Path(src), float(times[0]))
+
+
 def output_paths(opts: RenderOptions, source: str, camera: str) -> dict[str, Path]:
     """The videos to write, refusing to replace existing ones without --overwrite."""
     out = (opts.out if opts.out is not None
@@ -434,8 +467,9 @@ def write_videos(plan: RenderPlan) -> None:
     titles = [("filmed" if seq.cameras is not None else "driving") if seq.driving is not None
               else "expression", "edited" if plan.edited else "render", "depth"]
     with contextlib.ExitStack() as stack:
-        writers = {k: stack.enter_context(VideoWriter(p, plan.fps))
-                   for k, p in plan.paths.items()}
+        writers = {k: stack.enter_context(VideoWriter(
+            p, plan.fps, sound=plan.sound if k in ("rgb", "sbs") else None))
+            for k, p in plan.paths.items()}
         lo = hi = None
         for i, fr in enumerate(tqdm(plan.frames(), total=len(values), desc="render",
                                     unit="frame")):
@@ -577,5 +611,6 @@ def plan_render(opts: RenderOptions, log=print) -> RenderPlan:
         log("note: each frame renders with its own codes"
             + (f" ({between} held-out frames with their neighbours')" if between else "")
             + "; --codes first renders all with frame 0's")
+    sound = clip_sound(opts, ds, ds.split(opts.split)[:n], fps, log) if opts.split else None
     return RenderPlan(run, ds, intr, poses, values, verts, heads, dil, settings, fps, paths,
-                      seq, label, cam_label, codes, bool(edits))
+                      seq, label, cam_label, codes, bool(edits), sound)
