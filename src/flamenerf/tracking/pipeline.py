@@ -261,7 +261,9 @@ def write_dataset(video: Path, out: Path, opts: PreprocessOptions, clip, sol, sc
     lm_out = crop.points(clip.landmarks[..., :2])
     source = {
         "tool": "flamenerf preprocess", "version": flamenerf.__version__,
-        "video": str(video), "video_frames": info.num_frames, "video_fps": info.fps,
+        # absolute: `render --split capture` takes the clip's sound from it
+        "video": str(Path(video).resolve()), "video_frames": info.num_frames,
+        "video_fps": info.fps,
         "video_size": [info.width, info.height], "rotation": info.rotation,
         "crop": crop.to_dict(), "focal_source_px": sol.focal, "face_model": opts.face_model,
         "options": jsonable(asdict(opts)),
