@@ -22,13 +22,17 @@ import numpy as np
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(description="A strip of chosen frames of videos: one row per "
+                                 "video (one column with --columns).")
     ap.add_argument("videos", type=Path, nargs="+")
-    ap.add_argument("--frames", type=int, nargs="+", required=True)
-    ap.add_argument("--diff", action="store_true")
+    ap.add_argument("--frames", type=int, nargs="+", required=True,
+                    help="frame numbers (from 0) to show from each video")
+    ap.add_argument("--diff", action="store_true",
+                    help="append |last frame - first frame| x 4 (grey) to each row")
     ap.add_argument("--columns", action="store_true", help="one column per video")
-    ap.add_argument("--scale", type=int, default=1)
-    ap.add_argument("--out", type=Path, required=True)
+    ap.add_argument("--scale", type=int, default=1,
+                    help="enlarge every pixel to K x K (a 64 px video is small on a page)")
+    ap.add_argument("--out", type=Path, required=True, help="the PNG to write")
     a = ap.parse_args()
     from flamenerf.data.video import read_frames
     from flamenerf.images import abs_diff, hstack, vstack

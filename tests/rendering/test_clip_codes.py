@@ -44,6 +44,9 @@ def test_a_split_renders_each_frame_with_its_own_codes(toy_run, tmp_path):
     first = plan_render(RenderOptions(toy_run, out=tmp_path / "x.mp4", split="train",
                                       device="cpu", codes="first"), log=lambda _: None)
     assert first.codes is None
+    named = plan_render(RenderOptions(toy_run, split="train", codes="first", device="cpu"),
+                        log=lambda _: None)
+    assert named.paths["rgb"].name == "train_split_first.mp4"  # apart from the default's
     train = plan.ds.split("train")
 
     def alone(i, codes):

@@ -77,6 +77,10 @@ def test_edits_as_people_type_them():
     ("jawOpen=1,jawOpen+=1", "jawOpen is edited twice"),
     ("all*=0,all=1", "all is edited twice"),
     (",", "give at least one edit"),
+    ("mouthSmileLeft=+0.3", r"to raise it by that write mouthSmileLeft\+=0.3"),
+    ("smile+=0.3", "did you mean 'mouthSmileLeft'"),  # the word typed, in a control's name
+    ("mouthSmiel+=0.3", "did you mean 'mouthSmileLeft'"),
+    ("frown=1", r"unknown control 'frown' \(one of: .*; or all\)"),
 ])
 def test_bad_edits_say_what_is_wrong(item, message):
     with pytest.raises(UserError, match=message):
@@ -178,8 +182,12 @@ def test_a_capture_edited_only_during_a_window(toy_run, tmp_path):
     jaw = plan.ds.expression_names.index("jawOpen")
     np.testing.assert_array_equal(plan.values[:3], tracked[:3])  # before 1 s: as tracked
     np.testing.assert_allclose(plan.values[3:, jaw], tracked[3:, jaw] - 0.05, atol=1e-6)
-    assert plan.paths["rgb"].name == "capture_jawOpen-0.05_1-s_split.mp4"
-    assert any("from frame 3 to 5 (1 s to the end, eased" in n for n in notes), notes
+    assert plan.paths["rgb"].name == "capture_jawOpen-0.05_1s-end_split.mp4"
+    assert any("from frame 3 to 5 (1 s to the end, eased in and out)" in n for n in notes)
+    notes.clear()  # a window too short to ease in and out in full says how much shows
+    plan_render(RenderOptions(toy_run, split="capture", edit=["jawOpen-=0.05"],
+                              edit_during="1:1.6", fps=2.0, device="cpu"), log=notes.append)
+    assert any("reaches 25 % of it at most" in n for n in notes), notes  # 0.1 s before 1.6
     with pytest.raises(UserError, match="--edit-during: limits an --edit"):
         RenderOptions(toy_run, split="capture", edit_during="1:2").check()
 

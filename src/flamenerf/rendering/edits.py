@@ -70,6 +70,10 @@ def parse_edits(items: list[str], names: list[str]) -> list[Edit]:
                         f"got {rest.split()[0]!r}")
     for m in _ITEM.finditer(text):
         op = m["op"]
+        if op == "=" and m["amount"].startswith("+"):  # `=+0.3`: a `+=` typed backwards
+            raise UserError(f"--edit {m[0]!r}: sets {m['name']} to {m['amount'][1:]}; to "
+                            f"raise it by that write {m['name']}+={m['amount'][1:]} (to set "
+                            f"it, {m['name']}={m['amount'][1:]})")
         try:
             amount = float(m["amount"])
         except ValueError:
@@ -106,9 +110,17 @@ def _controls(name: str, names: list[str], item: str) -> list[str]:
     sides = [name + side for side in ("Left", "Right")]
     if all(n in names for n in sides):
         return sides
-    close = suggest(name, names)
-    raise UserError(f"--edit {item!r}: unknown control {name!r}{close}"
-                    + ("" if close else f" (one of: {', '.join(names)})"))
+    # what a name may be: a control, a pair's stem, `all`; a near spelling first, else
+    # those that hold the word typed (`smile` -> mouthSmile)
+    stems = sorted({n[:-4] for n in names if n.endswith("Left") and n[:-4] + "Right" in names})
+    every = names + stems + [ALL]
+    close = suggest(name, every)
+    if not close:
+        holding = [n for n in stems + names if name.lower() in n.lower()][:4]
+        close = f"; did you mean {' or '.join(repr(n) for n in holding)}?" if holding else ""
+    raise UserError(f"--edit {item!r}: unknown control {name!r}{close}" + (
+        "" if close else f" (one of: {', '.join(names)}; a pair's stem for both sides: "
+        f"{', '.join(stems) or 'none'}; or {ALL})"))
 
 
 def describe(items: list[str]) -> str:
@@ -182,8 +194,11 @@ class EditWindow:
             self.end is not None else f"{a} to {b}"
 
     def file_tag(self) -> str:
-        """`2-4.5s`, `2-s`, `0-3s`: the window in a file's name."""
-        return f"{self.start or 0:g}-{'' if self.end is None else f'{self.end:g}'}s"
+        """`2-4.5s`, `2s-end`, `start-3s`: the window in a file's name."""
+        if self.start is not None and self.end is not None:
+            return f"{self.start:g}-{self.end:g}s"
+        return (f"{self.start:g}s-end" if self.start is not None
+                else f"start-{self.end:g}s")
 
 
 _FILE_OPS = {"+=": "+", "-=": "-", "*=": "x", "=": "="}  # `*` is a shell's wildcard

@@ -47,9 +47,10 @@ class RenderOptions:
             jaw moves), a pair's stem both sides (`mouthSmile+=0.3`). Companions move
             along and the edited controls are clamped to the training range in each frame
             as for keyframes (a note says in how many).
-        edit_during: Apply --edit only between START:END seconds of the video (as in 2:4.5;
-            the end left out: to the end, the start: from the start), eased in and out over
-            0.3 s inside them; the other frames as the source has them.
+        edit_during: Apply --edit only between START:END seconds of the video as rendered,
+            at its --fps (as in 2:4.5; the end left out: to the end, the start: from the
+            start), eased in and out over 0.3 s inside them; the other frames as the source
+            has them.
         codes: Each frame's deformation and appearance codes: own (with --split of
             capture frames: a training frame's trained codes, a held-out frame's between
             its neighbours', so the clip's own small motions and light stay), first (the
@@ -386,10 +387,12 @@ def clip_sound(opts: RenderOptions, ds: Dataset, frames: list, fps: float, log=p
     return Soundtrack(Path(src), float(times[0]))
 
 
-def output_paths(opts: RenderOptions, source: str, camera: str) -> dict[str, Path]:
-    """The videos to write, refusing to replace existing ones without --overwrite."""
+def output_paths(opts: RenderOptions, source: str, camera: str, tag: str = ""
+                 ) -> dict[str, Path]:
+    """The videos to write (by default RUN/renders/SOURCE_CAMERA{tag}.mp4), refusing to
+    replace existing ones without --overwrite."""
     out = (opts.out if opts.out is not None
-           else Path(opts.run) / "renders" / f"{source}_{camera}.mp4")
+           else Path(opts.run) / "renders" / f"{source}_{camera}{tag}.mp4")
     if out.suffix.lower() != ".mp4":
         raise UserError(f"{out}: the output must be an .mp4 file")
     paths = {"rgb": out}
@@ -564,7 +567,11 @@ def plan_render(opts: RenderOptions, log=print) -> RenderPlan:
             values[inside] += w[inside, None] * (edited - values[inside])
             label += f"_{window.file_tag()}"
             a, b = np.flatnonzero(inside)[[0, -1]]
-            where = f"from frame {a} to {b} ({window.describe()}, eased in and out)"
+            where = f"from frame {a} to {b} ({window.describe()}, eased in and out"
+            if w.max() < 0.995:  # too short to ease in and out in full
+                where += (f"; the window is too short for the whole edit, which reaches "
+                          f"{100 * w.max():.0f} % of it at most")
+            where += ")"
         held = not (opts.split or opts.drive or opts.expressions)
         log(f"note: edited {describe(opts.edit)} {where}"
             + (" of frame 0's expression, held (give --split capture, --drive or "
@@ -596,7 +603,9 @@ def plan_render(opts: RenderOptions, log=print) -> RenderPlan:
         cam_label = f"{cam_label}_head"
     dil = dataset_dilation(ds) if opts.dilate_px is None else opts.dilate_px
 
-    paths = output_paths(opts, label, cam_label)
+    # a split with frame 0's codes is named apart from the default (its own codes)
+    paths = output_paths(opts, label, cam_label,
+                         "_first" if opts.split and opts.codes == "first" else "")
     writable_dir(paths["rgb"].parent, "video")
     settings = dataclasses.replace(REFERENCE if opts.exact else FAST,
                                    chunk=opts.chunk or (REFERENCE.chunk if opts.exact else 0))
@@ -609,7 +618,8 @@ def plan_render(opts: RenderOptions, log=print) -> RenderPlan:
         trained = {f.frame_index for f in ds.training_frames()}
         between = sum(f.frame_index not in trained for f in frames)
         log("note: each frame renders with its own codes"
-            + (f" ({between} held-out frames with their neighbours')" if between else "")
+            + (f" ({between} held-out frame{'s' if between > 1 else ''} with "
+               f"{'their' if between > 1 else 'its'} neighbours')" if between else "")
             + "; --codes first renders all with frame 0's")
     sound = clip_sound(opts, ds, ds.split(opts.split)[:n], fps, log) if opts.split else None
     return RenderPlan(run, ds, intr, poses, values, verts, heads, dil, settings, fps, paths,
