@@ -183,6 +183,7 @@ def test_a_capture_edited_only_during_a_window(toy_run, tmp_path):
     np.testing.assert_array_equal(plan.values[:3], tracked[:3])  # before 1 s: as tracked
     np.testing.assert_allclose(plan.values[3:, jaw], tracked[3:, jaw] - 0.05, atol=1e-6)
     assert plan.paths["rgb"].name == "capture_jawOpen-0.05_1s-end_split.mp4"
+    assert plan.edited.tolist() == [False] * 3 + [True] * 3  # the side by side's titles
     assert any("from frame 3 to 5 (1 s to the end, eased in and out)" in n for n in notes)
     notes.clear()  # a window too short to ease in and out in full says how much shows
     plan_render(RenderOptions(toy_run, split="capture", edit=["jawOpen-=0.05"],

@@ -216,7 +216,7 @@ class RenderPlan:
     label: str  # the expression source's, the edit's `file_tag` added
     camera: str
     codes: tuple[Any, Any] | None = None
-    edited: bool = False  # --edit changed the source's expressions
+    edited: Any = None  # (T,) bool: the frames --edit changed; None: no edit
     sound: Any = None  # data/video.Soundtrack: the clip's, for the video and side by side
 
     def frames(self):
@@ -467,8 +467,8 @@ def write_videos(plan: RenderPlan) -> None:
 
     intr, values, seq = plan.intr, plan.values, plan.seq
     near, far = plan.run.model.near, plan.run.model.far
-    titles = [("filmed" if seq.cameras is not None else "driving") if seq.driving is not None
-              else "expression", "edited" if plan.edited else "render", "depth"]
+    left_title = (("filmed" if seq.cameras is not None else "driving")
+                  if seq.driving is not None else "expression")
     with contextlib.ExitStack() as stack:
         writers = {k: stack.enter_context(VideoWriter(
             p, plan.fps, sound=plan.sound if k in ("rgb", "sbs") else None))
@@ -490,7 +490,10 @@ def write_videos(plan: RenderPlan) -> None:
                     # what moved since the first frame shows first (a keyframe's, a tour's)
                     left = expression_panel(values[i], plan.run.expression_names, intr.h,
                                             intr.w, ref=values[0])
-                writers["sbs"].write(titled_row([left, fr.rgb, dimg], titles, gap=2))
+                edited = plan.edited is not None and plan.edited[i]
+                writers["sbs"].write(titled_row(
+                    [left, fr.rgb, dimg], [left_title, "edited" if edited else "render",
+                                           "depth"], gap=2))
 
 
 def render_videos(opts: RenderOptions, log=print) -> RenderSummary:
@@ -549,18 +552,19 @@ def plan_render(opts: RenderOptions, log=print) -> RenderPlan:
     # the source as the model has learnt it, then the edit of it (clamped on its own), so
     # that `jawOpen-=0.3` lowers a drive's jaw from where the render shows it
     values = within_training_range(opts, ds, names, values, log)
+    changed = None  # the frames the edit changes (the side by side's titles say which)
     if edits:
         from flamenerf.rendering.edits import EditWindow, apply_edits, describe, file_tag
 
         source, label = values, f"{label}_{file_tag(opts.edit, names)}"
-        where = "in every frame"
+        where, changed = "in every frame", np.ones(len(values), bool)
         if opts.edit_during is None:
             values, moved, over = apply_edits(values, edits, comp,
                                               training_limits(opts, ds, names))
         else:  # edited where the window is, blended in and out at its ends
             window = EditWindow.parse(opts.edit_during)
             w = window.weights(len(values), fps)
-            inside = w > 0
+            inside = changed = w > 0
             edited, moved, over = apply_edits(values[inside], edits, comp,
                                               training_limits(opts, ds, names))
             values = values.copy()
@@ -623,4 +627,4 @@ def plan_render(opts: RenderOptions, log=print) -> RenderPlan:
             + "; --codes first renders all with frame 0's")
     sound = clip_sound(opts, ds, ds.split(opts.split)[:n], fps, log) if opts.split else None
     return RenderPlan(run, ds, intr, poses, values, verts, heads, dil, settings, fps, paths,
-                      seq, label, cam_label, codes, bool(edits), sound)
+                      seq, label, cam_label, codes, changed, sound)
