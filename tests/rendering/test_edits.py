@@ -160,7 +160,8 @@ def test_an_edit_window_eases_in_and_out():
     np.testing.assert_array_equal(EditWindow.parse("2:").weights(30, 10.0)[:20], 0)
     assert EditWindow.parse(":1").weights(30, 10.0)[0] == 1  # no ease at the video's start
     for text, message in (("2:1", "after the start"), ("x:1", "not a number"),
-                          ("1", "START:END"), ("-1:2", "0 or more")):
+                          ("1", "START:END"), ("-1:2", "0 or more"),
+                          (":", "give a start, an end or both")):
         with pytest.raises(UserError, match=message):
             EditWindow.parse(text)
     with pytest.raises(UserError, match="the video is 3 s long"):

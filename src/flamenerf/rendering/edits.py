@@ -156,6 +156,9 @@ class EditWindow:
                 raise UserError(f"--edit-during {text!r}: times are seconds from the "
                                 "start, 0 or more")
             ends.append(v)
+        if ends == [None, None]:
+            raise UserError(f"--edit-during {text!r}: give a start, an end or both (without "
+                            "--edit-during the edit applies to every frame)")
         if ends[0] is not None and ends[1] is not None and ends[1] <= ends[0]:
             raise UserError(f"--edit-during {text!r}: the end must come after the start")
         return cls(*ends)
@@ -188,10 +191,10 @@ class EditWindow:
 
     def describe(self) -> str:
         """`3-6 s`, `8.5 s to the end`, `the start to 3 s`."""
+        if self.start is not None and self.end is not None:
+            return f"{self.start:g}-{self.end:g} s"
         a = "the start" if self.start is None else f"{self.start:g} s"
-        b = "the end" if self.end is None else f"{self.end:g} s"
-        return f"{self.start:g}-{self.end:g} s" if self.start is not None and \
-            self.end is not None else f"{a} to {b}"
+        return f"{a} to {'the end' if self.end is None else f'{self.end:g} s'}"
 
     def file_tag(self) -> str:
         """`2-4.5s`, `2s-end`, `start-3s`: the window in a file's name."""
