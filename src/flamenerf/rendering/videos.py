@@ -613,9 +613,8 @@ def plan_render(opts: RenderOptions, log=print) -> RenderPlan:
     writable_dir(paths["rgb"].parent, "video")
     settings = dataclasses.replace(REFERENCE if opts.exact else FAST,
                                    chunk=opts.chunk or (REFERENCE.chunk if opts.exact else 0))
-    codes = None
-    if opts.split and own_codes(opts, run, ds, ds.split(opts.split)[:n]):
-        frames = ds.split(opts.split)[:n]
+    codes, frames = None, ds.split(opts.split)[:n] if opts.split else []
+    if own_codes(opts, run, ds, frames):
         codes = run.clip_codes(ds, frames)
         # a bake per frame's ω would cost what the exact warp costs, and stay in memory
         settings = dataclasses.replace(settings, warp_grid=0)
@@ -625,6 +624,6 @@ def plan_render(opts: RenderOptions, log=print) -> RenderPlan:
             + (f" ({between} held-out frame{'s' if between > 1 else ''} with "
                f"{'their' if between > 1 else 'its'} neighbours')" if between else "")
             + "; --codes first renders all with frame 0's")
-    sound = clip_sound(opts, ds, ds.split(opts.split)[:n], fps, log) if opts.split else None
+    sound = clip_sound(opts, ds, frames, fps, log)
     return RenderPlan(run, ds, intr, poses, values, verts, heads, dil, settings, fps, paths,
                       seq, label, cam_label, codes, changed, sound)

@@ -81,22 +81,18 @@ class Run:
         on either side (the nearest one's past either end). `frames` must have codes
         (`codes_error`)."""
         trained = sorted({f.frame_index for f in ds.training_frames()
-                          if f.frame_index is not None})
-        if not trained:
-            trained = [0]
-        at = np.asarray([f.frame_index for f in frames], np.float64)
-        idx = np.asarray(trained, np.float64)
-        # the trained neighbours below and above, and how far towards the upper one
-        hi = np.clip(np.searchsorted(idx, at), 1, len(idx) - 1) if len(idx) > 1 else \
-            np.zeros(len(at), np.int64)
-        lo = np.maximum(hi - 1, 0)
-        span = np.maximum(idx[hi] - idx[lo], 1e-9)
-        t = np.clip((at - idx[lo]) / span, 0.0, 1.0) if len(idx) > 1 else np.zeros(len(at))
-        w, a = self.model.codes(torch.as_tensor(np.asarray(trained), device=self.device))
-        t_ = torch.as_tensor(t, dtype=w.dtype, device=self.device)[:, None]
-        lo_, hi_ = torch.as_tensor(lo), torch.as_tensor(hi)
-        mix = lambda c: ((1 - t_) * c[lo_] + t_ * c[hi_]).detach()  # noqa: E731
-        return mix(w), mix(a)
+                          if f.frame_index is not None}) or [0]
+        at = [f.frame_index for f in frames]
+        w, a = self.model.codes(torch.as_tensor(trained, device=self.device))
+
+        def between(c: torch.Tensor) -> torch.Tensor:
+            """(N, D) at the trained frames -> (T, D) at `frames` (np.interp holds the
+            nearest one's past either end)."""
+            c = c.detach().float().cpu().numpy()
+            out = np.stack([np.interp(at, trained, c[:, d]) for d in range(c.shape[1])], -1)
+            return torch.as_tensor(out, dtype=torch.float32, device=self.device)
+
+        return between(w), between(a)
 
 
 def run_config(meta: Any, where: Path) -> Config:
