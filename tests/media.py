@@ -105,12 +105,13 @@ def rotated_video(tmp_path_factory) -> Path:
     return out
 
 
-def clip_with_sound(path, seconds: float = 3.0):
-    """A 32 px clip with a 440 Hz tone, made by ffmpeg's own generators."""
+def clip_with_sound(path, seconds: float = 3.0, volume: float = 1.0):
+    """A 32 px clip with a 440 Hz tone (`volume` 0: a silent sound track, as a muted
+    phone records), made by ffmpeg's own generators."""
     from flamenerf.data.video import _ffmpeg
 
     subprocess.run([_ffmpeg(), "-nostdin", "-y", "-loglevel", "error", "-f", "lavfi", "-i",
                     f"color=c=red:s=32x32:d={seconds}:r=30", "-f", "lavfi", "-i",
-                    f"sine=frequency=440:duration={seconds}", "-c:v", "libx264", "-c:a", "aac",
-                    "-shortest", str(path)], check=True)
+                    f"sine=frequency=440:duration={seconds}", "-af", f"volume={volume}",
+                    "-c:v", "libx264", "-c:a", "aac", "-shortest", str(path)], check=True)
     return path

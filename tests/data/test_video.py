@@ -80,3 +80,13 @@ def test_a_video_carries_a_clips_sound_cut_to_its_length(tmp_path):
         v.write(np.zeros((16, 16, 3), np.uint8))
     assert silent.is_file() and not has_sound(silent)
     assert not any(".tmp." in p.name for p in tmp_path.iterdir())
+
+
+def test_loudest_tells_a_muted_recording_from_sound(tmp_path):
+    from flamenerf.data.video import SILENT_DB, Soundtrack, loudest
+
+    tone = loudest(Soundtrack(clip_with_sound(tmp_path / "tone.mp4", 1.0), 0.2), 0.5)
+    muted = loudest(Soundtrack(clip_with_sound(tmp_path / "muted.mp4", 1.0, 0.0), 0.0), 1.0)
+    assert tone > -20 and muted < SILENT_DB
+    # a file without a sound track, or none at all: ffmpeg cannot tell
+    assert loudest(Soundtrack(tmp_path / "missing.mp4", 0.0), 1.0) is None

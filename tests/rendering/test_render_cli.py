@@ -130,7 +130,8 @@ def test_side_by_side_panels_carry_titles_where_they_fit(toy_run, tmp_path):
 def test_the_capture_carries_the_clips_sound(toy_dataset, toy_run, tmp_path):
     """--split capture of a preprocessed clip (frame times, the source video) at its own
     pace: the video and the side by side carry the clip's sound from the first frame's
-    time; another --fps, --no-sound or a source that is gone: silent, with a note."""
+    time; another --fps, --no-sound, a source that is gone or a silent sound track: no
+    sound, with a note."""
     import json
     import shutil
 
@@ -164,3 +165,6 @@ def test_the_capture_carries_the_clips_sound(toy_dataset, toy_run, tmp_path):
     (tmp_path / "clip.mp4").unlink()
     assert not has_sound(render_to("gone.mp4"))
     assert any("no sound: the clip" in n and "no longer there" in n for n in notes)
+    clip_with_sound(tmp_path / "clip.mp4", 2.0, volume=0.0)  # a muted recording
+    assert not has_sound(render_to("muted.mp4"))
+    assert any("no sound: the clip's sound track is silent" in n for n in notes)

@@ -187,6 +187,22 @@ def has_sound(path: str | os.PathLike) -> bool:
                for ln in _header(Path(path)).splitlines())
 
 
+SILENT_DB = -60.0
+"""A sound track whose loudest sample is below this (dB of full scale) carries nothing to
+hear: a phone's muted recording reads about -90."""
+
+
+def loudest(sound: Soundtrack, duration: float) -> float | None:
+    """The loudest sample of `sound`'s first `duration` seconds, in dB of full scale (-inf
+    for digital silence), by ffmpeg's volumedetect; None where ffmpeg cannot tell."""
+    r = subprocess.run(
+        [_ffmpeg(), "-hide_banner", "-nostdin", "-ss", f"{sound.start:.6f}", "-t",
+         f"{duration:.6f}", "-i", str(sound.source), "-map", "0:a:0", "-af", "volumedetect",
+         "-f", "null", "-"], capture_output=True, text=True, errors="replace")
+    found = re.search(r"max_volume:\s*(-?inf|-?[\d.]+) dB", r.stderr)
+    return None if r.returncode or found is None else float(found.group(1))
+
+
 def add_sound(video: Path, sound: Soundtrack, duration: float, out: Path) -> str | None:
     """Write `video` with `sound` cut to `duration` seconds to `out` (the picture copied,
     not encoded again); None on success, else ffmpeg's reason."""

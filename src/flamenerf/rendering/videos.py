@@ -365,7 +365,7 @@ def clip_sound(opts: RenderOptions, ds: Dataset, frames: list, fps: float, log=p
     --max-frames) at the clip's own pace keep step with it; a note where the sound was
     wanted but cannot come."""
     from flamenerf.data.dataset import CAPTURE
-    from flamenerf.data.video import Soundtrack, has_sound
+    from flamenerf.data.video import SILENT_DB, Soundtrack, has_sound, loudest
 
     times = [f.extra.get("time") for f in frames]
     if (not opts.sound or opts.split != CAPTURE or not times
@@ -382,9 +382,14 @@ def clip_sound(opts: RenderOptions, ds: Dataset, frames: list, fps: float, log=p
         return None
     if not has_sound(src):
         return None
+    sound = Soundtrack(Path(src), float(times[0]))
+    peak = loudest(sound, len(frames) / fps)
+    if peak is not None and peak < SILENT_DB:  # a muted recording: nothing to carry
+        log(f"note: no sound: the clip's sound track is silent (its loudest {peak:g} dB)")
+        return None
     log(f"note: with the clip's sound ({src}, from {times[0]:.2f} s; --no-sound leaves it "
         "out)")
-    return Soundtrack(Path(src), float(times[0]))
+    return sound
 
 
 def output_paths(opts: RenderOptions, source: str, camera: str, tag: str = ""
