@@ -11,12 +11,15 @@ pixels. A Nerfies-variant run (no β) shows no edit: its two figures are equal.
 `--codes first own` renders each with frame 0's codes and with each frame's own (render's
 `--codes`); results are keyed by it.
 
-Real-clip runs (`--retrack-run`): the capture rendered as filmed, with a broader smile and
-with every control stilled (`all*=0`; render's plans again), each re-tracked by MediaPipe's
-face landmarker; reported: the plain render's PSNR against the filmed frames (training
-and held-out frames apart), and per control the clip's tracked mean, the re-tracked means
-of each render, each edit's commanded mean, and the plain render's correlation with the
-clip.
+Real-clip runs (`--retrack-run`): the capture rendered as filmed, with a broader smile,
+with raised brows and with every control stilled (`all*=0`; render's plans again), each
+re-tracked by MediaPipe's face landmarker; reported: the plain render's PSNR against the
+filmed frames (training and held-out frames apart), per control the clip's tracked mean,
+the re-tracked means of each render, each edit's commanded mean, and the plain render's
+correlation with the clip; and per edit where it repainted the face: the mean change of
+colour inside the eyes', brows' and lips' outlines (the plain render's re-tracked
+landmarks; `control.part_change`). A brow edit that leaves the brows and repaints the
+eyes shows there.
 
     python benchmarks/bench_edit.py --run RUN... [--retrack-run RUN...] [--split val]
         [--codes auto|first|own ...] [--threads 2] [--json OUT.json]
@@ -42,12 +45,15 @@ BUILTIN_EDITS = {
     "mouthPucker=1": ["mouthPucker=1"],
     "frowns=1": ["mouthFrownLeft=1,mouthFrownRight=1"],
 }
-# re-tracked edits of a real clip: one that adds (a smile) and one that removes every
-# expression (what a frame's own ω could keep, if it had learnt part of the frame's face)
-REAL_EDITS = {"edited": ["mouthSmileLeft+=0.3,mouthSmileRight+=0.3"], "stilled": ["all*=0"]}
+# re-tracked edits of a real clip: two that add (a smile, raised brows) and one that removes
+# every expression (what a frame's own ω could keep, if it had learnt part of the frame's
+# face)
+REAL_EDITS = {"edited": ["mouthSmileLeft+=0.3,mouthSmileRight+=0.3"],
+              "brows": ["browInnerUp+=0.2"], "stilled": ["all*=0"]}
 REAL_REPORTED = ("mouthSmileLeft", "mouthSmileRight", "mouthUpperUpLeft", "mouthUpperUpRight",
-                 "jawOpen", "eyeBlinkLeft", "eyeBlinkRight", "browInnerUp", "mouthFrownLeft",
-                 "mouthFrownRight")
+                 "jawOpen", "eyeBlinkLeft", "eyeBlinkRight", "eyeWideLeft", "eyeWideRight",
+                 "eyeSquintLeft", "eyeSquintRight", "browInnerUp", "browOuterUpLeft",
+                 "browOuterUpRight", "mouthFrownLeft", "mouthFrownRight")
 
 
 def plan(run: Path, split: str, edit: list[str] | None, threads: int, out: Path,
@@ -103,22 +109,32 @@ def clip_psnr(p, frame, rgb: np.ndarray) -> tuple[float, float]:
 
 def retracked(run: Path, threads: int, tmp: Path, codes: str) -> dict:
     from flamenerf.data.dataset import CAPTURE
-    from flamenerf.evaluation.control import Retracker
+    from flamenerf.evaluation.control import Retracker, part_change, part_outlines
 
-    track = Retracker()
+    track, outlines = Retracker(), part_outlines()
     try:
-        reads, commanded, fidelity = {}, {}, []
-        trained = None
+        reads, commanded, fidelity, changes = {}, {}, [], {}
+        trained, plain = None, []  # the plain render's images and re-tracked landmarks
         for label, edit in (("plain", None), *REAL_EDITS.items()):
             p = plan(run, CAPTURE, edit, threads, tmp / "x.mp4", codes)
             trained = {f.frame_index for f in p.ds.training_frames()}
-            scores = []
-            for fr, rendered in zip(p.ds.split(CAPTURE), p.frames()):
-                scores.append(track(rendered.rgb))
+            scores, changed = [], []
+            for i, (fr, rendered) in enumerate(zip(p.ds.split(CAPTURE), p.frames())):
+                got = track.read(rendered.rgb)
+                scores.append(None if got is None else got[0])
                 if label == "plain":  # the filmed frame is the plain render's truth
                     fidelity.append((*clip_psnr(p, fr, rendered.rgb), fr.frame_index in
                                      trained))
+                    plain.append((rendered.rgb, None if got is None else got[1]))
+                elif plain[i][1] is not None:
+                    changed.append(part_change(plain[i][0], rendered.rgb, plain[i][1],
+                                               outlines))
             reads[label], commanded[label] = scores, p.values
+            if changed:
+                changes[label] = {k: round(float(np.nanmean([c[k] for c in changed])), 4)
+                                  for k in outlines}
+                print(f"{run.name} {codes} codes {label}: mean change of colour in the "
+                      + ", ".join(f"{k} {v}" for k, v in changes[label].items()), flush=True)
         clip = p.ds.expression_matrix(p.ds.split(CAPTURE))
         names = p.ds.expression_names
     finally:
@@ -134,7 +150,8 @@ def retracked(run: Path, threads: int, tmp: Path, codes: str) -> dict:
             print(f"{run.name} {codes} codes: plain render against the clip, {part} frames "
                   f"({len(rows)}): {m[0]:.2f} dB, face {m[1]:.2f} dB", flush=True)
     out = {"edits": REAL_EDITS, "frames": len(clip), "plain_vs_clip": vs_clip,
-           "detected": {k: sum(s is not None for s in v) for k, v in reads.items()}}
+           "detected": {k: sum(s is not None for s in v) for k, v in reads.items()},
+           "part_change": changes}
     for name in REAL_REPORTED:
         if name not in names:
             continue

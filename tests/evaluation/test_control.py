@@ -166,6 +166,27 @@ def test_openings_are_gaps_over_the_eye_distance_at_any_scale():
         assert o["eye_open_right"] == pytest.approx(0.05)
 
 
+def test_part_change_says_which_part_an_edit_repainted():
+    """A brow edit that repaints the eyes shows as change inside the eyes' outlines."""
+    outlines = C.part_outlines()
+    assert {len(v) for v in outlines.values()} == {1, 2}  # lips one outline; eyes, brows two
+    marks = np.zeros((478, 2))
+    centres = {"eyes": [(40, 30), (20, 30)], "brows": [(40, 18), (20, 18)], "lips": [(30, 50)]}
+    for part, sides in outlines.items():
+        for idx, (cx, cy) in zip(sides, centres[part]):
+            a = np.linspace(0, 2 * np.pi, len(idx), endpoint=False)
+            marks[idx] = np.stack([cx + 5 * np.cos(a), cy + 3 * np.sin(a)], 1)
+    before = np.full((64, 64, 3), 0.5, np.float32)
+    brows = before.copy()
+    brows[10:23] += 0.25  # the brows' band only
+    got = C.part_change(before, brows, marks, outlines)
+    assert got["brows"] == pytest.approx(0.25) and got["eyes"] == 0 and got["lips"] == 0
+    eyes = before.copy()
+    eyes[26:35, 14:27] -= 0.4  # the right eye only: half the eyes' area
+    got = C.part_change(before, eyes, marks)
+    assert 0.15 < got["eyes"] < 0.25 and got["brows"] == 0 and got["lips"] == 0
+
+
 def test_geometry_response_compares_driver_and_render_openings():
     """A render whose mouth follows the driver's at 0.5, whose eyes do not move, and one
     frame where the render has no face."""

@@ -479,6 +479,43 @@ def openings(landmarks: np.ndarray) -> dict[str, float]:
     return out
 
 
+def part_outlines() -> dict[str, list[list[int]]]:
+    """MediaPipe's own landmark outlines of the eyes, brows and lips (its face landmarker's
+    connection lists): {part: [each side's landmark indices]}."""
+    from mediapipe.tasks.python.vision.face_landmarker import FaceLandmarksConnections as C
+
+    def points(conns) -> list[int]:
+        return sorted({c.start for c in conns} | {c.end for c in conns})
+
+    return {"eyes": [points(C.FACE_LANDMARKS_LEFT_EYE), points(C.FACE_LANDMARKS_RIGHT_EYE)],
+            "brows": [points(C.FACE_LANDMARKS_LEFT_EYEBROW),
+                      points(C.FACE_LANDMARKS_RIGHT_EYEBROW)],
+            "lips": [points(C.FACE_LANDMARKS_LIPS)]}
+
+
+def part_change(before: np.ndarray, after: np.ndarray, landmarks: np.ndarray,
+                outlines: dict[str, list[list[int]]] | None = None) -> dict[str, float]:
+    """Where an edit changed a picture: the mean absolute change of colour inside the
+    convex outline of each part (`part_outlines`) at `landmarks` (468+, 2) in the images'
+    pixels (e.g. the unedited render re-tracked, `Retracker.read`). An edit of the brows
+    that repaints the eyes, or a smile that does, shows here where the tracker's scores of
+    the other part can stay put. before, after (H, W, 3) in [0, 1] -> {part: change}."""
+    from scipy.spatial import ConvexHull
+    from skimage.draw import polygon
+
+    h, w = before.shape[:2]
+    diff = np.abs(np.asarray(after, np.float32) - np.asarray(before, np.float32)).mean(-1)
+    out = {}
+    for part, sides in (outlines or part_outlines()).items():
+        mask = np.zeros((h, w), bool)
+        for idx in sides:
+            p = np.asarray(landmarks, np.float64)[idx, :2]
+            corner = p[ConvexHull(p, qhull_options="QJ").vertices]  # QJ: a shut eye is near flat
+            mask[polygon(corner[:, 1], corner[:, 0], (h, w))] = True
+        out[part] = float(diff[mask].mean()) if mask.any() else float("nan")
+    return out
+
+
 def geometry_response(driving: list[np.ndarray], renders: list[np.ndarray],
                       detect: Callable, min_range: float = 0.02) -> dict[str, Any]:
     """The mouth's and eyes' openings (`openings`) of each driving frame and of its render:
