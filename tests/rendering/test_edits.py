@@ -170,6 +170,25 @@ def test_an_edit_window_eases_in_and_out():
         EditWindow.parse("1:1.05").weights(30, 10.0)  # between two frames
 
 
+def test_an_edited_sequence_inside_its_window_only():
+    from flamenerf.rendering.edits import edit_sequence
+
+    v = np.tile(np.array([[0.2, 0.1, 0.3]], np.float32), (30, 1))
+    items = ["jawOpen+=0.4"]
+    whole = edit_sequence(v, parse_edits(items, NAMES), items, NAMES, None, None, None, 10.0)
+    assert whole.changed.all() and np.allclose(whole.values[:, 0], 0.6)
+    assert whole.tag == "jawOpen+0.4" and whole.where == "in every frame"
+    part = edit_sequence(v, parse_edits(items, NAMES), items, NAMES, None, None, "1:2", 10.0)
+    assert part.tag == "jawOpen+0.4_1-2s" and part.where.startswith("from frame 11 to 19")
+    assert np.array_equal(np.flatnonzero(part.changed), np.arange(11, 20))
+    assert np.allclose(part.values[~part.changed], v[~part.changed])
+    assert np.allclose(part.values[13:18, 0], 0.6) and 0.2 < part.values[11, 0] < 0.6
+    assert np.allclose(part.values[:, 1:], v[:, 1:])  # the other controls as they were
+    short = edit_sequence(v, parse_edits(items, NAMES), items, NAMES, None, None,
+                          "1:1.3", 10.0)
+    assert "too short for the whole edit" in short.where
+
+
 def test_a_capture_edited_only_during_a_window(toy_run, tmp_path):
     """The frames outside --edit-during as tracked; inside, the edit (clamped as always);
     the note and the file's name say when."""

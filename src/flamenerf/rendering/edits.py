@@ -261,3 +261,42 @@ def _clamped(new: dict[int, np.ndarray], limits: ExpressionRange, tol: float = 0
     if len(lines) > shown:
         lines = lines[:shown] + [f"and {len(lines) - shown} more controls"]
     return lines
+
+
+@dataclass
+class EditedSequence:
+    """A sequence with an edit applied (`edit_sequence`)."""
+
+    values: np.ndarray  # (T, E) the edited expressions
+    changed: np.ndarray  # (T,) bool: the frames the edit changes
+    tag: str  # the edit (and its window) in a file's name
+    where: str  # "in every frame", or the window's frames, for a note
+    moved: list[str]  # the companions that moved
+    over: list[str]  # one line per edited control that was clamped (`_clamped`)
+
+
+def edit_sequence(values: np.ndarray, edits: list[Edit], items: list[str], names: list[str],
+                  companions: Companions | None, limits: ExpressionRange | None,
+                  during: str | None, fps: float) -> EditedSequence:
+    """Expressions (T, E) with `edits` (parsed from `items`, `parse_edits`) applied as
+    `apply_edits` applies them, in every frame, or with `during` (`--edit-during`) inside
+    its window only, eased in and out at its ends (the clamp and the companions are those
+    of the window's frames) at `fps` frames per second."""
+    values = np.asarray(values, np.float32)
+    tag = file_tag(items, names)
+    if during is None:
+        out, moved, over = apply_edits(values, edits, companions, limits)
+        return EditedSequence(out, np.ones(len(values), bool), tag, "in every frame",
+                              moved, over)
+    window = EditWindow.parse(during)
+    w = window.weights(len(values), fps)
+    inside = w > 0
+    edited, moved, over = apply_edits(values[inside], edits, companions, limits)
+    out = values.copy()
+    out[inside] += w[inside, None] * (edited - values[inside])
+    a, b = np.flatnonzero(inside)[[0, -1]]
+    where = f"from frame {a} to {b} ({window.describe()}, eased in and out"
+    if w.max() < 0.995:  # too short to ease in and out in full
+        where += (f"; the window is too short for the whole edit, which reaches "
+                  f"{100 * w.max():.0f} % of it at most")
+    return EditedSequence(out, inside, f"{tag}_{window.file_tag()}", where + ")", moved, over)

@@ -559,36 +559,20 @@ def plan_render(opts: RenderOptions, log=print) -> RenderPlan:
     values = within_training_range(opts, ds, names, values, log)
     changed = None  # the frames the edit changes (the side by side's titles say which)
     if edits:
-        from flamenerf.rendering.edits import EditWindow, apply_edits, describe, file_tag
+        from flamenerf.rendering.edits import describe, edit_sequence
 
-        source, label = values, f"{label}_{file_tag(opts.edit, names)}"
-        where, changed = "in every frame", np.ones(len(values), bool)
-        if opts.edit_during is None:
-            values, moved, over = apply_edits(values, edits, comp,
-                                              training_limits(opts, ds, names))
-        else:  # edited where the window is, blended in and out at its ends
-            window = EditWindow.parse(opts.edit_during)
-            w = window.weights(len(values), fps)
-            inside = changed = w > 0
-            edited, moved, over = apply_edits(values[inside], edits, comp,
-                                              training_limits(opts, ds, names))
-            values = values.copy()
-            values[inside] += w[inside, None] * (edited - values[inside])
-            label += f"_{window.file_tag()}"
-            a, b = np.flatnonzero(inside)[[0, -1]]
-            where = f"from frame {a} to {b} ({window.describe()}, eased in and out"
-            if w.max() < 0.995:  # too short to ease in and out in full
-                where += (f"; the window is too short for the whole edit, which reaches "
-                          f"{100 * w.max():.0f} % of it at most")
-            where += ")"
+        source = values
+        ed = edit_sequence(values, edits, opts.edit, names, comp,
+                           training_limits(opts, ds, names), opts.edit_during, fps)
+        values, changed, label = ed.values, ed.changed, f"{label}_{ed.tag}"
         held = not (opts.split or opts.drive or opts.expressions)
-        log(f"note: edited {describe(opts.edit)} {where}"
+        log(f"note: edited {describe(opts.edit)} {ed.where}"
             + (" of frame 0's expression, held (give --split capture, --drive or "
                "--expressions for a sequence to edit)" if held else "")
-            + (f", moving with them {', '.join(moved)} (--no-companions to leave them)"
-               if moved else ""))
-        if over:
-            log(clamp_note(over))
+            + (f", moving with them {', '.join(ed.moved)} (--no-companions to leave them)"
+               if ed.moved else ""))
+        if ed.over:
+            log(clamp_note(ed.over))
     T = head_transforms(opts, run, ds, n, log, seq)
     if seq.vertices is not None and not opts.head_pose and not edits:
         verts = seq.vertices[:n]  # a split's own (posed) meshes
