@@ -41,6 +41,12 @@ def test_parts_follow_the_names_and_the_sides():
     above = np.linalg.norm(v - (3, 4.9, 0), axis=1) < 0.4  # 0.32 eye-mouth units over the eye
     assert above.any() and (col["eyeBlinkLeft"][above] == 0).all()
     assert (col["browInnerUp"][above] == 1).all()
+    # ... and the eyes the eye controls' alone, though the upper face reaches down to them:
+    # a brow control that moved the lids learnt a clip's wide eyes, and an edit of the brows
+    # over a squint repainted the eyes
+    lid = (np.linalg.norm(v - (3, 2.7, 0), axis=1) < 0.6) & (v[:, 1] < 3.0)
+    assert lid.any() and (col["browInnerUp"][lid] == 0).all()
+    assert (col["eyeBlinkLeft"][lid] == 1).all()
     assert (col["_neutral"] == 0).all()
     assert (col["someOtherControl"] == 1).all()  # unknown names are not limited
     # jawLeft moves the whole jaw sideways: not cut at the midline

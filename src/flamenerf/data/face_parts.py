@@ -139,11 +139,16 @@ def control_weights(kind: str, names: list[str], vertices: np.ndarray,
     d_eye = np.minimum(np.linalg.norm(v - eye_l, axis=1),
                        np.linalg.norm(v - eye_r, axis=1)) / scale
     lo, hi = _EYE_RADIUS
+    eye = np.clip((hi - d_eye) / (hi - lo), 0, 1) * _band(h, -np.inf, _EYE_TOP)
     weight = {
         "lower": _band(h, *_LOWER_FACE),
         "mid": _band(h, *_MID_FACE),
-        "upper": _band(h, *_UPPER_FACE),
-        "eye": np.clip((hi - d_eye) / (hi - lo), 0, 1) * _band(h, -np.inf, _EYE_TOP),
+        # the eyes are the eye controls' alone: a clip raises its brows with its eyes wide
+        # open, and a brow control that could move the lids (and, through the per-control
+        # prior, repaint the eyes) learnt wide eyes, which a brow edit over a squint or a
+        # blink blended into glassy, see-through eyes (the shared expressions clip)
+        "upper": _band(h, *_UPPER_FACE) * (1 - eye),
+        "eye": eye,
         "none": np.zeros(len(v)),
         None: np.ones(len(v)),
     }
