@@ -41,7 +41,7 @@ def test_parts_follow_the_names_and_the_sides():
     above = np.linalg.norm(v - (3, 4.9, 0), axis=1) < 0.4  # 0.32 eye-mouth units over the eye
     assert above.any() and (col["eyeBlinkLeft"][above] == 0).all()
     assert (col["browInnerUp"][above] == 1).all()
-    # ... and the eyes the eye controls' alone, though the upper face reaches down to them:
+    # ... and the eyes not the brow controls', though the upper face reaches down to them:
     # a brow control that moved the lids learnt a clip's wide eyes, and an edit of the brows
     # over a squint repainted the eyes
     lid = (np.linalg.norm(v - (3, 2.7, 0), axis=1) < 0.6) & (v[:, 1] < 3.0)

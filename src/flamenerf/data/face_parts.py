@@ -143,10 +143,12 @@ def control_weights(kind: str, names: list[str], vertices: np.ndarray,
     weight = {
         "lower": _band(h, *_LOWER_FACE),
         "mid": _band(h, *_MID_FACE),
-        # the eyes are the eye controls' alone: a clip raises its brows with its eyes wide
-        # open, and a brow control that could move the lids (and, through the per-control
-        # prior, repaint the eyes) learnt wide eyes, which a brow edit over a squint or a
-        # blink blended into glassy, see-through eyes (the shared expressions clip)
+        # the brows' part stops where the eyes' begins: a clip raises its brows with its
+        # eyes wide open, and a brow control that could move the lids (and, through the
+        # per-control prior, repaint the eyes) learnt wide eyes, which a brow edit over a
+        # squint or a blink blended into glassy, see-through eyes (the shared expressions
+        # clip). The mid face's part still reaches the eyes: untested, the clip's cheek and
+        # nose scores stay under 0.001
         "upper": _band(h, *_UPPER_FACE) * (1 - eye),
         "eye": eye,
         "none": np.zeros(len(v)),

@@ -216,7 +216,7 @@ class RenderPlan:
     label: str  # the expression source's, the edit's `file_tag` added
     camera: str
     codes: tuple[Any, Any] | None = None
-    edited: Any = None  # (T,) bool: the frames --edit changed; None: no edit
+    edited: np.ndarray | None = None  # (T,) bool: the frames --edit changed; None: no edit
     sound: Any = None  # data/video.Soundtrack: the clip's, for the video and side by side
 
     def frames(self):
@@ -363,7 +363,7 @@ def clip_sound(opts: RenderOptions, ds: Dataset, frames: list, fps: float, log=p
     """The clip's sound (data/video.Soundtrack) for a render of its capture `frames` in
     order at `fps`, or None: only the whole capture's frames (or its first ones, with
     --max-frames) at the clip's own pace keep step with it; a note where the sound was
-    wanted but cannot come."""
+    wanted but cannot come or is silence."""
     from flamenerf.data.dataset import CAPTURE
     from flamenerf.data.video import SILENT_DB, Soundtrack, has_sound, loudest
 
