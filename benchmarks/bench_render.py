@@ -184,7 +184,7 @@ def viewer_latency(run, ds, height: int, steps: int) -> dict:
                                 [-math.sin(a), 0, math.cos(a), 0], [0, 0, 0, 1]])
                 snap = dict(key=0, state=(i, 0), c2w=rot @ fr.c2w, fov_y=fov, aspect=1.0,
                             expression=fr.expression, mode="RGB", height=h, final=True,
-                            depth_range=None, head=None)
+                            depth_range=None, head=None, filmed=None)
                 t = time.perf_counter()
                 w._render(snap, level, cancellable=False)
                 if i:  # the first one makes the bakes
@@ -195,7 +195,39 @@ def viewer_latency(run, ds, height: int, steps: int) -> dict:
             print(f"viewer {path:>9s} {h:4d}px: {1000 * s:7.1f} ms per update "
                   f"({1 / s:5.1f}/s)", flush=True)
     out.update(slider_latency(run, ds, masker, fr, fov, height, steps))
+    out.update(filmed_latency(run, ds, masker, fr, fov, height, steps))
     return out
+
+
+def filmed_latency(run, ds, masker, fr, fov: float, height: int, steps: int) -> dict:
+    """Time per full-height update of the viewer's worker playing the capture as filmed
+    from frame 0's camera: each update a new frame, so new codes, head pose and mesh, and
+    the whole image again (rendering/filmed.py)."""
+    from flamenerf.rendering.filmed import FilmedClip
+    from flamenerf.viewer.renderer import RenderWorker
+
+    cap = ds.capture()
+    if not cap or run.codes_error(ds, cap) is not None:
+        return {}
+    clip = FilmedClip(run, ds, cap)
+    w = RenderWorker(run.model, *run.frame_codes(0), masker, fr.expression, lambda *a: None,
+                     height=height)
+    top = len(w.levels(height, True)) - 1
+    times = []
+    for i in range(min(steps + 1, len(clip))):
+        k = i * (len(clip) - 1) // max(steps, 1)
+        f = clip.frame(k)
+        snap = dict(key=0, state=(0, i), c2w=fr.c2w, fov_y=fov, aspect=1.0,
+                    expression=f.expression, mode="RGB", height=height, final=True,
+                    depth_range=None, head=f.head, filmed=f)
+        t = time.perf_counter()
+        w._render(snap, top, cancellable=False)
+        if i:
+            times.append(time.perf_counter() - t)
+    s = float(np.median(times))
+    print(f"viewer capture as filmed {height}px: {1000 * s:7.1f} ms per update "
+          f"({1 / s:5.1f}/s)", flush=True)
+    return {f"filmed_{height}px_s": round(s, 4), f"filmed_{height}px_updates_per_s": round(1 / s, 2)}
 
 
 def slider_latency(run, ds, masker, fr, fov: float, height: int, steps: int) -> dict:
@@ -220,7 +252,7 @@ def slider_latency(run, ds, masker, fr, fov: float, height: int, steps: int) -> 
             e[k] = lo + (hi - lo) * (i - 1) / max(steps, 1)
         snap = dict(key=0, state=(0, i), c2w=w.views[0].c2w, fov_y=fov, aspect=1.0,
                     expression=e, mode="RGB", height=height, final=True, depth_range=None,
-                    head=None)
+                    head=None, filmed=None)
         t = time.perf_counter()
         frame = w._render(snap, top, cancellable=False)
         if i:  # the first one: the whole image

@@ -20,6 +20,22 @@ def tiny_scene(tmp_path_factory):
 
 
 @pytest.fixture(scope="session")
+def head_run(tmp_path_factory):
+    """A toy run on the built-in scene with head motion (head poses: the model follows the
+    head); shared by tests/rendering and tests/viewer."""
+    from toy import toy_config
+
+    from flamenerf.synthetic.scene import make_scene
+    from flamenerf.training.trainer import train
+
+    root = tmp_path_factory.mktemp("headrun")
+    ds = make_scene(root / "scene", seed=2, size=32, frames=8, sway=0.0, reanimate=2,
+                    leakage_steps=0, workers=1, head_motion=True)
+    train(ds, root / "run", toy_config("masked", 3), device="cpu", quiet=True)
+    return root / "run"
+
+
+@pytest.fixture(scope="session")
 def toy_dataset(tmp_path_factory):
     """Every split of the built-in scene at 16x16, made in about a second
     (tests/toy.py); shared by tests/evaluation and tests/rendering."""

@@ -13,20 +13,6 @@ from flamenerf.errors import UserError
 from flamenerf.rendering.videos import RenderOptions
 
 
-@pytest.fixture(scope="module")
-def head_run(tmp_path_factory):
-    from toy import toy_config
-
-    from flamenerf.synthetic.scene import make_scene
-    from flamenerf.training.trainer import train
-
-    root = tmp_path_factory.mktemp("headrun")
-    ds = make_scene(root / "scene", seed=2, size=32, frames=8, sway=0.0, reanimate=2,
-                    leakage_steps=0, workers=1, head_motion=True)
-    train(ds, root / "run", toy_config("masked", 3), device="cpu", quiet=True)
-    return root / "run"
-
-
 def _far_from_head(model, intr, c2w, transforms) -> np.ndarray:
     """Pixels none of whose ray samples any of the head transforms moves."""
     from flamenerf.data.rays import camera_rays

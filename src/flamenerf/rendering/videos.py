@@ -347,6 +347,8 @@ def own_codes(opts: RenderOptions, run, ds: Dataset, frames: list) -> bool:
     they have codes in this run (capture frames, `Run.codes_error`) of its own dataset, or
     of the one given with --dataset where the run's is no longer where it trained (moved);
     `own` needs only the codes."""
+    from flamenerf.rendering.filmed import filmed_codes_error
+
     if opts.codes == "first" or not opts.split:
         return False
     why = run.codes_error(ds, frames)
@@ -354,9 +356,7 @@ def own_codes(opts: RenderOptions, run, ds: Dataset, frames: list) -> bool:
         if opts.codes == "own":
             raise UserError(f"--codes own: --split {opts.split}: {why}")
         return False
-    trained_on = Path(run.meta["dataset"])
-    return (opts.codes == "own" or opts.dataset is None or not trained_on.exists()
-            or Path(opts.dataset).resolve() == trained_on.resolve())
+    return opts.codes == "own" or filmed_codes_error(run, ds, frames, opts.dataset) is None
 
 
 def clip_sound(opts: RenderOptions, ds: Dataset, frames: list, fps: float, log=print):
@@ -581,8 +581,9 @@ def plan_render(opts: RenderOptions, log=print) -> RenderPlan:
 
         canon = canonical_vertices(ds, ds.split(opts.split))[:n]
         if edits:  # the tracked mesh, moved as the expression model moves it for the edit
-            mesh_of = mesh_function(run.model, ds)
-            canon = canon + np.stack([mesh_of(a) - mesh_of(b) for a, b in zip(values, source)])
+            from flamenerf.rendering.filmed import changed_meshes
+
+            canon = changed_meshes(canon, mesh_function(run.model, ds), values, source)
         verts = posed_vertices(canon, T)
     else:  # the prior's silhouette follows the driven expression's mesh, not frame 0's
         mesh_of = mesh_function(run.model, ds)  # canonical: the head at frame 0's pose

@@ -76,6 +76,12 @@ class Viewer:
         self.tracks: list[Track] = [load_track_file(p, self.names) for p in opts.track]
         tour = tour_track(self.ds, self.names, self.frame0_expression, self.companions)
         self.tracks += ([tour] if tour is not None else []) + dataset_tracks(self.ds)
+        from flamenerf.rendering.filmed import filmed_codes_error
+
+        # tracks of the clip's own frames, which can play as filmed (their own codes)
+        self.filmable = {t.name for t in self.tracks if t.clip and filmed_codes_error(
+            run, self.ds, t.clip, opts.dataset) is None}
+        self._filmed: dict[str, object] = {}  # their FilmedClips, made on first use
         h = opts.resolution or run.train_intrinsics(self.ds).h
         self.height = int(min(max(8, round(h / 8) * 8), opts.max_resolution))
         omega, phi = run.frame_codes(0)
@@ -213,6 +219,14 @@ class Viewer:
             self.g_frame = gui.add_slider("Frame", min=0, max=max(n - 1, 1), step=1,
                                           initial_value=0, disabled=not self.tracks)
             self.g_loop = gui.add_checkbox("Loop", True)
+            self.g_filmed = None
+            if self.filmable:
+                self.g_filmed = gui.add_checkbox(
+                    "As filmed", True,
+                    hint="The capture's tracks show each frame with its own head motion, "
+                    "look and face mesh, as `render --split capture` does (the clip itself, "
+                    "with the expression the sliders or the Edit box give). Off: frame 0's "
+                    "head and look with the track's expressions.")
             self.g_edit = gui.add_text(
                 "Edit", "", hint="Changes every frame of the track, as `render --edit` does: "
                 "e.g. mouthSmile+=0.3 (both sides: the capture, smiling more), "
@@ -230,6 +244,8 @@ class Viewer:
         self.g_play.on_click(lambda e: self.toggle_play())
         self.g_frame.on_update(self._on_frame_slider)
         self.g_edit.on_update(lambda e: self.set_edit(e.target.value))
+        if self.g_filmed is not None:
+            self.g_filmed.on_update(lambda e: self._show_current_frame())
 
     def set_head_pose(self, yaw: float, pitch: float, roll: float) -> None:
         """Turn the head (degrees relative to frame 0's pose) and move the sliders there."""
@@ -270,11 +286,15 @@ class Viewer:
         """Show this expression and move the sliders to it."""
         if pause:
             self.pause()
-        v = np.clip(np.asarray(values, np.float32), self.lo, self.hi)
-        if self.within():
-            v = self.range.clamp(v)
+        v = self.shown(values)
         self.worker.set_expression(v)
         self._sync_sliders(v)
+
+    def shown(self, values: np.ndarray, clamp: bool = True) -> np.ndarray:
+        """An expression as the viewer shows it: within the sliders' range, and with
+        `clamp` the training frames' where that is kept (`within`)."""
+        v = np.clip(np.asarray(values, np.float32), self.lo, self.hi)
+        return self.range.clamp(v) if clamp and self.within() else v
 
     def within(self) -> bool:
         """Whether expressions are kept within the training frames' range (the checkbox;
@@ -321,10 +341,38 @@ class Viewer:
             return
         self._edited.clear()
         self.g_edit_note.content = f"editing {describe(items)}" if self._edits else ""
+        self._show_current_frame()
+
+    def filmed_clip(self, t: Track):
+        """The track's frames as filmed (rendering/filmed.FilmedClip), or None: not the
+        clip's own frames, or "As filmed" is off."""
+        if t.name not in self.filmable or self.g_filmed is None or not self.g_filmed.value:
+            return None
+        clip = self._filmed.get(t.name)
+        if clip is None:
+            from flamenerf.rendering.filmed import FilmedClip
+
+            clip = self._filmed[t.name] = FilmedClip(self.run, self.ds, t.clip)
+        return clip
+
+    def show_track_frame(self, t: Track, k: int, sync: bool = True) -> np.ndarray:
+        """Show frame k of track t (edited; as filmed where it is the clip's) and, with
+        `sync`, move the sliders and the frame slider there; -> the expression shown."""
+        # as `render` does: the clip's own expressions as they are (an edit of them is
+        # clamped by `track_frames`), anything else clamped to the training range
+        v = self.shown(self.track_frames(t)[k], clamp=t.clip is None)
+        clip = self.filmed_clip(t)
+        self.worker.set_filmed(None if clip is None else clip.frame(k), v)
+        if sync:
+            self._sync_sliders(v)
+            if self.server is not None and int(self.g_frame.value) != k:
+                self.g_frame.value = int(k)
+        return v
+
+    def _show_current_frame(self) -> None:
         t = self.current_track()
         if t is not None:
-            k = int(min(max(self.g_frame.value, 0), t.num_frames - 1))
-            self.set_expression(self.track_frames(t)[k], pause=False)
+            self.show_track_frame(t, int(min(max(self.g_frame.value, 0), t.num_frames - 1)))
 
     def track_frames(self, t: Track) -> np.ndarray:
         """A track's expressions (T, E) with the edit applied as `render --edit` applies it
@@ -353,7 +401,7 @@ class Viewer:
             return
         self.g_frame.max = max(t.num_frames - 1, 1)
         self.g_frame.value = 0
-        self.set_expression(self.track_frames(t)[0], pause=False)
+        self.show_track_frame(t, 0)
 
     def _on_frame_slider(self, event) -> None:
         if event.client is None:
@@ -361,8 +409,7 @@ class Viewer:
         self.pause()
         t = self.current_track()
         if t is not None:
-            k = int(min(max(event.target.value, 0), t.num_frames - 1))
-            self.set_expression(self.track_frames(t)[k], pause=False)
+            self.show_track_frame(t, int(min(max(event.target.value, 0), t.num_frames - 1)))
 
     def toggle_play(self) -> None:
         if self._play.is_set():
@@ -410,8 +457,7 @@ class Viewer:
                 else:
                     k = t.num_frames - 1
                     self.pause()
-            v = np.clip(self.track_frames(t)[k], self.lo, self.hi)
-            self.worker.set_expression(v)
+            v = self.show_track_frame(t, k, sync=False)
             now = time.monotonic()
             # the 52 sliders follow at a few Hz; the image follows every frame
             if now - last_sync > 0.2 or not self._play.is_set():
@@ -497,6 +543,8 @@ class Viewer:
         status = self._status.get(key)
         if status is not None:
             state = "final" if frame.final else f"preview {frame.level + 1}"
+            if frame.extras.get("filmed") is not None:
+                state += f" · frame {frame.extras['filmed']} as filmed"
             status.content = (f"{STATUS_PREFIX}: {frame.seconds * 1000:.0f} ms · "
                               f"{frame.intr.w}×{frame.intr.h} px · {state} · "
                               f"#{frame.count}{self.capture_note(client)}")

@@ -15,6 +15,7 @@ height at once: β reaches no other ray (the prior), so every other pixel is the
 
 from __future__ import annotations
 
+import dataclasses
 import threading
 import time
 from dataclasses import dataclass, field
@@ -26,6 +27,7 @@ import torch
 from flamenerf.data.dataset import Intrinsics
 from flamenerf.model.inference import VIEWER, RenderSettings
 from flamenerf.model.render_image import StillCamera
+from flamenerf.rendering.filmed import FilmedFrame
 from flamenerf.viewer.camera import view_intrinsics
 
 
@@ -40,7 +42,11 @@ class Shared:
     version: int = 0
     changed_at: float = 0.0
     # head pose (head-following runs): canonical-from-world (4, 4); None = frame 0's pose
+    # (or, with `filmed`, that frame's own)
     head: np.ndarray | None = None
+    # a frame of the clip shown as filmed (its codes, head pose and mesh); None: frame 0's
+    # codes
+    filmed: FilmedFrame | None = None
 
 
 @dataclass
@@ -150,6 +156,22 @@ class RenderWorker:
             self.shared.expression[index] = value
             self._touch_shared()
 
+    def set_filmed(self, filmed: FilmedFrame | None, expression: np.ndarray) -> None:
+        """Show a frame of the clip as filmed (None: frame 0's codes) at `expression`, in
+        one change (no image of the one without the other)."""
+        v = np.asarray(expression, np.float32)
+        with self._cv:
+            old = self.shared.filmed
+            same = old is None if filmed is None else filmed.same(old)
+            if same and np.array_equal(v, self.shared.expression):
+                return
+            self.shared.filmed, self.shared.expression = filmed, v.copy()
+            self._touch_shared()
+
+    def filmed(self) -> FilmedFrame | None:
+        with self._cv:
+            return self.shared.filmed
+
     def set_head(self, transform: np.ndarray | None) -> None:
         """The head's pose: canonical-from-world (4, 4) (data/head_pose.control_transform),
         or None for frame 0's."""
@@ -248,7 +270,10 @@ class RenderWorker:
         v = self.views[key]
         snap = dict(key=key, state=(v.version, s.version), c2w=v.c2w.copy(), fov_y=v.fov_y,
                     aspect=v.aspect, expression=s.expression.copy(), mode=s.mode,
-                    height=heights[-1], final=True, depth_range=v.depth_range, head=s.head)
+                    height=heights[-1], final=True, depth_range=v.depth_range, head=s.head,
+                    filmed=s.filmed)
+        if s.head is None and s.filmed is not None:  # the frame's own pose
+            snap["head"] = s.filmed.head
         if level < len(heights) - 1 and not (self._reusable(v, snap) and
                                              v.cache.last[1].mean() <= self.partial_max):
             snap.update(height=heights[level], final=False)
@@ -270,7 +295,12 @@ class RenderWorker:
         """Whether the view's last full image holds every pixel of `snap` that its
         expression does not reach."""
         return (v.cache is not None and self.model.expression_confined
-                and v.cache.same_view(*self._view(snap)))
+                and v.cache.same_view(*self._view(snap))
+                and v.cache.same_codes(*self._codes(snap)))
+
+    def _codes(self, snap) -> tuple[torch.Tensor, torch.Tensor]:
+        f = snap["filmed"]
+        return (self.omega, self.phi) if f is None else (f.omega, f.phi)
 
     def _loop(self) -> None:
         while True:
@@ -333,15 +363,19 @@ class RenderWorker:
         t0 = time.perf_counter()
         intr, c2w, head = self._view(snap)
         # head pose: the masker poses the mesh, render_image moves the head's points
-        mask = self.masker(intr, c2w, snap["expression"], snap["head"])
+        mask = self.masker(intr, c2w, snap["expression"], snap["head"], snap["filmed"])
         expr = torch.from_numpy(snap["expression"])
         with self._cv:
             v = self.views.get(snap["key"])
         if v is not None and snap["final"] and self._reusable(v, snap):
             still = v.cache  # only the pixels a new expression reaches
         else:
-            still = StillCamera(self.model, intr, c2w, self.omega, self.phi, head=head,
-                                settings=self.settings)
+            # a bake of a frame's own ω would cost more than the warp it saves (render's
+            # own codes go without it too)
+            settings = (self.settings if snap["filmed"] is None
+                        else dataclasses.replace(self.settings, warp_grid=0))
+            still = StillCamera(self.model, intr, c2w, *self._codes(snap), head=head,
+                                settings=settings)
 
         def check() -> None:
             if cancellable and self._stale(snap):
@@ -352,7 +386,8 @@ class RenderWorker:
         if snap["final"] and v is not None:
             with self._cv:
                 v.cache = still
-        extras: dict = {"mask": mask, "rays": rays}
+        extras: dict = {"mask": mask, "rays": rays,
+                        "filmed": None if snap["filmed"] is None else snap["filmed"].index}
         if snap["mode"] == "Depth":
             rng = snap["depth_range"]
             if rng is None:

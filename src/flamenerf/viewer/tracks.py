@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from flamenerf.data.dataset import Dataset
+from flamenerf.data.dataset import Dataset, Frame
 
 
 @dataclass
@@ -16,6 +16,7 @@ class Track:
     name: str
     frames: np.ndarray  # (T, E) float32, in the run's expression order
     fps: float
+    clip: list[Frame] | None = None  # the dataset's frames it plays, if it is theirs
 
     @property
     def num_frames(self) -> int:
@@ -31,12 +32,13 @@ def dataset_tracks(ds: Dataset) -> list[Track]:
     capture = ds.capture()
     fps = ds.frame_rate() or 30.0
     if capture:
-        out.append(Track(f"capture ({len(capture)} frames)", ds.expression_matrix(capture), fps))
+        out.append(Track(f"capture ({len(capture)} frames)", ds.expression_matrix(capture), fps,
+                         capture))
     for name in sorted(ds.splits, key=lambda s: (s not in ("train", "val"), s)):
         frames = ds.split(name)
         if frames:
             out.append(Track(f"split {name} ({len(frames)} frames)",
-                             ds.expression_matrix(frames), fps))
+                             ds.expression_matrix(frames), fps, frames))
     return out
 
 

@@ -1,0 +1,97 @@
+"""A filmed clip's frames as the model replays them: each frame's own codes, head pose and
+tracked face mesh, with the expression free to change. What `render --split capture` renders
+and what the viewer plays when a dataset track is shown as filmed; one home for how a frame's
+mesh follows a changed expression, so that the prior's silhouette matches in both."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from flamenerf.data.dataset import Dataset, Frame
+
+
+def changed_meshes(canonical: np.ndarray, mesh_of: Callable[[np.ndarray], np.ndarray],
+                   values: np.ndarray, source: np.ndarray) -> np.ndarray:
+    """The tracked meshes moved as the expression model moves a face from the tracked
+    expression to another: canonical (n, V, 3) + mesh_of(values[i]) - mesh_of(source[i]);
+    values, source (n, E). Where they are equal, the tracked mesh itself (not the model's
+    fit of it, which misses the tracker's detail)."""
+    out = np.array(canonical, np.float32, copy=True)
+    for i, (a, b) in enumerate(zip(values, source)):
+        if not np.array_equal(a, b):
+            out[i] += mesh_of(a) - mesh_of(b)
+    return out
+
+
+@dataclass(frozen=True)
+class FilmedFrame:
+    """One frame of a filmed clip: what the model needs to show it, at any expression."""
+
+    index: int  # its place in the clip
+    omega: torch.Tensor  # (code_dim,)
+    phi: torch.Tensor  # (appearance_dim,)
+    head: np.ndarray | None  # canonical-from-world (4, 4); None: the dataset has no head poses
+    canonical: np.ndarray  # (V, 3) the tracked mesh in the canonical frame
+    expression: np.ndarray  # (E,) the expression the mesh was tracked with
+
+    def same(self, other: FilmedFrame | None) -> bool:
+        """Whether `other` shows what this does (a player asks for the same frame anew)."""
+        return (other is not None and other.index == self.index
+                and torch.equal(other.omega, self.omega) and torch.equal(other.phi, self.phi)
+                and np.array_equal(other.expression, self.expression)
+                and np.array_equal(other.canonical, self.canonical)
+                and (other.head is None) == (self.head is None)
+                and (self.head is None or np.array_equal(other.head, self.head)))
+
+    def mesh(self, mesh_of: Callable[[np.ndarray], np.ndarray], expression: np.ndarray,
+             head: np.ndarray | None = None) -> np.ndarray:
+        """(V, 3) world: the frame's mesh at `expression`, posed by `head` (canonical-from-
+        world (4, 4); None: the frame's own pose)."""
+        from flamenerf.data.head_pose import transform_points
+
+        v = changed_meshes(self.canonical[None], mesh_of, np.asarray(expression, np.float32)[None],
+                           self.expression[None])[0]
+        T = self.head if head is None else head
+        return v if T is None else transform_points(np.linalg.inv(T), v).astype(np.float32)
+
+
+class FilmedClip:
+    """Frames of a run's capture in clip order (`Run.codes_error` must be None for them):
+    their codes (`Run.clip_codes`: held-out frames between their neighbours'), head poses
+    and tracked meshes, made once."""
+
+    def __init__(self, run, ds: Dataset, frames: list[Frame]):
+        from flamenerf.data.head_pose import canonical_from_world, canonical_vertices
+
+        self.omega, self.phi = (c.cpu() for c in run.clip_codes(ds, frames))
+        self.heads = canonical_from_world(ds, frames)
+        self.canonical = canonical_vertices(ds, frames)
+        self.expressions = ds.expression_matrix(frames)
+
+    def __len__(self) -> int:
+        return len(self.canonical)
+
+    def frame(self, k: int) -> FilmedFrame:
+        return FilmedFrame(k, self.omega[k], self.phi[k],
+                           None if self.heads is None else self.heads[k],
+                           self.canonical[k], self.expressions[k])
+
+
+def filmed_codes_error(run, ds: Dataset, frames: list[Frame], dataset_arg=None) -> str | None:
+    """Why `frames` cannot be shown with their own codes, or None: `Run.codes_error`, or
+    a dataset given in place of the run's own (`dataset_arg`; its frame indices are another
+    capture's) while the run's is still where it trained."""
+    from pathlib import Path
+
+    why = run.codes_error(ds, frames)
+    if why is not None or dataset_arg is None:
+        return why
+    trained_on = Path(run.meta["dataset"])
+    if trained_on.exists() and Path(dataset_arg).resolve() != trained_on.resolve():
+        return (f"{dataset_arg} is not the dataset the run trained on ({trained_on}), so its "
+                "frames are not the codes' frames")
+    return None

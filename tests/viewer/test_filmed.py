@@ -1,0 +1,120 @@
+"""The viewer's capture tracks as filmed: each frame with its own codes, head pose and
+mesh, the image `render --split capture` renders for it."""
+
+from __future__ import annotations
+
+import dataclasses
+import socket
+
+import numpy as np
+import torch
+
+from flamenerf.data.head_pose import canonical_from_world
+from flamenerf.data.prior import dataset_dilation, mesh_function, prior_mask
+from flamenerf.geometry import se3_log
+from flamenerf.images import to_uint8
+from flamenerf.model.inference import VIEWER
+from flamenerf.rendering.filmed import FilmedClip, changed_meshes
+from flamenerf.rendering.reanimate import render_sequence
+from flamenerf.rendering.videos import posed_vertices
+from flamenerf.training.run import load_run
+from flamenerf.viewer.camera import view_intrinsics
+from flamenerf.viewer.mask import FaceMasker
+from flamenerf.viewer.renderer import RenderWorker
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_a_frame_as_filmed_is_what_render_renders(head_run):
+    run = load_run(head_run, "cpu")
+    ds = run.dataset(None)
+    cap = ds.capture()
+    k = len(cap) - 1  # the head turned away from frame 0's pose
+    clip = FilmedClip(run, ds, cap)
+    T = canonical_from_world(ds, cap)
+    assert not np.allclose(T[k], np.eye(4), atol=1e-3)
+    c2w, fov = cap[k].c2w, 2 * np.arctan(ds.intrinsics.h / (2 * ds.intrinsics.fy))
+    intr = view_intrinsics(fov, ds.intrinsics.w / ds.intrinsics.h, 32)
+    w, a = run.clip_codes(ds, cap)
+    values = ds.expression_matrix(cap)
+    edited = values[k].copy()
+    edited[run.expression_names.index("jawOpen")] = 0.0  # it is open (0.9)
+    # the plan of `render --split capture [--edit]` for frame k: its own codes, head twist
+    # and mesh (moved by the edit)
+    mesh_of = mesh_function(run.model, ds)
+    canon = clip.canonical[k:k + 1]
+    want = {}
+    for name, e in (("own", values[k]), ("edited", edited)):
+        verts = posed_vertices(changed_meshes(canon, mesh_of, e[None], values[k:k + 1]), T[k:k + 1])
+        ref, = render_sequence(run.model, ds, intr, c2w[None], e[None], verts, w[k:k + 1],
+                               a[k:k + 1], dataset_dilation(ds), heads=se3_log(T[k:k + 1]),
+                               settings=dataclasses.replace(VIEWER, warp_grid=0))
+        want[name] = ref
+    assert np.array_equal(want["own"].mask, prior_mask(ds, ds.face_vertices[cap[k].position],
+                                                       c2w, intr))  # the tracked mesh itself
+    assert (want["own"].mask != want["edited"].mask).any()  # the jaw closed
+
+    shown = []
+    wk = RenderWorker(run.model, *run.frame_codes(0), FaceMasker(ds, 0, run.model),
+                      values[k], lambda key, f: shown.append(f), height=32, settle_s=0.01)
+    wk.set_quality(progressive=False)
+    wk.start()
+    try:
+        wk.set_camera("a", c2w, fov, ds.intrinsics.w / ds.intrinsics.h)
+        assert wk.wait_idle(30)
+        first = shown[-1]
+        assert first.extras["filmed"] is None
+        wk.set_filmed(clip.frame(k), values[k])
+        assert wk.wait_idle(30)
+        got = shown[-1]
+        assert got.extras["filmed"] == k and got.extras["rays"] == 32 * intr.w  # new codes
+        assert np.array_equal(got.extras["mask"], want["own"].mask)
+        assert np.abs(got.image.astype(int) - to_uint8(want["own"].rgb).astype(int)).max() <= 1
+        assert np.abs(got.image.astype(int) - first.image.astype(int)).max() >= 3  # toy: 6
+        n = len(shown)
+        wk.set_filmed(clip.frame(k), values[k])  # the same frame again: nothing to do
+        wk.set_expression(edited)  # a slider: the frame's look, the jaw moved
+        assert wk.wait_idle(30)
+        got = shown[-1]
+        assert len(shown) == n + 1 and got.extras["rays"] < 32 * intr.w  # the face again only
+        assert np.array_equal(got.extras["mask"], want["edited"].mask)
+        assert np.abs(got.image.astype(int) - to_uint8(want["edited"].rgb).astype(int)).max() <= 1
+        assert not wk.errors
+    finally:
+        wk.stop()
+
+
+def test_the_viewer_plays_the_capture_as_filmed(head_run):
+    from flamenerf.viewer.app import Viewer
+    from flamenerf.viewer.options import ViewerOptions
+
+    run = load_run(head_run, "cpu")
+    v = Viewer(run, ViewerOptions(port=_free_port(), resolution=16, verbose=False))
+    v.start()
+    try:
+        cap = next(t for t in v.tracks if t.name.startswith("capture"))
+        tour = next(t for t in v.tracks if t.name.startswith("tour"))
+        assert cap.name in v.filmable and tour.name not in v.filmable and v.g_filmed.value
+        v.g_track.value = cap.name
+        assert v.worker.filmed().index == 0
+        v.show_track_frame(cap, 5)
+        f = v.worker.filmed()
+        w, _ = run.clip_codes(v.ds, cap.clip)
+        assert f.index == 5 and torch.equal(f.omega, w[5])
+        assert f.head is not None  # the frame's own head pose
+        v.set_edit("jawOpen+=0.2")  # the Edit box: the same frame, its expression edited
+        jaw = run.expression_names.index("jawOpen")
+        assert v.worker.filmed().index == 5
+        assert v.worker.expression()[jaw] > v.shown(cap.frames[5])[jaw]
+        v.g_filmed.value = False  # frame 0's look with the track's expressions
+        assert v.worker.filmed() is None
+        v.g_filmed.value = True
+        assert v.worker.filmed().index == int(v.g_frame.value)
+        v.g_track.value = tour.name  # not the clip's frames
+        assert v.worker.filmed() is None
+    finally:
+        v.stop()
