@@ -324,3 +324,51 @@ def test_status_says_when_the_camera_leaves_the_capture(tiny_run):
     far = v.home.position + 0.5 * v.home.up  # half a metre above frame 0's camera
     note = v.capture_note(SimpleNamespace(camera=SimpleNamespace(position=far)))
     assert note.startswith(" · outside the capture (") and "cm from its cameras" in note
+
+
+def test_the_first_image_of_a_change_is_always_shown(tiny_run):
+    """A state that changes again while its image renders (a track playing faster than
+    the renderer) still gets that image shown, with Progressive off too, and an expression
+    change under the same camera starts at half the height, a camera move at a quarter."""
+    from flamenerf.training.run import load_run
+
+    run = load_run(tiny_run, device="cpu")
+    ds = run.dataset()
+    h = home_camera(ds)
+    frames = []
+    masker = FaceMasker(ds, h.frame_position)
+    moves = []  # expressions a 'player' sets while the worker renders
+
+    def busy_masker(*args):
+        if moves:
+            wk.set_expression(moves.pop(0))
+        return masker(*args)
+
+    w, a = run.frame_codes(0)
+    e = np.zeros(len(run.expression_names), np.float32)
+    wk = RenderWorker(run.model, w, a, busy_masker, e, lambda k, f: frames.append(f),
+                      height=64, settle_s=0.05)
+    wk.partial_max = 0.0  # whole images after an expression change too
+    wk.start()
+    try:
+        wk.set_camera("a", h.c2w, h.fov_y, 1.0)
+        assert wk.wait_idle(60)
+        assert [f.intr.h for f in frames] == [16, 32, 64]  # a new camera: from a quarter
+        n = len(frames)
+        wk.set_expression(e + 0.5)
+        assert wk.wait_idle(60)
+        assert [f.intr.h for f in frames[n:]] == [32, 64]  # same camera: from half
+        for progressive in (True, False):  # the silhouette's pixels alone; whole images
+            wk.partial_max = 1.0 if progressive else 0.0
+            wk.set_quality(progressive=progressive)
+            assert wk.wait_idle(60)
+            n = len(frames)
+            start = e + (0.0 if progressive else 1.0)
+            moves.extend([start + 0.1, start + 0.2, start + 0.3])
+            wk.set_expression(start)
+            assert wk.wait_idle(60)
+            # every image rendered was shown though its state moved on while it rendered
+            assert len(frames) - n == 4 and all(f.intr.h == 64 for f in frames[n:])
+            assert np.allclose(wk.expression(), start + 0.3) and not wk.errors
+    finally:
+        wk.stop()

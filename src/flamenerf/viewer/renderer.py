@@ -2,10 +2,11 @@
 
 Every browser (view) has a camera; all views share the expression, the display mode and
 the quality. Whenever any of these changes the view's *key* changes and the worker renders
-it again, coarse to fine: first at 1/4 of the chosen height (fast, so dragging the camera
-stays interactive), then - once nothing has changed for `settle_s` - at 1/2 and at the
-full height. A refinement is rendered in bands of rows and abandoned as soon as the key
-changes again, so the worker never sits on a stale image.
+it again, coarse to fine: after a camera move first at 1/4 of the chosen height (fast, so
+dragging the camera stays interactive), after any other change at 1/2, then - once nothing
+has changed for `settle_s` - at the levels above, up to the full height. The first image
+of a change is always finished and shown; a refinement is rendered in bands of rows and
+abandoned as soon as the key changes again, so the worker never sits on a stale image.
 
 When only the expression changes (a slider, a track playing) and the view's camera, head
 pose and height are those of its last full-height image, only the pixels inside the
@@ -252,7 +253,11 @@ class RenderWorker:
         for key, v in self.views.items():
             state = (v.version, s.version)
             if v.shown_key != state:
-                cand = (0, -v.changed_at, key, 0)
+                # a new camera starts at the coarsest level (a drag wants many images a
+                # second); a new expression, frame or quality under the same camera one
+                # level up, which a player's frame shows in ~1/7 s at 128 px as filmed
+                moved = v.shown_key is None or v.shown_key[0] != v.version
+                cand = (0, -v.changed_at, key, 0 if moved else max(len(heights) - 2, 0))
             elif v.shown_level < len(heights) - 1:
                 idle = now - max(v.changed_at, s.changed_at)
                 if idle < self.settle_s:
@@ -268,7 +273,11 @@ class RenderWorker:
             return None, wait
         key, level = best[2], best[3]
         v = self.views[key]
-        snap = dict(key=key, state=(v.version, s.version), c2w=v.c2w.copy(), fov_y=v.fov_y,
+        # the first image of a new state always finishes and is shown, however soon the
+        # state changes again (a player, a drag): abandoning it could leave the view
+        # frozen on a long since stale image; refinements are abandoned
+        snap = dict(key=key, first=best[0] == 0, state=(v.version, s.version),
+                    c2w=v.c2w.copy(), fov_y=v.fov_y,
                     aspect=v.aspect, expression=s.expression.copy(), mode=s.mode,
                     height=heights[-1], final=True, depth_range=v.depth_range, head=s.head,
                     filmed=s.filmed)
@@ -314,7 +323,7 @@ class RenderWorker:
                     self._cv.wait(timeout=wait if wait is not None else 1.0)
             key, level, heights, snap = job
             try:
-                frame = self._render(snap, level, cancellable=level > 0)
+                frame = self._render(snap, level, cancellable=not snap["first"])
             except _Stale:
                 continue
             except Exception as e:  # noqa: BLE001 - keep serving this state no more
@@ -341,7 +350,7 @@ class RenderWorker:
                 v = self.views.get(key)
                 if v is None:
                     continue
-                if (v.version, self.shared.version) != snap["state"] and level > 0:
+                if (v.version, self.shared.version) != snap["state"] and not snap["first"]:
                     continue
                 v.shown_key, v.shown_level = snap["state"], level
                 v.renders += 1
