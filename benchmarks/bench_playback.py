@@ -1,9 +1,12 @@
-"""What the viewer shows while a track plays: images per second and their heights.
+"""What the viewer shows while a track plays or a slider is dragged: images per second and
+their heights.
 
 Starts the viewer on RUN (no browser: the render worker's display callback counts the
 images a page would get), points one view at frame 0's camera with a 16:9 page, picks the
 capture track and plays it for `--seconds`, As filmed (each frame's own codes, head pose and
-mesh) and not (frame 0's codes), and writes what it counted.
+mesh) and not (frame 0's codes); then drags the slider of the control the training frames
+move most across its range and back for as long, 20 updates a second (what viser's page
+sends at most), and writes what it counted.
 
     python benchmarks/bench_playback.py RUN [--seconds 8] [--resolution 128] [--threads 2]
         [--json OUT.json]
@@ -73,6 +76,25 @@ def main() -> int:
                   f"({len(got) / args.seconds:.1f}/s), heights {dict(collections.Counter(got))}",
                   flush=True)
             v.worker.wait_idle(120)
+        import numpy as np
+
+        x = v.ds.expression_matrix(v.ds.frames)
+        j = int(np.argmax(x.max(0) - x.min(0)))
+        lo, hi = float(x[:, j].min()), float(x[:, j].max())
+        v.set_expression(v.frame0_expression)
+        v.worker.wait_idle(120)
+        n, t0 = len(shown), time.monotonic()
+        while (t := time.monotonic() - t0) < args.seconds:
+            u = abs(((t / 2) % 2) - 1)  # across the range in 2 s and back
+            v.worker.set_expression_value(j, lo + (hi - lo) * (1 - u))
+            time.sleep(0.05)
+        got = [h for t, h in shown[n:] if t - t0 <= args.seconds]
+        res["modes"]["slider drag"] = {"control": v.names[j], "images": len(got),
+                                       "images_per_s": round(len(got) / args.seconds, 2),
+                                       "heights": dict(collections.Counter(got))}
+        print(f"slider drag ({v.names[j]}): {len(got)} images in {args.seconds:g} s "
+              f"({len(got) / args.seconds:.1f}/s), heights {dict(collections.Counter(got))}",
+              flush=True)
     finally:
         v.stop()
     if args.json is not None:

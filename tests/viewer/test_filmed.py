@@ -114,6 +114,10 @@ def test_the_viewer_plays_the_capture_as_filmed(head_run):
         assert v.worker.filmed() is None
         v.g_filmed.value = True
         assert v.worker.filmed().index == int(v.g_frame.value)
+        v.show_frame0()  # the "Frame 0 expression" button: frame 0's look and head again
+        assert v.worker.filmed() is None
+        assert np.allclose(v.worker.expression(), v.shown(v.frame0_expression))
+        v.show_track_frame(cap, 3)
         v.g_track.value = tour.name  # not the clip's frames
         assert v.worker.filmed() is None
     finally:

@@ -24,9 +24,11 @@ def view(
     (a tour of the controls, the dataset's own sequences, or a `flamenerf track` file
     given with --track; its Edit box changes every frame of a track as `render --edit`
     does), head-pose sliders for runs trained with head poses, RGB or
-    depth, and a resolution control: while the view changes it renders at 1/4 of the
-    chosen resolution and refines when still. Every image uses frame 0's deformation and
-    appearance codes, and as the spatial prior the face mesh of the expression shown.
+    depth, and a resolution control: while the camera moves it renders at 1/4 of the
+    chosen resolution (1/2 after other changes) and refines when still. Images use frame
+    0's deformation and appearance codes, except the capture's frames shown As filmed
+    (each with its own codes, head pose and mesh, as `render --split capture`); the
+    spatial prior is the face mesh of the expression shown.
     Ctrl-C stops it.
 
     The server listens on 127.0.0.1 only; `--host 0.0.0.0` serves every network

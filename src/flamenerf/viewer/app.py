@@ -168,8 +168,8 @@ class Viewer:
                      "sets the width).")
             self.g_prog = gui.add_checkbox(
                 "Progressive", self.opts.progressive,
-                hint="Render at 1/4 resolution while the camera or expression changes, "
-                     "then refine to 1/2 and full once it is still.")
+                hint="Render at 1/4 resolution while the camera moves (at 1/2 after any "
+                     "other change), then refine to full once it is still.")
             self.g_reset_cam = gui.add_button("Reset camera", hint="Back to frame 0's camera.")
         self.expr_folder = gui.add_folder("Expression")
         with self.expr_folder:
@@ -177,7 +177,8 @@ class Viewer:
                 "Reset to neutral", hint="Every control to 0 (no expression); within the "
                 "clip's range, to the lowest value it shows.")
             self.g_frame0 = gui.add_button(
-                "Frame 0 expression", hint="The expression of the capture's first frame.")
+                "Frame 0 expression", hint="The capture's first frame: its expression, and "
+                "its look and head again after a frame shown As filmed.")
             # options that exist only for datasets that have what they use; ticked by default
             self.g_within, self.g_companions = (
                 gui.add_checkbox(label, True, hint=hint) if present else None
@@ -201,8 +202,9 @@ class Viewer:
         if getattr(self.run.model, "follows_head", False):  # trained with head poses
             self.head_folder = gui.add_folder("Head pose")
             with self.head_folder:
-                self.g_head_reset = gui.add_button("Frame 0 head pose",
-                                                   hint="Back to the capture's first pose.")
+                self.g_head_reset = gui.add_button(
+                    "Frame 0 head pose", hint="Back to the capture's first pose (a frame "
+                    "shown As filmed: to that frame's own).")
                 for name, lim in (("yaw", 40), ("pitch", 25), ("roll", 25)):
                     s = gui.add_slider(name, min=-lim, max=lim, step=1, initial_value=0,
                                        hint=f"Head {name} in degrees, relative to frame 0's "
@@ -239,7 +241,7 @@ class Viewer:
         self.g_prog.on_update(lambda e: self.worker.set_quality(progressive=e.target.value))
         self.g_reset_cam.on_click(lambda e: e.client is not None and self.reset_camera(e.client))
         self.g_neutral.on_click(lambda e: self.set_expression(self.neutral))
-        self.g_frame0.on_click(lambda e: self.set_expression(self.frame0_expression))
+        self.g_frame0.on_click(lambda e: self.show_frame0())
         self.g_track.on_update(self._on_track_change)
         self.g_play.on_click(lambda e: self.toggle_play())
         self.g_frame.on_update(self._on_frame_slider)
@@ -288,6 +290,14 @@ class Viewer:
             self.pause()
         v = self.shown(values)
         self.worker.set_expression(v)
+        self._sync_sliders(v)
+
+    def show_frame0(self) -> None:
+        """Frame 0's expression, and frame 0's codes and head where a frame was shown as
+        filmed: the view the viewer opens with."""
+        self.pause()
+        v = self.shown(self.frame0_expression)
+        self.worker.set_filmed(None, v)
         self._sync_sliders(v)
 
     def shown(self, values: np.ndarray, clamp: bool = True) -> np.ndarray:
