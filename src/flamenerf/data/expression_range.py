@@ -47,6 +47,13 @@ class ExpressionRange:
                            f"(the clip: {self.lo[k]:.2f}-{self.hi[k]:.2f})")
         return out
 
+    @staticmethod
+    def note(over: list[str], how: str = "--extrapolate renders them as given") -> str:
+        """The one line that says what was clamped (`beyond`'s lines); `how`: what a user
+        gives to have them as asked, or where the clamp comes from."""
+        return ("clamped to the range the training frames cover, where the model has "
+                f"learnt them ({how}): {'; '.join(over)}")
+
     @classmethod
     def of(cls, names: list[str], expressions: np.ndarray) -> "ExpressionRange":
         """The range of training expressions (N, E)."""

@@ -476,8 +476,8 @@ def drive_section(run, ds: Dataset, intr, omega0, phi0, opts: EvalOptions
         rng = training_range(ds)
         if over := rng.beyond(seq.values):
             rendered = rng.clamp(seq.values)
-            notes.append("rendered clamped to the range the training frames cover (as "
-                         f"`render` does unless --extrapolate): {'; '.join(over)}")
+            notes.append("rendered " + rng.note(over, "as `render` does unless "
+                                                 "--extrapolate"))
     track = C.Retracker()
     try:
         res, preds = C.drive_response(render, names, seq.values, track, rendered=rendered)

@@ -304,8 +304,9 @@ def training_limits(opts: RenderOptions, ds: Dataset, names: list[str]):
 
 
 def clamp_note(over: list[str]) -> str:
-    return ("note: clamped to the range the training frames cover, where the model has "
-            f"learnt them (--extrapolate renders them as given): {'; '.join(over)}")
+    from flamenerf.data.expression_range import ExpressionRange
+
+    return f"note: {ExpressionRange.note(over)}"
 
 
 def held_expression(base: np.ndarray, num: int, label: str) -> X.ExpressionSequence:
