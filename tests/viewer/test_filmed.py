@@ -4,13 +4,16 @@ mesh, the image `render --split capture` renders for it."""
 from __future__ import annotations
 
 import dataclasses
+import shlex
 import socket
 
 import numpy as np
 import torch
 
+from flamenerf import cli
 from flamenerf.data.head_pose import canonical_from_world
 from flamenerf.data.prior import dataset_dilation, mesh_function, prior_mask
+from flamenerf.data.video import read_frames
 from flamenerf.geometry import se3_log
 from flamenerf.images import to_uint8
 from flamenerf.model.inference import VIEWER
@@ -88,7 +91,7 @@ def test_a_frame_as_filmed_is_what_render_renders(head_run):
         wk.stop()
 
 
-def test_the_viewer_plays_the_capture_as_filmed(head_run):
+def test_the_viewer_plays_the_capture_as_filmed(head_run, tmp_path):
     from flamenerf.viewer.app import Viewer
     from flamenerf.viewer.options import ViewerOptions
 
@@ -114,6 +117,23 @@ def test_the_viewer_plays_the_capture_as_filmed(head_run):
         assert v.worker.filmed() is None
         v.g_filmed.value = True
         assert v.worker.filmed().index == int(v.g_frame.value)
+        # what the viewer shows, as a render command that runs
+        v.set_head_pose(10, 0, 0)
+        v.g_filmed.value = False
+        cmd = v.render_command()
+        assert "Render it: `flamenerf render" in v.g_command.content
+        args = shlex.split(cmd)
+        assert args[:2] == ["flamenerf", "render"] and "--split" in args
+        assert args[args.index("--edit") + 1] == "jawOpen+=0.2"
+        assert args[args.index("--codes") + 1] == "first"
+        assert args[args.index("--head-pose") + 1] == "yaw=10"
+        out = tmp_path / "viewer.mp4"
+        assert cli.main(args[1:] + ["--max-frames", "2", "--size", "16", "--out", str(out),
+                                    "--device", "cpu", "--no-sound"]) == 0
+        assert len(read_frames(out)) == 2
+        v.set_head_pose(0, 0, 0)
+        v.g_filmed.value = True
+        assert "--codes" not in v.render_command() and "--head-pose" not in v.render_command()
         v.show_frame0()  # the "Frame 0 expression" button: frame 0's look and head again
         assert v.worker.filmed() is None
         assert np.allclose(v.worker.expression(), v.shown(v.frame0_expression))

@@ -100,6 +100,7 @@ class Viewer:
         self._play_frame0 = 0
         self._closing = False
         self._edits: list = []  # the Edit box's (rendering/edits.py)
+        self._edit_text = ""  # ... as typed, for the render command
         self._edited: dict[tuple, np.ndarray] = {}  # tracks' frames with them applied
 
     # ------------------------------------------------------------------ lifecycle
@@ -235,6 +236,7 @@ class Viewer:
                 "jawOpen*=0 (mouth still), all*=1.5 (every control exaggerated). Empty: the "
                 "track as it is.")
             self.g_edit_note = gui.add_markdown("")
+            self.g_command = gui.add_markdown(self.command_markdown())
 
         self.g_mode.on_update(lambda e: self.worker.set_mode(e.target.value))
         self.g_height.on_update(lambda e: self.worker.set_quality(height=e.target.value))
@@ -248,6 +250,9 @@ class Viewer:
         self.g_edit.on_update(lambda e: self.set_edit(e.target.value))
         if self.g_filmed is not None:
             self.g_filmed.on_update(lambda e: self._show_current_frame())
+        for box in (self.g_filmed, self.g_companions, self.g_within):
+            if box is not None:
+                box.on_update(lambda e: self._update_command())
 
     def set_head_pose(self, yaw: float, pitch: float, roll: float) -> None:
         """Turn the head (degrees relative to frame 0's pose) and move the sliders there."""
@@ -258,6 +263,7 @@ class Viewer:
     def _head_changed(self) -> None:
         from flamenerf.data.head_pose import HeadPoseKey, HeadRegion, control_transform
 
+        self._update_command()
         yaw, pitch, roll = (float(s.value) for s in self.g_head)
         if yaw == pitch == roll == 0:
             self.worker.set_head(None)
@@ -351,7 +357,43 @@ class Viewer:
             return
         self._edited.clear()
         self.g_edit_note.content = f"editing {describe(items)}" if self._edits else ""
+        self._edit_text = items[0] if items else ""
+        self._update_command()
         self._show_current_frame()
+
+    def render_command(self) -> str:
+        """The `flamenerf render` command of the track shown, as the Track and Expression
+        boxes and the head sliders set it (the video of it, from the source's own cameras
+        for a split, frame 0's otherwise); '' without a track."""
+        import shlex
+
+        t = self.current_track()
+        if t is None or not t.render_args:
+            return ""
+        args = ["flamenerf", "render", str(self.run.run_dir), *t.render_args]
+        if self.opts.dataset is not None:
+            args += ["--dataset", str(self.opts.dataset)]
+        if t.name in self.filmable and self.g_filmed is not None and not self.g_filmed.value:
+            args += ["--codes", "first"]
+        if self._edit_text:
+            args += ["--edit", self._edit_text]
+        if self.g_companions is not None and not self.g_companions.value:
+            args.append("--no-companions")
+        if self.range is not None and not self.within():
+            args.append("--extrapolate")
+        turn = [f"{n}={float(s.value):g}" for n, s in zip(("yaw", "pitch", "roll"), self.g_head)
+                if float(s.value) != 0]
+        if turn:
+            args += ["--head-pose", ",".join(turn)]
+        return shlex.join(args)
+
+    def command_markdown(self) -> str:
+        cmd = self.render_command()
+        return f"Render it: `{cmd}`" if cmd else ""
+
+    def _update_command(self) -> None:
+        if getattr(self, "g_command", None) is not None:
+            self.g_command.content = self.command_markdown()
 
     def filmed_clip(self, t: Track):
         """The track's frames as filmed (rendering/filmed.FilmedClip), or None: not the
@@ -412,6 +454,7 @@ class Viewer:
         self.g_frame.max = max(t.num_frames - 1, 1)
         self.g_frame.value = 0
         self.show_track_frame(t, 0)
+        self._update_command()
 
     def _on_frame_slider(self, event) -> None:
         if event.client is None:

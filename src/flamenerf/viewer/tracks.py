@@ -17,6 +17,7 @@ class Track:
     frames: np.ndarray  # (T, E) float32, in the run's expression order
     fps: float
     clip: list[Frame] | None = None  # the dataset's frames it plays, if it is theirs
+    render_args: tuple[str, ...] = ()  # `flamenerf render`'s options for the same source
 
     @property
     def num_frames(self) -> int:
@@ -33,12 +34,12 @@ def dataset_tracks(ds: Dataset) -> list[Track]:
     fps = ds.frame_rate() or 30.0
     if capture:
         out.append(Track(f"capture ({len(capture)} frames)", ds.expression_matrix(capture), fps,
-                         capture))
+                         capture, ("--split", "capture")))
     for name in sorted(ds.splits, key=lambda s: (s not in ("train", "val"), s)):
         frames = ds.split(name)
         if frames:
             out.append(Track(f"split {name} ({len(frames)} frames)",
-                             ds.expression_matrix(frames), fps, frames))
+                             ds.expression_matrix(frames), fps, frames, ("--split", name)))
     return out
 
 
@@ -57,7 +58,8 @@ def tour_track(ds: Dataset, names: list[str], base: np.ndarray, companions=None
         seq = from_items(["tour"], names, base, None, companions, training_expressions(ds))
     except UserError:
         return None
-    return Track(f"tour ({len(seq)} frames)", seq.values, 30.0)
+    return Track(f"tour ({len(seq)} frames)", seq.values, 30.0,
+                 render_args=("--expressions", "tour"))
 
 
 def load_track_file(path: str | Path, names: list[str]) -> Track:
@@ -70,7 +72,8 @@ def load_track_file(path: str | Path, names: list[str]) -> Track:
     mat, _ = map_by_name(tr.frames, tr.names, names, str(path), strict=False,
                          what=f"{len(tr.names)} expression channels",
                          hint="; track with the run's --face-model")
-    return Track(f"file {Path(path).name} ({len(mat)} frames)", mat, float(tr.fps))
+    return Track(f"file {Path(path).name} ({len(mat)} frames)", mat, float(tr.fps),
+                 render_args=("--expressions", str(path)))
 
 
 def slider_range(ds: Dataset) -> tuple[float, float]:
