@@ -36,6 +36,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from flamenerf.tracking.landmarker import part_outlines
 from flamenerf.data.companions import Companions
 from flamenerf.data.dataset import Dataset, Intrinsics
 from flamenerf.data.scene import FrameSet
@@ -477,20 +478,6 @@ def openings(landmarks: np.ndarray) -> dict[str, float]:
     for name, (a, b) in _LIDS.items():
         out[name] = float(np.linalg.norm(p[a] - p[b])) / scale
     return out
-
-
-def part_outlines() -> dict[str, list[list[int]]]:
-    """MediaPipe's own landmark outlines of the eyes, brows and lips (its face landmarker's
-    connection lists): {part: [each side's landmark indices]}."""
-    from mediapipe.tasks.python.vision.face_landmarker import FaceLandmarksConnections as C
-
-    def points(conns) -> list[int]:
-        return sorted({c.start for c in conns} | {c.end for c in conns})
-
-    return {"eyes": [points(C.FACE_LANDMARKS_LEFT_EYE), points(C.FACE_LANDMARKS_RIGHT_EYE)],
-            "brows": [points(C.FACE_LANDMARKS_LEFT_EYEBROW),
-                      points(C.FACE_LANDMARKS_RIGHT_EYEBROW)],
-            "lips": [points(C.FACE_LANDMARKS_LIPS)]}
 
 
 def part_change(before: np.ndarray, after: np.ndarray, landmarks: np.ndarray,

@@ -6,7 +6,7 @@ fits the 468 that the triangles hold. Without the irises a gaze moves no vertex:
 β -> mesh model gives the eyeLook controls no place on the face, the per-control prior no
 region and the mesh guide nothing to carry. Each iris point is put on the solved mesh
 where the landmarker sees it: inside the triangles that close its own eye's opening (their
-vertices are the eye's contour, 14 per eye), at the same barycentric coordinates as in the
+vertices are the eye's contour, 16 per eye), at the same barycentric coordinates as in the
 image; a rim point hidden under a lid goes to the nearest point of the opening (with any
 triangle allowed, one went to the other eye). No triangle holds them, so silhouettes and
 depth are as before; the vertex count becomes 478, MediaPipe's full topology.
@@ -16,22 +16,18 @@ from __future__ import annotations
 
 import numpy as np
 
-from flamenerf.tracking.landmarker import NUM_LANDMARKS, NUM_MESH_VERTICES
+from flamenerf.tracking.landmarker import NUM_LANDMARKS, NUM_MESH_VERTICES, part_outlines
 
-# MediaPipe's eye contours (upper and lower lid, corner to corner), the subject's left and
-# right eye: the vertices of the triangles that close each eye. Its iris points 468-472
-# are the right eye's, 473-477 the left's (centre first).
-EYE_CONTOURS = (
-    (263, 249, 390, 373, 374, 380, 381, 382, 362, 398, 384, 385, 386, 387, 388, 466),
-    (33, 7, 163, 144, 145, 153, 154, 155, 133, 173, 157, 158, 159, 160, 161, 246),
-)
+# MediaPipe's iris points 468-472 are the right eye's, 473-477 the left's (centre first)
 IRIS_FIRST, IRIS_COUNT = NUM_MESH_VERTICES, NUM_LANDMARKS - NUM_MESH_VERTICES
 
 
 def eye_triangles(faces: np.ndarray, eye: int | None = None) -> np.ndarray:
-    """The triangles (F, 3) whose three vertices lie on one eye's contour (`eye`: 0 the
-    subject's left, 1 the right, None both). -> (T, 3)"""
-    contours = EYE_CONTOURS if eye is None else (EYE_CONTOURS[eye],)
+    """The triangles (F, 3) whose three vertices lie on one eye's contour (MediaPipe's
+    outline of the lids, `landmarker.part_outlines`; `eye`: 0 the subject's left, 1 the
+    right, None both): those that close the eye's opening. -> (T, 3)"""
+    eyes = part_outlines()["eyes"]
+    contours = eyes if eye is None else (eyes[eye],)
     out = [f for contour in map(set, contours) for f in faces
            if all(int(v) in contour for v in f)]
     return np.asarray(out, np.int64).reshape(-1, 3)

@@ -40,6 +40,20 @@ NUM_MESH_VERTICES = 468
 # ----------------------------------------------------------------------------- the model file
 
 
+def part_outlines() -> dict[str, list[list[int]]]:
+    """MediaPipe's own landmark outlines of the eyes, brows and lips (its face landmarker's
+    connection lists): {part: [each side's landmark indices, the subject's left first]}."""
+    from mediapipe.tasks.python.vision.face_landmarker import FaceLandmarksConnections as C
+
+    def points(conns) -> list[int]:
+        return sorted({c.start for c in conns} | {c.end for c in conns})
+
+    return {"eyes": [points(C.FACE_LANDMARKS_LEFT_EYE), points(C.FACE_LANDMARKS_RIGHT_EYE)],
+            "brows": [points(C.FACE_LANDMARKS_LEFT_EYEBROW),
+                      points(C.FACE_LANDMARKS_RIGHT_EYEBROW)],
+            "lips": [points(C.FACE_LANDMARKS_LIPS)]}
+
+
 def package_asset_path() -> Path:
     """Where the set-up script puts the model by default: inside the installed package."""
     return Path(__file__).resolve().parent.parent / "assets" / FILE_NAME
