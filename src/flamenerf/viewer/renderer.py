@@ -255,7 +255,9 @@ class RenderWorker:
             if v.shown_key != state:
                 # a new camera starts at the coarsest level (a drag wants many images a
                 # second); a new expression, frame or quality under the same camera one
-                # level up, which a player's frame shows in ~1/7 s at 128 px as filmed
+                # level up, where a track played as filmed still shows ~3 images a second
+                # on the 2-core CPU (a 16:9 view of 128 px; benchmarks/bench_playback.py)
+                # and a face is recognisable, which at 1/4 it is not
                 moved = v.shown_key is None or v.shown_key[0] != v.version
                 cand = (0, -v.changed_at, key, 0 if moved else max(len(heights) - 2, 0))
             elif v.shown_level < len(heights) - 1:
