@@ -138,7 +138,10 @@ def test_the_viewer_plays_the_capture_as_filmed(head_run, tmp_path):
         assert v.worker.filmed() is None
         assert np.allclose(v.worker.expression(), v.shown(v.frame0_expression))
         v.show_track_frame(cap, 3)
+        to = v.frame_camera()  # "Camera of this frame": where frame 3 was filmed from
+        assert np.allclose(to.c2w, cap.clip[3].c2w) and to.frame_position == cap.clip[3].position
         v.g_track.value = tour.name  # not the clip's frames
         assert v.worker.filmed() is None
+        assert v.frame_camera() is None
     finally:
         v.stop()

@@ -14,7 +14,7 @@ import time
 import numpy as np
 
 from flamenerf.errors import UserError
-from flamenerf.viewer.camera import c2w_from_viser, home_camera
+from flamenerf.viewer.camera import HomeCamera, c2w_from_viser, home_camera
 from flamenerf.viewer.mask import FaceMasker
 from flamenerf.viewer.options import ViewerOptions
 from flamenerf.viewer.renderer import Frame, RenderWorker
@@ -230,6 +230,11 @@ class Viewer:
                     "look and face mesh, as `render --split capture` does (the clip itself, "
                     "with the expression the sliders or the Edit box give). Off: frame 0's "
                     "head and look with the track's expressions.")
+            self.g_frame_cam = None
+            if any(t.clip for t in self.tracks):
+                self.g_frame_cam = gui.add_button(
+                    "Camera of this frame", hint="The view from where the clip filmed the "
+                    "frame shown (tracks of the clip's frames); Reset camera: frame 0's.")
             self.g_edit = gui.add_text(
                 "Edit", "", hint="Changes every frame of the track, as `render --edit` does: "
                 "e.g. mouthSmile+=0.3 (both sides: the capture, smiling more), "
@@ -250,6 +255,8 @@ class Viewer:
         self.g_edit.on_update(lambda e: self.set_edit(e.target.value))
         if self.g_filmed is not None:
             self.g_filmed.on_update(lambda e: self._show_current_frame())
+        if self.g_frame_cam is not None:
+            self.g_frame_cam.on_click(lambda e: self.frame_camera())
         for box in (self.g_filmed, self.g_companions, self.g_within):
             if box is not None:
                 box.on_update(lambda e: self._update_command())
@@ -327,13 +334,27 @@ class Viewer:
             for s, x in zip(self.g_sliders, v):
                 s.value = float(round(float(x), 4))
 
-    def reset_camera(self, client) -> None:
+    def reset_camera(self, client, to: HomeCamera | None = None) -> None:
+        """A page's camera to frame 0's (or `to`)."""
+        to = self.home if to is None else to
         cam = client.camera
         with client.atomic():
-            cam.fov = self.home.fov_y
-            cam.up_direction = tuple(float(x) for x in self.home.up)
-            cam.position = tuple(float(x) for x in self.home.position)
-            cam.look_at = tuple(float(x) for x in self.home.look_at)
+            cam.fov = to.fov_y
+            cam.up_direction = tuple(float(x) for x in to.up)
+            cam.position = tuple(float(x) for x in to.position)
+            cam.look_at = tuple(float(x) for x in to.look_at)
+
+    def frame_camera(self) -> HomeCamera | None:
+        """Every page's camera to the one the track's current frame was filmed from (a
+        track of the clip's frames; None and nothing moved for another)."""
+        t = self.current_track()
+        if t is None or not t.clip:
+            return None
+        k = int(min(max(self.g_frame.value, 0), t.num_frames - 1))
+        to = home_camera(self.ds, t.clip[k].position)
+        for client in list(self._clients.values()):
+            self.reset_camera(client, to)
+        return to
 
     # ------------------------------------------------------------------ playback
 

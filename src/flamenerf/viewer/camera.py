@@ -50,14 +50,16 @@ class HomeCamera:
 
 
 
-def home_camera(ds: Dataset) -> HomeCamera:
-    pos = reference_position(ds)  # frame 0: the frame whose codes the viewer renders
+def home_camera(ds: Dataset, position: int | None = None) -> HomeCamera:
+    """Frame 0's camera (the frame whose codes the viewer renders), or with `position` the
+    camera of that frame of `ds.frames` (a frame shown as filmed, from where it was)."""
+    pos = reference_position(ds) if position is None else int(position)
     c2w = np.asarray(ds.frames[pos].c2w, np.float64)
     eye = c2w[:3, 3]
     forward = -c2w[:3, 2]
     forward = forward / np.linalg.norm(forward)
-    # The scene centre is the face: orbit around the point of frame 0's optical axis
-    # nearest to the face mesh's centroid, so the first view is exactly frame 0's.
+    # The scene centre is the face: orbit around the point of the frame's optical axis
+    # nearest to its face mesh's centroid, so the first view is exactly the frame's.
     centre = ds.face_vertices[pos].reshape(-1, 3).mean(0).astype(np.float64)
     dist = float(np.dot(centre - eye, forward))
     if not np.isfinite(dist) or dist <= 1e-3:
