@@ -1,5 +1,6 @@
 """`flamenerf view` end to end: a tiny run, the viewer on a free port, headless Chromium
-moving an expression slider in the page (DOM mouse events via the DevTools protocol)."""
+moving an expression slider and pressing Play in the page (DOM mouse events via the
+DevTools protocol)."""
 
 from __future__ import annotations
 
@@ -197,6 +198,38 @@ def test_slider_changes_the_face_and_only_the_face(chromium, viewer):
           f"render {W}x{H}, test took {time.monotonic() - t0:.1f} s")
     assert frac_in > 0.2, f"moving {SLIDER} changed only {frac_in:.1%} of the face"
     assert frac_out < 0.002, f"moving {SLIDER} changed {frac_out:.3%} of the image off the face"
+
+
+def test_play_in_the_page_plays_the_capture_as_filmed(chromium, viewer):
+    """Play pressed in the page: the images keep coming while the track plays (each one's
+    frame passes before it is rendered), each a frame of the clip as filmed."""
+    capture = next(t for t in viewer.tracks if t.name.startswith("capture"))
+    with Browser(chromium, width=900, height=700) as b:
+        b.goto(viewer.url)
+        n = _wait_final(b, 0, 60)
+        viewer.g_track.value = capture.name  # the track menu (a viser dropdown)
+        b.wait_for(f"""(() => {{ const s = {STATUS_JS};
+            const m = s.match(/final · frame 0 as filmed · #(\\d+)/);
+            return m && +m[1] > {n} ? s : '' }})()""", 40)
+        b.eval("""[...document.querySelectorAll('button')]
+            .find(e => e.textContent.trim() === 'Play').scrollIntoView()""")
+        r = _rect(b, """[...document.querySelectorAll('button')]
+            .find(e => e.textContent.trim() === 'Play')""")
+        b.click(r["x"] + r["width"] / 2, r["y"] + r["height"] / 2)
+        b.wait_for("[...document.querySelectorAll('button')]"
+                   ".some(e => e.textContent.trim() === 'Pause')", 10)
+        seen = []  # (image count, frame as filmed) the status line shows, while playing
+        end = time.monotonic() + 4.0
+        while time.monotonic() < end:
+            m = re.search(r"frame (\d+) as filmed · #(\d+)", b.eval(STATUS_JS) or "")
+            if m:
+                seen.append((int(m.group(2)), int(m.group(1))))
+            time.sleep(0.1)
+        assert viewer.playing
+        viewer.pause()
+    counts, frames = {c for c, _ in seen}, {k for _, k in seen}
+    assert len(counts) >= 4 and len(frames) >= 3, seen  # images arrive, of different frames
+    assert not viewer.worker.errors
 
 
 def test_port_taken_is_one_line_error(tiny_run, capsys):
