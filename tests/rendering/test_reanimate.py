@@ -19,13 +19,15 @@ def test_still_camera_frames_equal_whole_renders(toy_run, toy_dataset, monkeypat
     intr = run.train_intrinsics(ds)
     omega, phi = run.frame_codes(0)
     rng = np.random.default_rng(0)
-    T = 4
+    T = 5
     betas = (rng.uniform(-1, 1, (T, ds.expression_dim)) * 2).astype(np.float32)
     betas[2] = betas[1]  # the same expression twice: nothing to render again
-    c2w = ds.frames[0].c2w
+    betas[3] = betas[2]  # ... and again, under another mesh (another frame of a clip):
+    c2w = ds.frames[0].c2w  # the rays of either silhouette
     cams = np.repeat(c2w[None], T, 0)
-    cams[3] = ds.frames[1].c2w  # the camera moves: the whole frame
-    verts = ds.face_vertices[0]
+    cams[4] = ds.frames[1].c2w  # the camera moves: the whole frame
+    verts = np.repeat(ds.face_vertices[:1], T, 0)
+    verts[3] = verts[3] + np.float32([0.03, 0.0, 0.0])
     dil = dataset_dilation(ds)
     rendered = []
     real = ri.render_pixels
@@ -39,9 +41,12 @@ def test_still_camera_frames_equal_whole_renders(toy_run, toy_dataset, monkeypat
     frames = list(reanimate.render_sequence(run.model, ds, intr, cams, betas, verts, omega,
                                             phi, dil))
     n = intr.h * intr.w
-    mask = prior_mask(ds, verts, c2w, intr, dil)
-    # frame 0 whole, frame 1 its silhouette, frame 2 (the same β) nothing, frame 3 whole
-    assert rendered == [n, mask.sum(), n] and 0 < mask.sum() < n
+    mask = prior_mask(ds, verts[0], c2w, intr, dil)
+    moved = prior_mask(ds, verts[3], c2w, intr, dil)
+    # frame 0 whole, frame 1 its silhouette, frame 2 (the same β) nothing, frame 3 (the
+    # same β, the mesh moved) both silhouettes, frame 4 whole
+    assert (moved != mask).any()
+    assert rendered == [n, mask.sum(), (mask | moved).sum(), n] and 0 < mask.sum() < n
     rendered.clear()
     for i, fr in enumerate(frames):
         whole = ri.render_image(run.model, intr, cams[i], omega, phi,

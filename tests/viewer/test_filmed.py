@@ -113,8 +113,10 @@ def test_the_viewer_plays_the_capture_as_filmed(head_run, tmp_path):
         jaw = run.expression_names.index("jawOpen")
         assert v.worker.filmed().index == 5
         assert v.worker.expression()[jaw] > v.shown(cap.frames[5])[jaw]
-        v.g_filmed.value = False  # frame 0's look with the track's expressions
-        assert v.worker.filmed() is None
+        v.g_filmed.value = False  # frame 0's codes, the frame's own head and mesh
+        f = v.worker.filmed()
+        assert f.index == 5 and not f.own_codes and torch.equal(f.omega, v.worker.omega)
+        assert f.head is not None
         v.g_filmed.value = True
         assert v.worker.filmed().index == int(v.g_frame.value)
         # what the viewer shows, as a render command that runs
@@ -126,14 +128,15 @@ def test_the_viewer_plays_the_capture_as_filmed(head_run, tmp_path):
         assert args[:2] == ["flamenerf", "render"] and "--split" in args
         assert args[args.index("--edit") + 1] == "jawOpen+=0.2"
         assert args[args.index("--codes") + 1] == "first"
-        assert args[args.index("--head-pose") + 1] == "yaw=10"
+        # render eases --head-pose keyframes: the sliders' held turn is said, not passed
+        assert "--head-pose" not in args and "head sliders" in v.g_command.content
         out = tmp_path / "viewer.mp4"
         assert cli.main(args[1:] + ["--max-frames", "2", "--size", "16", "--out", str(out),
                                     "--device", "cpu", "--no-sound"]) == 0
         assert len(read_frames(out)) == 2
         v.set_head_pose(0, 0, 0)
         v.g_filmed.value = True
-        assert "--codes" not in v.render_command() and "--head-pose" not in v.render_command()
+        assert "--codes" not in v.render_command() and "head sliders" not in v.g_command.content
         v.show_frame0()  # the "Frame 0 expression" button: frame 0's look and head again
         assert v.worker.filmed() is None
         assert np.allclose(v.worker.expression(), v.shown(v.frame0_expression))

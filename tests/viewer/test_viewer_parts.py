@@ -214,6 +214,18 @@ def test_viewer_controls_without_a_browser(tiny_run, tmp_path):
         assert np.allclose(v.track_frames(v.tracks[2])[:, jaw], v.range.lo[jaw])  # clamped
         v.set_edit("")
         assert v.track_frames(v.tracks[2]) is v.tracks[2].frames
+        # a file's frames are clamped to the training range before the edit, as render's
+        from flamenerf.rendering.edits import apply_edits, parse_edits
+
+        from flamenerf.viewer.tracks import Track
+
+        far = np.tile(v.range.hi, (2, 1)).astype(np.float32)
+        far[:, jaw] += 1.0  # beyond the range: jawOpen-=0.3 lowers it from the range's top
+        v.set_edit("jawOpen-=0.3")
+        got = v.track_frames(Track("file far.json (2 frames)", far, 20.0))
+        want = apply_edits(v.range.clamp(far), parse_edits(["jawOpen-=0.3"], names),
+                           v.companions, v.range)[0]
+        assert np.allclose(got, want) and np.allclose(got[:, jaw], v.range.hi[jaw] - 0.3)
     finally:
         v.stop()
 

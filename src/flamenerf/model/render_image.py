@@ -122,9 +122,11 @@ class StillCamera:
         if self.last is None or not self.args[0].expression_confined:
             return None
         last_expr, last_mask, _ = self.last
-        if torch.equal(last_expr, expression) or self.args[0].cfg.expression_mode == "none":
+        if self.args[0].cfg.expression_mode == "none" or (
+                torch.equal(last_expr, expression) and np.array_equal(last_mask, face_mask)):
             return np.zeros(0, np.int64)  # nothing β reaches changed (the Nerfies variant:
-            # β reaches nothing)
+            # β reaches nothing); the same β under another mesh's silhouette (another frame
+            # of the clip) changes which rays get it
         return np.flatnonzero(np.asarray(face_mask, bool) | last_mask)
 
     def __call__(self, expression: torch.Tensor, face_mask: np.ndarray, band: int = 0,

@@ -37,10 +37,12 @@ class FilmedFrame:
     head: np.ndarray | None  # canonical-from-world (4, 4); None: the dataset has no head poses
     canonical: np.ndarray  # (V, 3) the tracked mesh in the canonical frame
     expression: np.ndarray  # (E,) the expression the mesh was tracked with
+    own_codes: bool = True  # False: ω, φ are frame 0's (`render --codes first`)
 
     def same(self, other: FilmedFrame | None) -> bool:
         """Whether `other` shows what this does (a player asks for the same frame anew)."""
         return (other is not None and other.index == self.index
+                and other.own_codes == self.own_codes
                 and torch.equal(other.omega, self.omega) and torch.equal(other.phi, self.phi)
                 and np.array_equal(other.expression, self.expression)
                 and np.array_equal(other.canonical, self.canonical)
@@ -67,7 +69,7 @@ class FilmedClip:
     def __init__(self, run, ds: Dataset, frames: list[Frame]):
         from flamenerf.data.head_pose import canonical_from_world, canonical_vertices
 
-        self.omega, self.phi = (c.cpu() for c in run.clip_codes(ds, frames))
+        self.omega, self.phi = run.clip_codes(ds, frames)  # on the run's device
         self.heads = canonical_from_world(ds, frames)
         self.canonical = canonical_vertices(ds, frames)
         self.expressions = ds.expression_matrix(frames)

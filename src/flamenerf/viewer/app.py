@@ -5,6 +5,7 @@ becomes the browser's scene background."""
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import errno
 import io
 import socket
@@ -229,7 +230,7 @@ class Viewer:
                     hint="The capture's tracks show each frame with its own head motion, "
                     "look and face mesh, as `render --split capture` does (the clip itself, "
                     "with the expression the sliders or the Edit box give). Off: frame 0's "
-                    "head and look with the track's expressions.")
+                    "codes (its look), each frame's head and mesh: `--codes first`.")
             self.g_frame_cam = None
             if any(t.clip for t in self.tracks):
                 self.g_frame_cam = gui.add_button(
@@ -257,9 +258,11 @@ class Viewer:
             self.g_filmed.on_update(lambda e: self._show_current_frame())
         if self.g_frame_cam is not None:
             self.g_frame_cam.on_click(lambda e: self.frame_camera())
-        for box in (self.g_filmed, self.g_companions, self.g_within):
+        for box in (self.g_filmed, self.g_within):
             if box is not None:
                 box.on_update(lambda e: self._update_command())
+        if self.g_companions is not None:
+            self.g_companions.on_update(lambda e: self._companions_changed())
 
     def set_head_pose(self, yaw: float, pitch: float, roll: float) -> None:
         """Turn the head (degrees relative to frame 0's pose) and move the sliders there."""
@@ -402,15 +405,28 @@ class Viewer:
             args.append("--no-companions")
         if self.range is not None and not self.within():
             args.append("--extrapolate")
-        turn = [f"{n}={float(s.value):g}" for n, s in zip(("yaw", "pitch", "roll"), self.g_head)
-                if float(s.value) != 0]
-        if turn:
-            args += ["--head-pose", ",".join(turn)]
         return shlex.join(args)
+
+    def _companions_changed(self) -> None:
+        """The tour again with or without companions (as render's with --no-companions),
+        then the command; the expression shown stays until a track frame is shown."""
+        comp = self.companions if self.g_companions.value else None
+        for t in self.tracks:
+            if t.name.startswith("tour"):
+                tour = tour_track(self.ds, self.names, self.frame0_expression, comp)
+                if tour is not None:
+                    t.frames = tour.frames  # the next frame shown (or played) is the new tour's
+                self._edited.clear()
+        self._update_command()
 
     def command_markdown(self) -> str:
         cmd = self.render_command()
-        return f"Render it: `{cmd}`" if cmd else ""
+        if not cmd:
+            return ""
+        turned = any(float(s.value) != 0 for s in self.g_head)
+        # render's --head-pose eases through keyframes; a held turn is a .json file
+        return f"Render it: `{cmd}`" + (" (the head sliders' turn is not in it: "
+                                        "docs/head_pose.md)" if turned else "")
 
     def _update_command(self) -> None:
         if getattr(self, "g_command", None) is not None:
@@ -418,8 +434,8 @@ class Viewer:
 
     def filmed_clip(self, t: Track):
         """The track's frames as filmed (rendering/filmed.FilmedClip), or None: not the
-        clip's own frames, or "As filmed" is off."""
-        if t.name not in self.filmable or self.g_filmed is None or not self.g_filmed.value:
+        clip's own frames."""
+        if t.name not in self.filmable:
             return None
         clip = self._filmed.get(t.name)
         if clip is None:
@@ -435,7 +451,11 @@ class Viewer:
         # clamped by `track_frames`), anything else clamped to the training range
         v = self.shown(self.track_frames(t)[k], clamp=t.clip is None)
         clip = self.filmed_clip(t)
-        self.worker.set_filmed(None if clip is None else clip.frame(k), v)
+        frame = None if clip is None else clip.frame(k)
+        if frame is not None and not self.g_filmed.value:  # as `render --codes first`
+            frame = dataclasses.replace(frame, omega=self.worker.omega, phi=self.worker.phi,
+                                        own_codes=False)
+        self.worker.set_filmed(frame, v)
         if sync:
             self._sync_sliders(v)
             if self.server is not None and int(self.g_frame.value) != k:
@@ -463,7 +483,10 @@ class Viewer:
         if v is None:
             from flamenerf.rendering.edits import apply_edits
 
-            v = apply_edits(t.frames, edits, comp, limits)[0]
+            # as render: a source that is not the clip's own frames is clamped first,
+            # then edited (the edit clamped on its own)
+            src = t.frames if t.clip or limits is None else limits.clamp(t.frames)
+            v = apply_edits(src, edits, comp, limits)[0]
             self._edited[key] = v
         return v
 
@@ -523,15 +546,21 @@ class Viewer:
             if t is None:
                 self.pause()
                 continue
+            self.filmed_clip(t)  # made before the lock: pause() does not wait for it
+            # under the lock pause() takes, so that a frame decided before a pause (or a
+            # change of track, which pauses) is not shown after it
             with self._play_lock:
+                if not self._play.is_set() or t is not self.current_track():
+                    continue
                 k = self._play_frame0 + int((time.monotonic() - self._play_t0) * t.fps)
-            if k >= t.num_frames:
-                if self.g_loop.value:
-                    k %= t.num_frames
-                else:
-                    k = t.num_frames - 1
-                    self.pause()
-            v = self.show_track_frame(t, k, sync=False)
+                if k >= t.num_frames:
+                    if self.g_loop.value:
+                        k %= t.num_frames
+                    else:
+                        k = t.num_frames - 1
+                        self._play.clear()
+                        self.g_play.label = "Play"
+                v = self.show_track_frame(t, k, sync=False)
             now = time.monotonic()
             # the 52 sliders follow at a few Hz; the image follows every frame
             if now - last_sync > 0.2 or not self._play.is_set():
@@ -618,7 +647,8 @@ class Viewer:
         if status is not None:
             state = "final" if frame.final else f"preview {frame.level + 1}"
             if frame.extras.get("filmed") is not None:
-                state += f" · frame {frame.extras['filmed']} as filmed"
+                state += f" · frame {frame.extras['filmed']} " + (
+                    "as filmed" if frame.extras.get("own_codes") else "with frame 0's codes")
             status.content = (f"{STATUS_PREFIX}: {frame.seconds * 1000:.0f} ms · "
                               f"{frame.intr.w}×{frame.intr.h} px · {state} · "
                               f"#{frame.count}{self.capture_note(client)}")

@@ -9,7 +9,7 @@ of a change is always finished and shown; a refinement is rendered in bands of r
 abandoned as soon as the key changes again, so the worker never sits on a stale image.
 
 When only the expression changes (a slider, a track playing) and the view's camera, head
-pose and height are those of its last full-height image, only the pixels inside the
+pose, codes and height are those of its last full-height image, only the pixels inside the
 spatial prior's silhouette before or after the change are rendered again, at the full
 height at once: β reaches no other ray (the prior), so every other pixel is the one shown.
 """
@@ -398,7 +398,8 @@ class RenderWorker:
             with self._cv:
                 v.cache = still
         extras: dict = {"mask": mask, "rays": rays,
-                        "filmed": None if snap["filmed"] is None else snap["filmed"].index}
+                        "filmed": None if snap["filmed"] is None else snap["filmed"].index,
+                        "own_codes": snap["filmed"] is not None and snap["filmed"].own_codes}
         if snap["mode"] == "Depth":
             rng = snap["depth_range"]
             if rng is None:
