@@ -276,10 +276,18 @@ def test_a_slider_moves_its_companions_unless_unticked(tiny_run):
         e = v.worker.expression()
         assert e[0] == pytest.approx(0.4) and e[1] == pytest.approx(0.2, abs=0.01)
         assert v.g_sliders[1].value == pytest.approx(e[1], abs=1e-3)
+        tour = next(t for t in v.tracks if t.name.startswith("tour"))
         v.g_companions.value = False
         drag(SimpleNamespace(client=object(), target=SimpleNamespace(value=0.8)))
         e2 = v.worker.expression()
         assert e2[0] == pytest.approx(0.8) and e2[1] == pytest.approx(e[1])
+        # the tour without companions too, as render's with --no-companions
+        alone = tour_track(v.ds, names, v.frame0_expression, None).frames
+        assert np.array_equal(tour.frames, alone)
+        v.g_companions.value = True
+        assert np.array_equal(tour.frames, tour_track(v.ds, names, v.frame0_expression,
+                                                      v.companions).frames)
+        assert not np.array_equal(tour.frames, alone)
     finally:
         v.stop()
 
