@@ -19,7 +19,7 @@ from flamenerf.images import to_uint8
 from flamenerf.model.inference import VIEWER
 from flamenerf.rendering.filmed import FilmedClip, changed_meshes
 from flamenerf.rendering.reanimate import render_sequence
-from flamenerf.rendering.videos import posed_vertices
+from flamenerf.data.head_pose import posed_vertices
 from flamenerf.training.run import load_run
 from flamenerf.viewer.camera import view_intrinsics
 from flamenerf.viewer.mask import FaceMasker

@@ -85,6 +85,15 @@ def canonical_vertices(ds: Dataset, frames: list[Frame]) -> np.ndarray:
     return v if T is None else transform_points(T, v).astype(np.float32)
 
 
+def posed_vertices(canonical: np.ndarray, T: np.ndarray | None) -> np.ndarray:
+    """Face meshes in the canonical frame posed into the world by the inverse of their head
+    transform (`canonical_vertices` undone): (n, V, 3) with T (n, 4, 4), or (V, 3) with
+    T (4, 4); unchanged when T is None."""
+    if T is None:
+        return canonical
+    return transform_points(np.linalg.inv(T), canonical).astype(np.float32)
+
+
 def head_region(ds: Dataset, scale: float = 1.0) -> HeadRegion:
     """The head's ellipsoid around the reference frame's face mesh (see the module doc);
     `scale` grows it about its centre."""

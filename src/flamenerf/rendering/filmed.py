@@ -53,12 +53,11 @@ class FilmedFrame:
              head: np.ndarray | None = None) -> np.ndarray:
         """(V, 3) world: the frame's mesh at `expression`, posed by `head` (canonical-from-
         world (4, 4); None: the frame's own pose)."""
-        from flamenerf.data.head_pose import transform_points
+        from flamenerf.data.head_pose import posed_vertices
 
         v = changed_meshes(self.canonical[None], mesh_of, np.asarray(expression, np.float32)[None],
                            self.expression[None])[0]
-        T = self.head if head is None else head
-        return v if T is None else transform_points(np.linalg.inv(T), v).astype(np.float32)
+        return posed_vertices(v, self.head if head is None else head)
 
 
 class FilmedClip:

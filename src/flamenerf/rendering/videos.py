@@ -16,6 +16,7 @@ import numpy as np
 import tyro
 
 from flamenerf.data.dataset import Dataset, Intrinsics, reference_position
+from flamenerf.data.head_pose import posed_vertices
 from flamenerf.errors import UserError
 from flamenerf.model.inference import FAST, REFERENCE, RenderSettings
 from flamenerf.rendering import cameras as C
@@ -447,16 +448,6 @@ def head_transforms(opts: RenderOptions, run, ds: Dataset, n: int, log=print,
     if opts.split and ds.has_head_poses:
         return H.canonical_from_world(ds, ds.split(opts.split))[:n]
     return None
-
-
-def posed_vertices(canonical: np.ndarray, T: np.ndarray | None) -> np.ndarray:
-    """Face meshes (n, V, 3) in the canonical frame posed into the world by the inverse of
-    each frame's head transform T (n, 4, 4) (unchanged when T is None)."""
-    from flamenerf.data.head_pose import transform_points
-
-    if T is None:
-        return canonical
-    return transform_points(np.linalg.inv(T), canonical).astype(np.float32)
 
 
 def write_videos(plan: RenderPlan) -> None:

@@ -44,13 +44,10 @@ class FaceMasker:
             return hit
         if filmed is not None:
             verts = filmed.mesh(self.mesh_of, filmed.expression if e is None else e, head)
-            head = None  # posed
         else:
-            verts = self.vertices if e is None else self.mesh_of(e)
-        if head is not None:
-            from flamenerf.data.head_pose import transform_points
+            from flamenerf.data.head_pose import posed_vertices
 
-            verts = transform_points(np.linalg.inv(head), verts)
+            verts = posed_vertices(self.vertices if e is None else self.mesh_of(e), head)
         m = prior_mask(self.ds, verts, c2w, intr, self.dilate_px)
         with self._lock:
             if len(self._cache) > 8:
