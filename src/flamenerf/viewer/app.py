@@ -387,8 +387,9 @@ class Viewer:
 
     def render_command(self) -> str:
         """The `flamenerf render` command of the track shown, as the Track and Expression
-        boxes and the head sliders set it (the video of it, from the source's own cameras
-        for a split, frame 0's otherwise); '' without a track."""
+        boxes set it (the video of it, from the source's own cameras for a split, frame 0's
+        otherwise; the head sliders' turn is not in it: `command_markdown`); '' without a
+        track."""
         import shlex
 
         t = self.current_track()
@@ -412,7 +413,7 @@ class Viewer:
         then the command; the expression shown stays until a track frame is shown."""
         comp = self.companions if self.g_companions.value else None
         for t in self.tracks:
-            if t.name.startswith("tour"):
+            if t.render_args == ("--expressions", "tour"):
                 tour = tour_track(self.ds, self.names, self.frame0_expression, comp)
                 if tour is not None:
                     t.frames = tour.frames  # the next frame shown (or played) is the new tour's
