@@ -148,3 +148,45 @@ def test_the_viewer_plays_the_capture_as_filmed(head_run, tmp_path):
         assert v.frame_camera() is None
     finally:
         v.stop()
+
+
+def test_a_reanimation_splits_frame_is_what_render_renders(head_run, tmp_path):
+    """A split whose frames have no codes (the built-in scene's novel head poses): the
+    viewer shows each frame with frame 0's codes and its own head pose and mesh, as
+    `render --split novel_pose` does; before, frame 0's head and the model's mesh."""
+    from flamenerf.rendering.videos import RenderOptions, plan_render
+    from flamenerf.viewer.app import Viewer
+    from flamenerf.viewer.options import ViewerOptions
+
+    run = load_run(head_run, "cpu")
+    v = Viewer(run, ViewerOptions(port=_free_port(), resolution=32, verbose=False))
+    v.worker.set_quality(progressive=False)
+    shown = []
+    v.worker.display = lambda key, f: shown.append(f)
+    v.worker.start()
+    try:
+        t = next(t for t in v.tracks if t.name.startswith("split novel_pose"))
+        assert t.name not in v.filmable
+        plan = plan_render(RenderOptions(head_run, out=tmp_path / "x.mp4", split="novel_pose",
+                                         device="cpu"), log=lambda _: None)
+        k = t.num_frames - 1
+        fr = t.clip[k]
+        fov = 2 * np.arctan(v.ds.intrinsics.h / (2 * v.ds.intrinsics.fy))
+        aspect = v.ds.intrinsics.w / v.ds.intrinsics.h
+        v.worker.set_camera("a", fr.c2w, fov, aspect)
+        v.show_track_frame(t, k, sync=False)
+        f = v.worker.filmed()
+        assert f.index == k and not f.own_codes and torch.equal(f.omega, v.worker.omega)
+        assert not np.allclose(f.head, np.eye(4), atol=1e-3)  # the head turned
+        assert v.worker.wait_idle(30)
+        got = shown[-1]
+        assert got.extras["filmed"] == k and not got.extras["own_codes"]
+        intr = view_intrinsics(fov, aspect, 32)
+        want, = render_sequence(run.model, v.ds, intr, fr.c2w[None], plan.values[k:k + 1],
+                                plan.verts[k:k + 1], *run.frame_codes(0), plan.dilate_px,
+                                heads=plan.heads[k:k + 1],
+                                settings=dataclasses.replace(VIEWER, warp_grid=0))
+        assert np.array_equal(got.extras["mask"], want.mask)
+        assert np.abs(got.image.astype(int) - to_uint8(want.rgb).astype(int)).max() <= 1
+    finally:
+        v.worker.stop()

@@ -61,14 +61,22 @@ class FilmedFrame:
 
 
 class FilmedClip:
-    """Frames of a run's capture in clip order (`Run.codes_error` must be None for them):
-    their codes (`Run.clip_codes`: held-out frames between their neighbours'), head poses
-    and tracked meshes, made once."""
+    """A dataset's frames in order: their codes, head poses and tracked meshes, made once.
 
-    def __init__(self, run, ds: Dataset, frames: list[Frame]):
+    codes: one (ω, φ) for every frame (frame 0's: `render --codes first`, and what `render
+    --split` gives a split whose frames have no codes, a re-animation's); None: each
+    frame's own (`Run.clip_codes`: held-out frames between their neighbours';
+    `Run.codes_error` must be None for the frames)."""
+
+    def __init__(self, run, ds: Dataset, frames: list[Frame],
+                 codes: tuple[torch.Tensor, torch.Tensor] | None = None):
         from flamenerf.data.head_pose import canonical_from_world, canonical_vertices
 
-        self.omega, self.phi = run.clip_codes(ds, frames)  # on the run's device
+        self.own_codes = codes is None
+        if codes is None:
+            self.omega, self.phi = run.clip_codes(ds, frames)  # on the run's device
+        else:
+            self.omega, self.phi = (c.expand(len(frames), -1) for c in codes)
         self.heads = canonical_from_world(ds, frames)
         self.canonical = canonical_vertices(ds, frames)
         self.expressions = ds.expression_matrix(frames)
@@ -79,7 +87,7 @@ class FilmedClip:
     def frame(self, k: int) -> FilmedFrame:
         return FilmedFrame(k, self.omega[k], self.phi[k],
                            None if self.heads is None else self.heads[k],
-                           self.canonical[k], self.expressions[k])
+                           self.canonical[k], self.expressions[k], self.own_codes)
 
 
 def filmed_codes_error(run, ds: Dataset, frames: list[Frame], dataset_arg=None) -> str | None:

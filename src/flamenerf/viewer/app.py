@@ -434,15 +434,18 @@ class Viewer:
             self.g_command.content = self.command_markdown()
 
     def filmed_clip(self, t: Track):
-        """The track's frames as filmed (rendering/filmed.FilmedClip), or None: not the
-        clip's own frames."""
-        if t.name not in self.filmable:
+        """The track's frames (rendering/filmed.FilmedClip) with their own codes where they
+        have them (the capture's), frame 0's otherwise (a re-animation split's, as `render
+        --split` shows them: each frame's own head pose and mesh); None: not a dataset's
+        frames."""
+        if not t.clip:
             return None
         clip = self._filmed.get(t.name)
         if clip is None:
             from flamenerf.rendering.filmed import FilmedClip
 
-            clip = self._filmed[t.name] = FilmedClip(self.run, self.ds, t.clip)
+            codes = None if t.name in self.filmable else (self.worker.omega, self.worker.phi)
+            clip = self._filmed[t.name] = FilmedClip(self.run, self.ds, t.clip, codes)
         return clip
 
     def show_track_frame(self, t: Track, k: int, sync: bool = True) -> np.ndarray:
@@ -453,7 +456,8 @@ class Viewer:
         v = self.shown(self.track_frames(t)[k], clamp=t.clip is None)
         clip = self.filmed_clip(t)
         frame = None if clip is None else clip.frame(k)
-        if frame is not None and not self.g_filmed.value:  # as `render --codes first`
+        if frame is not None and frame.own_codes and not self.g_filmed.value:
+            # as `render --codes first`
             frame = dataclasses.replace(frame, omega=self.worker.omega, phi=self.worker.phi,
                                         own_codes=False)
         self.worker.set_filmed(frame, v)
