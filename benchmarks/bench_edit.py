@@ -18,8 +18,9 @@ filmed frames (training and held-out frames apart), per control the clip's track
 the re-tracked means of each render, each edit's commanded mean, and the plain render's
 correlation with the clip; and per edit where it repainted the face: the mean change of
 colour inside the eyes', brows' and lips' outlines (the plain render's re-tracked
-landmarks; `control.part_change`). A brow edit that leaves the brows and repaints the
-eyes shows there.
+landmarks; `control.part_change`), and in the prior silhouette's last 2 pixels, where β
+stops (`control.edge_change`: a seam). A brow edit that leaves the brows and repaints the
+eyes, or the hair at the silhouette's edge, shows there.
 
     python benchmarks/bench_edit.py --run RUN... [--retrack-run RUN...] [--split val]
         [--codes auto|first|own ...] [--threads 2] [--json OUT.json]
@@ -109,32 +110,41 @@ def clip_psnr(p, frame, rgb: np.ndarray) -> tuple[float, float]:
 
 def retracked(run: Path, threads: int, tmp: Path, codes: str) -> dict:
     from flamenerf.data.dataset import CAPTURE
-    from flamenerf.evaluation.control import Retracker, part_change, part_outlines
+    from flamenerf.evaluation.control import (Retracker, edge_change, part_change,
+                                              part_outlines)
 
     track, outlines = Retracker(), part_outlines()
     try:
-        reads, commanded, fidelity, changes = {}, {}, [], {}
+        reads, commanded, fidelity, changes, seams = {}, {}, [], {}, {}
         trained, plain = None, []  # the plain render's images and re-tracked landmarks
         for label, edit in (("plain", None), *REAL_EDITS.items()):
             p = plan(run, CAPTURE, edit, threads, tmp / "x.mp4", codes)
             trained = {f.frame_index for f in p.ds.training_frames()}
-            scores, changed = [], []
+            scores, changed, edges = [], [], []
             for i, (fr, rendered) in enumerate(zip(p.ds.split(CAPTURE), p.frames())):
                 got = track.read(rendered.rgb)
                 scores.append(None if got is None else got[0])
                 if label == "plain":  # the filmed frame is the plain render's truth
                     fidelity.append((*clip_psnr(p, fr, rendered.rgb), fr.frame_index in
                                      trained))
-                    plain.append((rendered.rgb, None if got is None else got[1]))
-                elif plain[i][1] is not None:
-                    changed.append(part_change(plain[i][0], rendered.rgb, plain[i][1],
-                                               outlines))
+                    plain.append((rendered.rgb, None if got is None else got[1],
+                                  rendered.mask))
+                else:
+                    edges.append(edge_change(plain[i][0], rendered.rgb, plain[i][2],
+                                             rendered.mask))
+                    if plain[i][1] is not None:
+                        changed.append(part_change(plain[i][0], rendered.rgb, plain[i][1],
+                                                   outlines))
             reads[label], commanded[label] = scores, p.values
             if changed:
                 changes[label] = {k: round(float(np.nanmean([c[k] for c in changed])), 4)
                                   for k in outlines}
                 print(f"{run.name} {codes} codes {label}: mean change of colour in the "
                       + ", ".join(f"{k} {v}" for k, v in changes[label].items()), flush=True)
+            if edges:
+                seams[label] = round(float(np.nanmean(edges)), 4)
+                print(f"{run.name} {codes} codes {label}: mean change of colour in the "
+                      f"silhouette's last 2 px {seams[label]}", flush=True)
         clip = p.ds.expression_matrix(p.ds.split(CAPTURE))
         names = p.ds.expression_names
     finally:
@@ -151,7 +161,7 @@ def retracked(run: Path, threads: int, tmp: Path, codes: str) -> dict:
                   f"({len(rows)}): {m[0]:.2f} dB, face {m[1]:.2f} dB", flush=True)
     out = {"edits": REAL_EDITS, "frames": len(clip), "plain_vs_clip": vs_clip,
            "detected": {k: sum(s is not None for s in v) for k, v in reads.items()},
-           "part_change": changes}
+           "part_change": changes, "edge_change": seams}
     for name in REAL_REPORTED:
         if name not in names:
             continue

@@ -187,6 +187,27 @@ def test_part_change_says_which_part_an_edit_repainted():
     assert 0.15 < got["eyes"] < 0.25 and got["brows"] == 0 and got["lips"] == 0
 
 
+def test_edge_change_sees_a_seam_at_the_silhouettes_edge():
+    """An edit that repaints the silhouette up to its edge (a seam against the unchanged
+    pixels beyond it) shows; one that fades out before the edge does not."""
+    mask = np.zeros((40, 40), bool)
+    mask[10:30, 10:30] = True
+    before = np.full((40, 40, 3), 0.5, np.float32)
+    seam = before.copy()
+    seam[mask] += 0.2
+    inner = before.copy()
+    inner[14:26, 14:26] += 0.2
+    assert C.edge_change(before, seam, mask, mask) == pytest.approx(0.2)
+    assert C.edge_change(before, inner, mask, mask) == 0
+    assert C.edge_change(before, inner, mask, mask, width=5) > 0
+    grown = mask.copy()
+    grown[30:32, 10:30] = True  # an edit whose silhouette is larger: its edge counts
+    # the band: 22 x 20 less its 18 x 16 inside; its 2 new rows (40 pixels) unchanged
+    assert C.edge_change(before, seam, mask, grown) == pytest.approx(0.2 * 112 / 152)
+    empty = np.zeros_like(mask)
+    assert np.isnan(C.edge_change(before, seam, empty, empty))
+
+
 def test_geometry_response_compares_driver_and_render_openings():
     """A render whose mouth follows the driver's at 0.5, whose eyes do not move, and one
     frame where the render has no face."""

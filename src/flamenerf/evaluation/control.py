@@ -503,6 +503,23 @@ def part_change(before: np.ndarray, after: np.ndarray, landmarks: np.ndarray,
     return out
 
 
+def edge_change(before: np.ndarray, after: np.ndarray, mask_before: np.ndarray,
+                mask_after: np.ndarray, width: int = 2) -> float:
+    """The mean absolute change of colour an edit made in the last `width` pixels inside
+    the prior's silhouette (of either render): β stops at the silhouette, so change there
+    is a seam against the unchanged pixels beyond it (a brow edit repainting the hair at
+    the temples). before, after (H, W, 3) in [0, 1]; masks (H, W) bool -> change (nan
+    where the silhouettes are empty)."""
+    from scipy import ndimage
+
+    inside = np.asarray(mask_before, bool) | np.asarray(mask_after, bool)
+    band = inside & ~ndimage.binary_erosion(inside, iterations=width)
+    if not band.any():
+        return float("nan")
+    diff = np.abs(np.asarray(after, np.float32) - np.asarray(before, np.float32)).mean(-1)
+    return float(diff[band].mean())
+
+
 def geometry_response(driving: list[np.ndarray], renders: list[np.ndarray],
                       detect: Callable, min_range: float = 0.02) -> dict[str, Any]:
     """The mouth's and eyes' openings (`openings`) of each driving frame and of its render:
