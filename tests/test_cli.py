@@ -70,3 +70,33 @@ def test_top_level_help_lists_each_command_on_a_line_or_two():
     assert listed == COMMANDS
     r = _run("demo", "--help")
     assert r.returncode == 0 and "OUT/expressions.mp4" in r.stdout
+
+
+def test_help_text_is_reflowed_where_tyro_would_break_mid_sentence():
+    """tyro keeps a function parameter's docstring line breaks and breaks a description
+    before a line that starts with a non-letter: each paragraph and `Args:` entry is one
+    line, lists keep theirs."""
+    import docstring_parser
+
+    from flamenerf.cli import available_commands, reflowed
+
+    doc = """Title.
+
+    A paragraph that goes on
+    (and on) here.
+
+    - a list
+    - kept
+
+    Args:
+        steps: Steps of the fit (default: 2000; 300 on
+            CPU).
+        lr: Rate.
+    """
+    out = reflowed(doc)
+    assert "A paragraph that goes on (and on) here." in out
+    assert "- a list\n- kept" in out
+    params = {p.arg_name: p.description for p in docstring_parser.parse(out).params}
+    assert params == {"steps": "Steps of the fit (default: 2000; 300 on CPU).", "lr": "Rate."}
+    ev = available_commands()["eval"]
+    assert all("\n" not in p.description for p in docstring_parser.parse(ev.__doc__).params)

@@ -32,8 +32,41 @@ def available_commands() -> dict:
             if e.name == f"flamenerf.commands.{name}":
                 continue  # not built yet
             raise
-        cmds[name] = _finite_floats(getattr(mod, name))
+        command = getattr(mod, name)
+        # tyro reads the parameters' help from the function itself, behind the wrapper
+        command.__doc__ = reflowed(command.__doc__ or "")
+        cmds[name] = _finite_floats(command)
     return cmds
+
+
+def reflowed(doc: str) -> str:
+    """A command's docstring with each paragraph, and each `Args:` entry, on one line:
+    tyro keeps a function parameter's line breaks, and breaks a description before any
+    line that starts with a non-letter (`(driven)`), so `eval --help` broke mid-sentence.
+    Paragraphs that are lists (a line starting with `-`) keep their lines."""
+    import inspect
+
+    out: list[str] = []
+    in_args = False
+    for para in inspect.cleandoc(doc).split("\n\n"):
+        lines = para.split("\n")
+        if lines[0].strip() == "Args:" or in_args and lines[0].startswith(" "):
+            in_args = True
+            entries: list[str] = [lines[0]] if lines[0].strip() == "Args:" else []
+            for line in lines[len(entries):]:
+                indent = len(line) - len(line.lstrip())
+                if entries and indent > 4 and not entries[-1].strip() == "Args:":
+                    entries[-1] += " " + line.strip()  # an entry's continuation
+                else:
+                    entries.append(line)
+            out.append("\n".join(entries))
+        elif any(line.lstrip().startswith("-") for line in lines):
+            in_args = False
+            out.append(para)
+        else:
+            in_args = False
+            out.append(" ".join(line.strip() for line in lines))
+    return "\n\n".join(out)
 
 
 def _non_finite(value, flag: str) -> str | None:
@@ -77,6 +110,69 @@ def _finite_floats(command):
     return checked
 
 
+def list_flags(command) -> set[str]:
+    """The flags of `command` (its parameters, and an options dataclass's fields) that take
+    several values after one flag (`--edit A B`), tyro's list options without
+    UseAppendAction."""
+    import dataclasses
+    import inspect
+    import types
+    import typing
+
+    import tyro
+
+    def is_list(hint) -> bool:
+        if typing.get_origin(hint) is typing.Annotated:
+            hint, *extra = typing.get_args(hint)
+            if any(e is tyro.conf.UseAppendAction for e in extra):
+                return False
+        if typing.get_origin(hint) in (typing.Union, types.UnionType):
+            return any(is_list(a) for a in typing.get_args(hint) if a is not type(None))
+        return typing.get_origin(hint) in (list, tuple)
+
+    out = set()
+    hints = typing.get_type_hints(inspect.unwrap(command), include_extras=True)
+    for name, hint in hints.items():
+        base = typing.get_args(hint)[0] if typing.get_origin(hint) is typing.Annotated else hint
+        if dataclasses.is_dataclass(base):
+            fields = typing.get_type_hints(base, include_extras=True)
+            out |= {"--" + f.replace("_", "-") for f, h in fields.items() if is_list(h)}
+        elif name != "return" and is_list(hint):
+            out.add("--" + name.replace("_", "-"))
+    return out
+
+
+def merge_repeated(args: list[str], flags: set[str]) -> list[str]:
+    """`--edit A --edit B` as `--edit A B`: tyro (argparse) keeps only a list flag's last
+    occurrence, which silently dropped the first edit. Each flag of `flags` given more than
+    once is given once, at its first place, with all its values in order."""
+    def is_flag(a: str) -> bool:
+        return a.startswith("--") or (len(a) == 2 and a[0] == "-" and a[1].isalpha())
+
+    values: dict[str, list[str]] = {}
+    order: list[tuple[str, object]] = []  # ("arg", token) or ("flag", name)
+    i = 0
+    while i < len(args):
+        a = args[i]
+        name, eq, inline = a.partition("=")
+        if name in flags:
+            j = i + 1
+            while j < len(args) and not is_flag(args[j]):
+                j += 1
+            if name not in values:
+                values[name] = []
+                order.append(("flag", name))
+            values[name] += ([inline] if eq else []) + args[i + 1:j]
+            i = j
+            continue
+        order.append(("arg", a))
+        i += 1
+    out: list[str] = []
+    for kind, tok in order:
+        out += [tok, *values[tok]] if kind == "flag" else [tok]
+    return out
+
+
 def summary(command) -> str:
     """A command's docstring's first sentence, on one line."""
     import re
@@ -112,6 +208,10 @@ def main(argv: list[str] | None = None) -> int:
     if argv is None and any(a in sys.argv[1:2] for a in ("train", "bench", "demo", "eval")):
         _tune_allocator()
     cmds = available_commands()
+    if args and args[0] in cmds:
+        merged = merge_repeated(args[1:], list_flags(cmds[args[0]]))
+        if merged != args[1:]:
+            argv = [args[0], *merged]
     try:
         tyro.extras.subcommand_cli_from_dict(
             cmds, prog="flamenerf", args=argv, description=__doc__.splitlines()[0]

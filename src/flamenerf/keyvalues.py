@@ -15,29 +15,31 @@ def suggest(name: str, names: list[str]) -> str:
 
 
 def parse_assignments(item: str, names: list[str], where: str, kind: str = "name",
-                      alternative: str = "") -> dict[str, float]:
+                      alternative: str = "", typed: str | None = None) -> dict[str, float]:
     """`name=value[,...]` -> {name: finite float}, in the order given; a one-line UserError
     naming `where` and the item for anything else. `kind` names what the names are in the
     messages ("control"); `alternative` is appended to the malformed-item message (e.g. what
-    else the option takes)."""
+    else the option takes); `typed`: the item as the user typed it, for the messages, where
+    `item` is a rewriting of it."""
     out: dict[str, float] = {}
+    shown = item if typed is None else typed
     for part in item.split(","):
         part = part.strip()
         if not part:
             continue
         if "=" not in part:
-            raise UserError(f"{where} {item!r}: expected name=value, got {part!r}{alternative}")
+            raise UserError(f"{where} {shown!r}: expected name=value, got {part!r}{alternative}")
         name, val = (s.strip() for s in part.split("=", 1))
         if name not in names:
-            raise UserError(f"{where} {item!r}: unknown {kind} {name!r}{suggest(name, names)} "
+            raise UserError(f"{where} {shown!r}: unknown {kind} {name!r}{suggest(name, names)} "
                             f"(one of: {', '.join(names)})")
         try:
             v = float(val)
         except ValueError:
-            raise UserError(f"{where} {item!r}: {val!r} is not a number") from None
+            raise UserError(f"{where} {shown!r}: {val!r} is not a number") from None
         if not math.isfinite(v):
-            raise UserError(f"{where} {item!r}: {name} must be finite")
+            raise UserError(f"{where} {shown!r}: {name} must be finite")
         if name in out:
-            raise UserError(f"{where} {item!r}: {name} is given twice")
+            raise UserError(f"{where} {shown!r}: {name} is given twice")
         out[name] = v
     return out

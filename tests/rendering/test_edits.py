@@ -55,6 +55,10 @@ def test_companions_follow_each_frames_change():
     np.testing.assert_allclose(out[:, 2], v[:, 2] + 0.5 * (out[:, 1] - v[:, 1]), atol=1e-3)
     # said per control, with the frames it held back
     assert over == ["mouthSmileLeft in 1 of 2 frames (asked up to 1.00; the clip: 0.00-0.80)"]
+    _, _, over = apply_edits(v, parse_edits(["mouthSmileLeft-=0.3"], NAMES), comp,
+                             ExpressionRange.of(NAMES, train))
+    assert over == ["mouthSmileLeft in 1 of 2 frames (asked down to -0.20; the clip: "
+                    "0.00-0.80)"]
 
 
 def test_edits_as_people_type_them():
@@ -226,3 +230,20 @@ def test_an_edit_changes_the_source_as_rendered_not_as_asked(toy_run, tmp_path):
     top = training_range(plan.ds).hi[jaw]
     assert plan.values[:, jaw].max() == pytest.approx(top - 0.01, abs=1e-6)
     assert sum("clamped" in n for n in notes) == 1  # the keyframe's; the edit stays inside
+
+
+def test_a_repeated_edit_flag_keeps_every_edit(toy_run, tmp_path, capsys):
+    """`--edit A --edit B` is `--edit A B` (argparse kept only the last occurrence, and the
+    first edit was dropped without a word): here the first, mistyped, is seen."""
+    from flamenerf import cli
+
+    out = tmp_path / "x.mp4"
+    rc = cli.main(["render", str(toy_run), "--split", "capture", "--edit", "jawOpn+=1",
+                   "--edit", "jawOpen+=0.1", "--out", str(out), "--device", "cpu"])
+    assert rc == 2 and "unknown control 'jawOpn'" in capsys.readouterr().err
+    assert not out.exists()
+    assert cli.merge_repeated(["R", "--edit=a", "--size", "8", "--edit", "b", "c", "-h"],
+                              {"--edit"}) == ["R", "--edit", "a", "b", "c", "--size", "8", "-h"]
+    flags = cli.list_flags(cli.available_commands()["render"])
+    assert {"--edit", "--expressions", "--head-pose"} <= flags and "--size" not in flags
+    assert not cli.list_flags(cli.available_commands()["view"])  # --track appends itself

@@ -19,6 +19,19 @@ def test_keyframes_override_named_controls_only():
     np.testing.assert_allclose(v, [0.8, 0.2, 1.0])
 
 
+def test_keyframes_take_a_pairs_stem_and_any_case_as_edits_do():
+    """`mouthSmile=0.3` sets both sides (as `--edit mouthSmile+=0.3` does), `JAWOPEN` the
+    jaw; a message quotes the keyframe as typed."""
+    names = NAMES + ["mouthSmileRight"]
+    base = np.append(BASE, 0.25).astype(np.float32)
+    v = X.parse_keyframe("mouthSmile=0.7, JAWOPEN=0.5", names, base)
+    np.testing.assert_allclose(v, [0.5, 0.7, 0.3, 0.7])
+    with pytest.raises(UserError, match=r"--expressions 'mouthSmile=x': 'x' is not a number"):
+        X.parse_keyframe("mouthSmile=x", names, base)
+    with pytest.raises(UserError, match="mouthSmileLeft is given twice"):
+        X.parse_keyframe("mouthSmile=0.1,mouthSmileLeft=0.2", names, base)
+
+
 def test_keyframes_move_companions_and_say_so():
     """With a dataset's companions a keyframe also moves the controls the tracker reads
     with the named one (here mouthSmileLeft with the jaw); without them it does not."""

@@ -29,10 +29,11 @@ def render(opts: Annotated[RenderOptions, tyro.conf.OmitArgPrefixes, tyro.conf.a
 
     Camera paths (--camera): static (frame 0's camera), orbit (around the head, at the
     capture's distance and height), spiral, dolly, or a JSON file of camera-to-world
-    poses; `auto` uses a split's own cameras, else static. Paths keep the head (the
-    centroid of frame 0's face mesh) where frame 0's camera sees it and stay where the
-    capture filmed from unless --amplitude asks for more (for a moving head: where it
-    filmed the head from too; a still camera gives a still path). The prior's mask
+    poses; `auto` uses a split's own cameras (`split` asks for them), else static. Paths
+    keep the head (the centroid of frame 0's face mesh) where frame 0's camera sees it and
+    stay where the capture filmed from unless --amplitude asks for more (for a moving
+    head: where it filmed the head from too; a still camera gives a still path). The
+    prior's mask
     for each frame is the face mesh of that frame's expression (the split's own meshes
     with --split, moved by --edit) rasterised for that camera with the dataset's dilation.
 

@@ -99,9 +99,10 @@ def parse_edits(items: list[str], names: list[str]) -> list[Edit]:
     return edits
 
 
-def _controls(name: str, names: list[str], item: str) -> list[str]:
-    """The controls an edit's `name` means: itself, the one of that name in another case,
-    or both sides of a pair's stem; else a one-line UserError that suggests the nearest."""
+def resolve_control(name: str, names: list[str]) -> list[str] | None:
+    """The controls `name` means where people type one (an edit, a keyframe): itself, the
+    one of that name in another case, or both sides of a pair's stem (`mouthSmile`); None
+    for none of these."""
     if name in names:
         return [name]
     folded = [n for n in names if n.lower() == name.lower()]
@@ -110,6 +111,15 @@ def _controls(name: str, names: list[str], item: str) -> list[str]:
     sides = [name + side for side in ("Left", "Right")]
     if all(n in names for n in sides):
         return sides
+    return None
+
+
+def _controls(name: str, names: list[str], item: str) -> list[str]:
+    """The controls an edit's `name` means (`resolve_control`); else a one-line UserError
+    that suggests the nearest."""
+    found = resolve_control(name, names)
+    if found is not None:
+        return found
     # what a name may be: a control, a pair's stem, `all`; a near spelling first, else
     # those that hold the word typed (`smile` -> mouthSmile)
     stems = sorted({n[:-4] for n in names if n.endswith("Left") and n[:-4] + "Right" in names})
@@ -257,7 +267,8 @@ def _clamped(new: dict[int, np.ndarray], limits: ExpressionRange, tol: float = 0
         if out.any():
             far = v[out][np.argmax(np.abs(v[out] - np.clip(v[out], lo, hi)))]
             lines.append(f"{limits.names[k]} in {int(out.sum())} of {len(v)} frames (asked "
-                         f"up to {far:.2f}; the clip: {lo:.2f}-{hi:.2f})")
+                         f"{'up' if far > hi else 'down'} to {far:.2f}; the clip: "
+                         f"{lo:.2f}-{hi:.2f})")
     if len(lines) > shown:
         lines = lines[:shown] + [f"and {len(lines) - shown} more controls"]
     return lines

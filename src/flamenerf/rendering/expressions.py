@@ -97,9 +97,17 @@ def parse_keyframe(item: str, names: list[str], base: np.ndarray,
                    companions: Companions | None = None) -> np.ndarray:
     """`name=value[,name=value...]` -> the base expression with those controls set, and
     with their companions (data/companions.py) moved along when given."""
+    from flamenerf.rendering.edits import resolve_control
+
     index = {n: i for i, n in enumerate(names)}
+    parts = []  # a pair's stem or another case, written out as the controls it means
+    for part in item.split(","):
+        name, eq, value = part.partition("=")
+        found = resolve_control(name.strip(), names) if eq else None
+        parts += [f"{n}={value}" for n in found] if found else [part]
     values = {index[name]: v for name, v in parse_assignments(
-        item, names, "--expressions", "control", " (or a .json/.npy/.csv file)").items()}
+        ",".join(parts), names, "--expressions", "control",
+        " (or a .json/.npy/.csv file)", typed=item).items()}
     bounded(np.array(list(values.values())), f"--expressions {item!r}")
     return keyframe(base, values, companions)
 

@@ -36,8 +36,9 @@ class RenderOptions:
         run: Run directory (made by `flamenerf train`).
         out: Output video (default: RUN/renders/SOURCE_CAMERA.mp4; with --edit
             SOURCE_EDIT_CAMERA.mp4, e.g. capture_mouthSmile+0.3_split.mp4).
-        expressions: An expression file, name=value[,name=value] keyframes, or `tour`
-            (each control the training frames show, in turn).
+        expressions: An expression file, name=value[,name=value] keyframes (a pair's
+            stem, e.g. mouthSmile, sets both sides), or `tour` (each control the training
+            frames show, in turn). Repeated, its items add up.
         split: Take expressions, cameras and face meshes from this dataset split
             (`capture`: the clip as filmed, every frame in order).
         drive: Track the expressions of this driving video.
@@ -47,7 +48,7 @@ class RenderOptions:
             `all` is every control no other item names (`all*=0,jawOpen*=1`: only the
             jaw moves), a pair's stem both sides (`mouthSmile+=0.3`). Companions move
             along and the edited controls are clamped to the training range in each frame
-            as for keyframes (a note says in how many).
+            as for keyframes (a note says in how many). Repeated, its items add up.
         edit_during: Apply --edit only between START:END seconds of the video as rendered,
             at its --fps (as in 2:4.5; the end left out: to the end, the start: from the
             start), eased in and out over 0.3 s inside them; the other frames as the source
@@ -58,7 +59,8 @@ class RenderOptions:
             codes of frame 0 for every frame, as every other source renders), or auto: own
             with a split of capture frames of the run's own dataset (or of the one given
             with --dataset where the run's has moved), else first.
-        camera: static, orbit, spiral, dolly, a JSON file of poses, or auto.
+        camera: static, orbit, spiral, dolly, split (a --split's own cameras), a JSON
+            file of poses, or auto (split with --split, else static).
         head_pose: Head pose relative to frame 0's, independent of --camera: `drive` (the
             driving video's head turns, with --drive), keyframes
             `yaw=20,pitch=-5` (degrees; roll too, x/y/z in metres), eased through like
