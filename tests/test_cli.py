@@ -39,6 +39,18 @@ def test_malformed_arguments_exit_non_zero_without_a_traceback(args):
     assert r.returncode != 0 and "Traceback" not in r.stderr
 
 
+@pytest.mark.parametrize("args, line", [
+    (["render", "R", "--sizee", "32"], "--sizee: not an option of `flamenerf render`; did you "
+                                       "mean '--size'?"),
+    (["train", "D", "--max-steps=1"], "--max-steps: not an option of `flamenerf train`"),
+    (["rendr", "R"], "'rendr' is not a command; did you mean 'render'?")])
+def test_an_unknown_option_or_command_is_one_line_with_this_commands_nearest(args, line,
+                                                                            capsys):
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("flamenerf: error: " + line) and err.count("\n") == 1
+
+
 def test_fast_on_a_gpu_suggests_fast_gpu(tmp_path, capsys, monkeypatch, toy_dataset):
     """`fast` on a machine with CUDA points to `fast-gpu` (once, before training); with
     --device cpu, another preset or its own batch size, it does not."""
@@ -70,6 +82,12 @@ def test_top_level_help_lists_each_command_on_a_line_or_two():
     assert listed == COMMANDS
     r = _run("demo", "--help")
     assert r.returncode == 0 and "OUT/expressions.mp4" in r.stdout
+
+
+def test_version(capsys):
+    from flamenerf import __version__
+
+    assert main(["--version"]) == 0 and capsys.readouterr().out == f"flamenerf {__version__}\n"
 
 
 def test_help_text_is_reflowed_where_tyro_would_break_mid_sentence():

@@ -173,6 +173,33 @@ def merge_repeated(args: list[str], flags: set[str]) -> list[str]:
     return out
 
 
+def unknown_option(name: str, args: list[str], command) -> str | None:
+    """The one-line error for the first `--option` of `args` that command `name` does not
+    take, with this command's nearest option (tyro's own lists options of every command
+    in a box); None when all are known, or where this tyro cannot say (its parser then
+    reports the error its way)."""
+    import warnings
+
+    import tyro
+
+    from flamenerf.keyvalues import suggest
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # get_parser is deprecated in tyro 1.x
+            known = sorted(tyro.extras.get_parser(command)._option_string_actions)
+    except Exception:  # noqa: BLE001 - only a nicer message is lost
+        return None
+    for a in args:
+        if a == "--":
+            break
+        flag = a.split("=", 1)[0]
+        if flag.startswith("--") and flag not in known:
+            return (f"{flag}: not an option of `flamenerf {name}`{suggest(flag, known)} "
+                    f"(`flamenerf {name} --help` lists them)")
+    return None
+
+
 def summary(command) -> str:
     """A command's docstring's first sentence, on one line."""
     import re
@@ -192,7 +219,8 @@ def short_help(cmds: dict) -> str:
     for name, command in cmds.items():
         lines += textwrap.wrap(summary(command), 88, initial_indent=f"  {name:<{width - 2}}",
                                subsequent_indent=" " * width)
-    lines += ["", "`flamenerf NAME --help` shows a command's options and an example."]
+    lines += ["", "`flamenerf NAME --help` shows a command's options and an example; "
+              "`flamenerf --version` the version."]
     return "\n".join(lines)
 
 
@@ -205,13 +233,28 @@ def main(argv: list[str] | None = None) -> int:
     if args in (["-h"], ["--help"]):
         print(short_help(available_commands()))
         return 0
+    if args in (["-V"], ["--version"]):
+        from flamenerf import __version__
+
+        print(f"flamenerf {__version__}")
+        return 0
     if argv is None and any(a in sys.argv[1:2] for a in ("train", "bench", "demo", "eval")):
         _tune_allocator()
     cmds = available_commands()
+    if args and not args[0].startswith("-") and args[0] not in cmds:
+        from flamenerf.keyvalues import suggest
+
+        print(f"flamenerf: error: {args[0]!r} is not a command{suggest(args[0], list(cmds))} "
+              "(`flamenerf --help` lists them)", file=sys.stderr)
+        return 2
     if args and args[0] in cmds:
         merged = merge_repeated(args[1:], list_flags(cmds[args[0]]))
         if merged != args[1:]:
             argv = [args[0], *merged]
+        bad = unknown_option(args[0], merged, cmds[args[0]])
+        if bad:
+            print(f"flamenerf: error: {bad}", file=sys.stderr)
+            return 2
     try:
         tyro.extras.subcommand_cli_from_dict(
             cmds, prog="flamenerf", args=argv, description=__doc__.splitlines()[0]
@@ -240,6 +283,10 @@ def main(argv: list[str] | None = None) -> int:
         # the file; FLAMENERF_DEBUG=1 shows the traceback
         if os.environ.get("FLAMENERF_DEBUG"):
             raise
+        import errno
+
+        if e.errno == errno.EPIPE:  # `flamenerf X --help | head`: the reader has gone
+            return 0
         where = f"{e.filename}: " if e.filename else ""
         print(f"flamenerf: error: {where}{e.strerror or e}", file=sys.stderr)
         return 1

@@ -159,8 +159,9 @@ def expression_panel(expr: np.ndarray, names: list[str], h: int, w: int,
         y0 = r * rh
         v = float(expr[j])
         bw = int(np.clip(abs(v), 0, 1) * (W - 4))
-        col = (((20, 70, 170) if moved[j] else (70, 130, 220)) if v >= 0
-               else ((170, 40, 30) if moved[j] else (220, 80, 70)))
+        # light enough that the black name reads on top of its bar at a small size
+        col = (((120, 165, 240) if moved[j] else (180, 205, 240)) if v >= 0
+               else ((240, 130, 115) if moved[j] else (245, 185, 175)))
         dr.rectangle([2, y0 + rh * 0.15, 2 + bw, y0 + rh * 0.85], fill=col)
         dr.text((4, y0 + max(0, rh / 2 - 6)), f"{names[j]} {v:.2f}", fill=(0, 0, 0))
     im = im.resize((w, h), Image.LANCZOS)

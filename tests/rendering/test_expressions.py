@@ -201,3 +201,13 @@ def test_the_side_by_sides_bars_show_what_moves_first():
     assert panel_rows(v, 8)[0] == list(range(8))  # without a reference: the largest
     img = expression_panel(v, [f"c{j}" for j in range(52)], 64, 64, ref=base)
     assert img.shape == (64, 64, 3) and 0 <= img.min() and img.max() <= 1
+
+
+def test_a_split_outside_the_capture_plays_at_the_stills_rate(toy_dataset):
+    """The built-in scene's re-animation frames are each a new expression from a new
+    camera: at a clip's rate its 10 frames flashed by; the capture keeps the clip's."""
+    from flamenerf.data.dataset import load_dataset
+
+    ds = load_dataset(toy_dataset)
+    assert X.from_split(ds, "reanimate").fps == X.STILLS_FPS == 4
+    assert X.from_split(ds, "capture").fps == ds.frame_rate()

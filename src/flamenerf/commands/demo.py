@@ -73,8 +73,9 @@ def demo(
     render(RenderOptions(run, out=out / "expressions.mp4", expressions=["tour"],
                          camera="orbit", **videos))
     # the split's own cameras: its side-by-side is then the ground truth beside the render
+    # (at render's rate for frames that are not a clip's, expressions.STILLS_FPS)
     render(RenderOptions(run, out=out / "reanimation.mp4", split="reanimate", camera="auto",
-                         fps=4, **videos))
+                         **videos))
     print(f"done: {out / 'expressions.mp4'} and {out / 'reanimation.mp4'} (each + _depth, "
           f"_sbs); `flamenerf view {run}` to play with it; `flamenerf render {run} --split "
           "capture --edit jawOpen+=0.5 --side-by-side` renders the filmed clip with its jaw "

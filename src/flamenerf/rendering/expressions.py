@@ -357,9 +357,22 @@ def _load_csv(path: Path, names: list[str]) -> tuple[np.ndarray, list[str]]:
     return values, notes
 
 
+STILLS_FPS = 4.0
+"""The frame rate of a split whose frames are not a clip's (the built-in scene's
+re-animation splits: each frame a new expression from a new camera): at a clip's 30 fps
+its 10 frames flashed by in a third of a second."""
+
+
+def split_fps(ds, frames) -> float | None:
+    """The rate a dataset's frames play at: the clip's (`Dataset.frame_rate`; None where it
+    stores no times) for capture frames, `STILLS_FPS` for frames outside the capture."""
+    return ds.frame_rate() if all(f.frame_index is not None for f in frames) else STILLS_FPS
+
+
 def from_split(ds, split: str, panel_hw: tuple[int, int] | None = None) -> ExpressionSequence:
     """A dataset split's expressions, cameras, per-frame face meshes and images, at the
-    clip's frame rate (`capture`: the clip's frames in order)."""
+    clip's frame rate (`capture`: the clip's frames in order), or `STILLS_FPS` for frames
+    outside the capture."""
     from flamenerf.images import resize_image
 
     frames = ds.split(split)
@@ -374,7 +387,7 @@ def from_split(ds, split: str, panel_hw: tuple[int, int] | None = None) -> Expre
         return (np.clip(img, 0, 1) * 255 + 0.5).astype(np.uint8)
 
     return ExpressionSequence(
-        ds.expression_matrix(frames), label=split, fps=ds.frame_rate(),
+        ds.expression_matrix(frames), label=split, fps=split_fps(ds, frames),
         cameras=np.stack([f.c2w for f in frames]),
         vertices=ds.face_vertices[[f.position for f in frames]], driving=driving)
 

@@ -69,7 +69,8 @@ class RenderOptions:
             0's.
         frames: Number of frames when the source does not fix it (keyframes, a tour, the
             held expression; a named camera path follows). Unset: 60, a tour 24 a control.
-        fps: Frames per second (default: the source's, else 30). With --drive the video
+        fps: Frames per second (default: the source's; a split of frames outside the
+            capture, such as reanimate, 4; else 30). With --drive the video
             is sampled at this rate.
         size: Render width in pixels (default: the run's training width).
         amplitude: Path amplitude: degrees for orbit/spiral, a fraction of the distance

@@ -35,11 +35,14 @@ def dataset_tracks(ds: Dataset) -> list[Track]:
     if capture:
         out.append(Track(f"capture ({len(capture)} frames)", ds.expression_matrix(capture), fps,
                          capture, ("--split", "capture")))
+    from flamenerf.rendering.expressions import split_fps
+
     for name in sorted(ds.splits, key=lambda s: (s not in ("train", "val"), s)):
         frames = ds.split(name)
         if frames:
-            out.append(Track(f"split {name} ({len(frames)} frames)",
-                             ds.expression_matrix(frames), fps, frames, ("--split", name)))
+            out.append(Track(f"split {name} ({len(frames)} frames)",  # at render's rate
+                             ds.expression_matrix(frames), split_fps(ds, frames) or fps,
+                             frames, ("--split", name)))
     return out
 
 
