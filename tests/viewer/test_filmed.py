@@ -6,8 +6,10 @@ from __future__ import annotations
 import dataclasses
 import shlex
 import socket
+import time
 
 import numpy as np
+import pytest
 import torch
 
 from flamenerf import cli
@@ -190,3 +192,42 @@ def test_a_reanimation_splits_frame_is_what_render_renders(head_run, tmp_path):
         assert np.abs(got.image.astype(int) - to_uint8(want.rgb).astype(int)).max() <= 1
     finally:
         v.worker.stop()
+
+
+def test_the_edit_boxes_and_pause_show_what_they_say(head_run):
+    """With an edit in force, unticking "Stay within the clip's range" shows the frame
+    edited beyond it at once (the command changed, the picture kept the clamp); Pause
+    leaves the Frame slider and the expression sliders on the frame last shown."""
+    from flamenerf.viewer.app import Viewer
+    from flamenerf.viewer.options import ViewerOptions
+
+    run = load_run(head_run, "cpu")
+    v = Viewer(run, ViewerOptions(port=_free_port(), resolution=16, verbose=False))
+    v.start()
+    try:
+        cap = next(t for t in v.tracks if t.name.startswith("capture"))
+        v.g_track.value = cap.name
+        v.show_track_frame(cap, 2)
+        jaw = run.expression_names.index("jawOpen")
+        v.set_edit("jawOpen+=3")
+        clamped = float(v.worker.expression()[jaw])
+        assert clamped <= v.range.hi[jaw] + 1e-6 and clamped < v.hi - 0.05
+        v.g_within.value = False  # then only the sliders' own range holds it
+        assert float(v.worker.expression()[jaw]) == pytest.approx(v.hi), \
+            "the picture follows the box"
+        assert "--extrapolate" in v.render_command()
+        v.g_within.value = True
+        assert float(v.worker.expression()[jaw]) == pytest.approx(clamped)
+        v.set_edit("")
+        v.g_loop.value = True
+        v.play()
+        deadline = time.monotonic() + 20
+        while (v._played is None or v._played[0] < 3) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        v.toggle_play()  # the Pause button
+        shown = v.worker.filmed().index
+        assert not v.playing and int(v.g_frame.value) == shown == v._played[0]
+        np.testing.assert_allclose([s.value for s in v.g_sliders], v.worker.expression(),
+                                   atol=1e-4)
+    finally:
+        v.stop()

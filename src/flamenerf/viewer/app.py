@@ -99,6 +99,7 @@ class Viewer:
         self._play_thread: threading.Thread | None = None
         self._play_t0 = 0.0
         self._play_frame0 = 0
+        self._played: tuple[int, np.ndarray] | None = None  # the player's last frame and β
         self._closing = False
         self._edits: list = []  # the Edit box's (rendering/edits.py)
         self._edit_text = ""  # ... as typed, for the render command
@@ -258,9 +259,10 @@ class Viewer:
             self.g_filmed.on_update(lambda e: self._show_current_frame())
         if self.g_frame_cam is not None:
             self.g_frame_cam.on_click(lambda e: self.frame_camera())
-        for box in (self.g_filmed, self.g_within):
-            if box is not None:
-                box.on_update(lambda e: self._update_command())
+        if self.g_filmed is not None:
+            self.g_filmed.on_update(lambda e: self._update_command())
+        if self.g_within is not None:
+            self.g_within.on_update(lambda e: self._edit_boxes_changed())
         if self.g_companions is not None:
             self.g_companions.on_update(lambda e: self._companions_changed())
 
@@ -410,7 +412,7 @@ class Viewer:
 
     def _companions_changed(self) -> None:
         """The tour again with or without companions (as render's with --no-companions),
-        then the command; the expression shown stays until a track frame is shown."""
+        then as for the range box (`_edit_boxes_changed`)."""
         comp = self.companions if self.g_companions.value else None
         for t in self.tracks:
             if t.render_args == ("--expressions", "tour"):
@@ -418,7 +420,15 @@ class Viewer:
                 if tour is not None:
                     t.frames = tour.frames  # the next frame shown (or played) is the new tour's
                 self._edited.clear()
+        self._edit_boxes_changed()
+
+    def _edit_boxes_changed(self) -> None:
+        """The command again; with an edit in force, the track's frame again, edited as
+        the boxes now say (the picture kept the old edit while the command changed).
+        Without one, the expression shown stays until a track frame is shown."""
         self._update_command()
+        if self._edits:
+            self._show_current_frame()
 
     def command_markdown(self) -> str:
         cmd = self.render_command()
@@ -515,7 +525,7 @@ class Viewer:
 
     def toggle_play(self) -> None:
         if self._play.is_set():
-            self.pause()
+            self.pause(show_last=True)
         else:
             self.play()
 
@@ -529,14 +539,23 @@ class Viewer:
                 start = 0
             self._play_frame0 = start
             self._play_t0 = time.monotonic()
+            self._played = None
             self._play.set()
             self.g_play.label = "Pause"
 
-    def pause(self) -> None:
+    def pause(self, show_last: bool = False) -> None:
+        """Stop playback. `show_last` (the Pause button): the Frame slider and the
+        expression sliders to the frame last shown, which they follow only a few times a
+        second while playing (they stayed a frame or two behind the picture). A slider's
+        or the frame slider's own pause leaves them: the user's value is about to apply."""
         with self._play_lock:
             if self._play.is_set() and not self._closing:
                 self._play.clear()
                 self.g_play.label = "Play"
+            played = self._played if show_last else None
+        if played is not None:
+            self._sync_sliders(played[1])
+            self.g_frame.value = int(played[0])
 
     @property
     def playing(self) -> bool:
@@ -566,6 +585,7 @@ class Viewer:
                         self._play.clear()
                         self.g_play.label = "Play"
                 v = self.show_track_frame(t, k, sync=False)
+                self._played = (k, v)
             now = time.monotonic()
             # the 52 sliders follow at a few Hz; the image follows every frame
             if now - last_sync > 0.2 or not self._play.is_set():
