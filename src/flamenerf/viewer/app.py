@@ -239,9 +239,9 @@ class Viewer:
                     "frame shown (tracks of the clip's frames); Reset camera: frame 0's.")
             self.g_edit = gui.add_text(
                 "Edit", "", hint="Changes every frame of the track, as `render --edit` does: "
-                "e.g. mouthSmile+=0.3 (both sides: the capture, smiling more), "
-                "jawOpen*=0 (mouth still), all*=1.5 (every control exaggerated). Empty: the "
-                "track as it is.")
+                "e.g. mouthSmile+=0.3 (both sides: the capture smiling more, as the clip "
+                "smiles), jawOpen*=0 (mouth still), all*=1.5 (every control exaggerated). "
+                "Empty: the track as it is. A model knows the expressions its clip shows.")
             self.g_edit_note = gui.add_markdown("")
             self.g_command = gui.add_markdown(self.command_markdown())
 
