@@ -160,7 +160,9 @@ class Viewer:
 
     def _build_gui(self) -> None:
         gui = self.server.gui
-        self.view_folder = gui.add_folder("View")
+        # the panel's order: the view, then the track (the clip, its frames, the Edit box: the
+        # main way to change the clip) above the 52 sliders, which pushed it out of sight
+        self.view_folder = gui.add_folder("View", order=0)
         with self.view_folder:
             self.g_mode = gui.add_dropdown("Show", ["RGB", "Depth"], initial_value="RGB",
                                            hint="Colour, or the expected depth (near = warm).")
@@ -174,7 +176,7 @@ class Viewer:
                 hint="Render at 1/4 resolution while the camera moves (at 1/2 after any "
                      "other change), then refine to full once it is still.")
             self.g_reset_cam = gui.add_button("Reset camera", hint="Back to frame 0's camera.")
-        self.expr_folder = gui.add_folder("Expression")
+        self.expr_folder = gui.add_folder("Expression", order=3)
         with self.expr_folder:
             self.g_neutral = gui.add_button(
                 "Reset to neutral", hint="Every control to 0 (no expression); within the "
@@ -203,7 +205,7 @@ class Viewer:
                 self.g_sliders.append(s)
         self.g_head: list = []
         if getattr(self.run.model, "follows_head", False):  # trained with head poses
-            self.head_folder = gui.add_folder("Head pose")
+            self.head_folder = gui.add_folder("Head pose", order=2)
             with self.head_folder:
                 self.g_head_reset = gui.add_button(
                     "Frame 0 head pose", hint="Back to the capture's first pose (a frame "
@@ -215,7 +217,7 @@ class Viewer:
                     s.on_update(lambda e: self._head_changed())
                     self.g_head.append(s)
             self.g_head_reset.on_click(lambda e: self.set_head_pose(0, 0, 0))
-        self.track_folder = gui.add_folder("Track")
+        self.track_folder = gui.add_folder("Track", order=1)
         with self.track_folder:
             names = [t.name for t in self.tracks] or ["(none)"]
             self.g_track = gui.add_dropdown("Track", names, initial_value=names[0])
