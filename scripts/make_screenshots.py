@@ -74,7 +74,9 @@ def main() -> None:
                 r = json.loads(b.eval(f"""(() => {{
                     const l = [...document.querySelectorAll('label')]
                         .find(e => e.textContent === '{name}');
-                    const r = document.getElementById(l.htmlFor).getBoundingClientRect();
+                    const el = document.getElementById(l.htmlFor);
+                    el.scrollIntoView({{block: 'center'}});  // below the Track folder
+                    const r = el.getBoundingClientRect();
                     return JSON.stringify({{x: r.x, y: r.y, w: r.width, h: r.height}}); }})()"""))
                 b.click(r["x"] + float(val) * r["w"], r["y"] + r["h"] / 2)
                 # viser's page throttles all GUI updates through one 50 ms sender: an
