@@ -219,6 +219,18 @@ def test_the_edit_boxes_and_pause_show_what_they_say(head_run):
         v.g_within.value = True
         assert float(v.worker.expression()[jaw]) == pytest.approx(clamped)
         v.set_edit("")
+        # a slider moved by hand: the view is no longer the track's frame, and Render it says so
+        from types import SimpleNamespace
+
+        v._slider_cb(jaw)(SimpleNamespace(client=object(), target=SimpleNamespace(value=0.3)))
+        assert "expression sliders' change not in it" in v.g_command.content
+        v.show_track_frame(cap, 2)
+        assert "not in it" not in v.g_command.content
+        tour = next(t for t in v.tracks if t.name.startswith("tour"))
+        v.g_track.value = tour.name
+        assert v.g_filmed.disabled  # As filmed means nothing for the tour's frames
+        v.g_track.value = cap.name
+        assert not v.g_filmed.disabled
         v.g_loop.value = True
         v.play()
         deadline = time.monotonic() + 20

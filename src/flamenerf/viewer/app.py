@@ -86,7 +86,10 @@ class Viewer:
         h = opts.resolution or run.train_intrinsics(self.ds).h
         self.height = int(min(max(8, round(h / 8) * 8), opts.max_resolution))
         omega, phi = run.frame_codes(0)
-        self.worker = RenderWorker(run.model, omega, phi, self.masker, self.neutral,
+        # it opens on frame 0 whole, as `Frame 0 expression` returns to it: its camera,
+        # codes and expression (all 0 is a face a tracked clip seldom shows)
+        self.opening = self.shown(self.frame0_expression)
+        self.worker = RenderWorker(run.model, omega, phi, self.masker, self.opening,
                                    self._display, height=self.height, settle_s=opts.settle_s,
                                    on_error=self._render_failed)
         self.server = None
@@ -100,6 +103,7 @@ class Viewer:
         self._play_t0 = 0.0
         self._play_frame0 = 0
         self._played: tuple[int, np.ndarray] | None = None  # the player's last frame and β
+        self._slid = False  # an expression slider moved since a track frame was shown
         self._closing = False
         self._edits: list = []  # the Edit box's (rendering/edits.py)
         self._edit_text = ""  # ... as typed, for the render command
@@ -200,7 +204,7 @@ class Viewer:
             step = 0.01 if self.hi - self.lo <= 2 else 0.05
             for j, name in enumerate(self.names):
                 s = gui.add_slider(name, min=self.lo, max=self.hi, step=step,
-                                   initial_value=float(self.neutral[j]))
+                                   initial_value=float(round(float(self.opening[j]), 4)))
                 s.on_update(self._slider_cb(j))
                 self.g_sliders.append(s)
         self.g_head: list = []
@@ -291,6 +295,9 @@ class Viewer:
                 return
             self.pause()
             value = float(event.target.value)
+            if not self._slid:  # the view is no longer the track's frame: Render it says so
+                self._slid = True
+                self._update_command()
             if self.within():
                 value = float(np.clip(value, self.range.lo[j], self.range.hi[j]))
             if self.g_companions is not None and self.g_companions.value \
@@ -438,8 +445,12 @@ class Viewer:
             return ""
         turned = any(float(s.value) != 0 for s in self.g_head)
         # render's --head-pose eases through keyframes; a held turn is a .json file
-        return f"Render it: `{cmd}`" + (" (the head sliders' turn is not in it: "
-                                        "docs/head_pose.md)" if turned else "")
+        left = [what for what, out in (("the head sliders' turn", turned),
+                                       ("the expression sliders' change", self._slid))
+                if out]
+        return f"Render it: `{cmd}`" + (f" ({' and '.join(left)} not in it: give an edit "
+                                        "for an expression, docs/head_pose.md for a turn)"
+                                        if left else "")
 
     def _update_command(self) -> None:
         if getattr(self, "g_command", None) is not None:
@@ -473,6 +484,9 @@ class Viewer:
             frame = dataclasses.replace(frame, omega=self.worker.omega, phi=self.worker.phi,
                                         own_codes=False)
         self.worker.set_filmed(frame, v)
+        if self._slid:
+            self._slid = False
+            self._update_command()
         if sync:
             self._sync_sliders(v)
             if self.server is not None and int(self.g_frame.value) != k:
@@ -514,6 +528,8 @@ class Viewer:
             return
         self.g_frame.max = max(t.num_frames - 1, 1)
         self.g_frame.value = 0
+        if self.g_filmed is not None:  # the box means nothing for another track's frames
+            self.g_filmed.disabled = t.name not in self.filmable
         self.show_track_frame(t, 0)
         self._update_command()
 
