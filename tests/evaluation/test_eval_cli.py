@@ -166,3 +166,16 @@ def test_the_table_counts_controls_following_only_where_the_frames_show_them():
     assert a.endswith("| **24** |") and b.endswith("| 2 |")
     # the built-in head: the tracker reads none of its val expressions, frames included
     assert "Controls following" not in compare_markdown([res(0, 0), res(0, 0)])
+
+
+def test_the_table_gives_the_truths_control_gain_beside_the_runs():
+    """A model's re-tracked gain means something only beside the ground truth's own (the
+    tracker reads a small scene weakly): a column, never marked best."""
+    from flamenerf.evaluation.report import compare_markdown
+
+    def res(gain: float) -> dict:
+        return {"heldout": {"psnr": 30.0}, "control": {"mean_gain": gain, "mean_gt_gain": 0.37}}
+
+    head, _, a, b = compare_markdown([res(-0.09), res(0.2)]).split("\n")[:4]
+    assert head.endswith("| Control gain ↑ | Control gain, truth |")
+    assert a.endswith("| -0.09 | 0.37 |") and b.endswith("| **0.20** | 0.37 |")
