@@ -206,6 +206,7 @@ def test_the_edit_boxes_and_pause_show_what_they_say(head_run):
     v.start()
     try:
         cap = next(t for t in v.tracks if t.name.startswith("capture"))
+        assert v.tracks[0].name.startswith("tour") and v.g_filmed.disabled  # the first shown
         v.g_track.value = cap.name
         v.show_track_frame(cap, 2)
         jaw = run.expression_names.index("jawOpen")

@@ -237,7 +237,8 @@ class Viewer:
                     hint="The capture's tracks show each frame with its own head motion, "
                     "look and face mesh, as `render --split capture` does (the clip itself, "
                     "with the expression the sliders or the Edit box give). Off: frame 0's "
-                    "codes (its look), each frame's head and mesh: `--codes first`.")
+                    "codes (its look), each frame's head and mesh: `--codes first`.",
+                    disabled=names[0] not in self.filmable)
             self.g_frame_cam = None
             if any(t.clip for t in self.tracks):
                 self.g_frame_cam = gui.add_button(
