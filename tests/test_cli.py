@@ -49,6 +49,8 @@ def test_an_unknown_option_or_command_is_one_line_with_this_commands_nearest(arg
     assert main(args) == 2
     err = capsys.readouterr().err
     assert err.startswith("flamenerf: error: " + line) and err.count("\n") == 1
+    assert main(["render", "no-such-run", "--side_by_side"]) == 2  # tyro's own spelling
+    assert "not an option" not in capsys.readouterr().err
 
 
 def test_fast_on_a_gpu_suggests_fast_gpu(tmp_path, capsys, monkeypatch, toy_dataset):

@@ -34,6 +34,7 @@ def available_commands() -> dict:
             raise
         command = getattr(mod, name)
         # tyro reads the parameters' help from the function itself, behind the wrapper
+        # (an options dataclass's fields it reads its own way: left as they are)
         command.__doc__ = reflowed(command.__doc__ or "")
         cmds[name] = _finite_floats(command)
     return cmds
@@ -43,7 +44,7 @@ def reflowed(doc: str) -> str:
     """A command's docstring with each paragraph, and each `Args:` entry, on one line:
     tyro keeps a function parameter's line breaks, and breaks a description before any
     line that starts with a non-letter (`(driven)`), so `eval --help` broke mid-sentence.
-    Paragraphs that are lists (a line starting with `-`) keep their lines."""
+    Paragraphs that are lists (a line starting with `- `) keep their lines."""
     import inspect
 
     out: list[str] = []
@@ -60,7 +61,7 @@ def reflowed(doc: str) -> str:
                 else:
                     entries.append(line)
             out.append("\n".join(entries))
-        elif any(line.lstrip().startswith("-") for line in lines):
+        elif any(line.lstrip().startswith("- ") for line in lines):
             in_args = False
             out.append(para)
         else:
@@ -142,6 +143,11 @@ def list_flags(command) -> set[str]:
     return out
 
 
+def flag_name(token: str) -> str:
+    """An option as tyro takes it: `--side_by_side` is `--side-by-side`."""
+    return "--" + token[2:].replace("_", "-") if token.startswith("--") else token
+
+
 def merge_repeated(args: list[str], flags: set[str]) -> list[str]:
     """`--edit A --edit B` as `--edit A B`: tyro (argparse) keeps only a list flag's last
     occurrence, which silently dropped the first edit. Each flag of `flags` given more than
@@ -154,7 +160,11 @@ def merge_repeated(args: list[str], flags: set[str]) -> list[str]:
     i = 0
     while i < len(args):
         a = args[i]
+        if a == "--":  # what follows is not options
+            order += [("arg", t) for t in args[i:]]
+            break
         name, eq, inline = a.partition("=")
+        name = flag_name(name)
         if name in flags:
             j = i + 1
             while j < len(args) and not is_flag(args[j]):
@@ -194,7 +204,7 @@ def unknown_option(name: str, args: list[str], command) -> str | None:
         if a == "--":
             break
         flag = a.split("=", 1)[0]
-        if flag.startswith("--") and flag not in known:
+        if flag.startswith("--") and flag not in known and flag_name(flag) not in known:
             return (f"{flag}: not an option of `flamenerf {name}`{suggest(flag, known)} "
                     f"(`flamenerf {name} --help` lists them)")
     return None

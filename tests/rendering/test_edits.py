@@ -244,6 +244,11 @@ def test_a_repeated_edit_flag_keeps_every_edit(toy_run, tmp_path, capsys):
     assert not out.exists()
     assert cli.merge_repeated(["R", "--edit=a", "--size", "8", "--edit", "b", "c", "-h"],
                               {"--edit"}) == ["R", "--edit", "a", "b", "c", "--size", "8", "-h"]
+    # tyro's underscore spelling is the same flag; after `--` nothing is an option
+    assert cli.merge_repeated(["R", "--head_pose", "a", "--head-pose", "b"], {"--head-pose"}) \
+        == ["R", "--head-pose", "a", "b"]
+    assert cli.merge_repeated(["R", "--edit", "a", "--", "--edit", "b"], {"--edit"}) \
+        == ["R", "--edit", "a", "--", "--edit", "b"]
     flags = cli.list_flags(cli.available_commands()["render"])
     assert {"--edit", "--expressions", "--head-pose"} <= flags and "--size" not in flags
     assert not cli.list_flags(cli.available_commands()["view"])  # --track appends itself

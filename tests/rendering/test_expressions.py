@@ -44,6 +44,8 @@ def test_keyframes_move_companions_and_say_so():
     seq = X.from_items(["jawOpen=0.6"], NAMES, BASE, 9, comp)
     np.testing.assert_allclose(seq.values[4], [0.6, 0.2 + 0.5 * 0.5, 0.3], atol=0.02)
     assert any("mouthSmileLeft" in n for n in seq.notes)
+    # a pair's stem and another case, with companions (their note names what moved)
+    assert X.from_items(["JAWOPEN=0.6"], NAMES, BASE, 9, comp).notes == seq.notes
     plain = X.from_items(["jawOpen=0.9"], NAMES, BASE, 9)
     np.testing.assert_allclose(plain.values[4], [0.9, 0.2, 0.3])
     assert not plain.notes

@@ -97,19 +97,24 @@ def parse_keyframe(item: str, names: list[str], base: np.ndarray,
                    companions: Companions | None = None) -> np.ndarray:
     """`name=value[,name=value...]` -> the base expression with those controls set, and
     with their companions (data/companions.py) moved along when given."""
+    index = {n: i for i, n in enumerate(names)}
+    values = {index[name]: v for name, v in keyframe_values(item, names).items()}
+    bounded(np.array(list(values.values())), f"--expressions {item!r}")
+    return keyframe(base, values, companions)
+
+
+def keyframe_values(item: str, names: list[str]) -> dict[str, float]:
+    """A keyframe's `name=value` items -> {control: value}: a name may be a pair's stem
+    (both sides) or a control in another case, as in an edit (`edits.resolve_control`)."""
     from flamenerf.rendering.edits import resolve_control
 
-    index = {n: i for i, n in enumerate(names)}
     parts = []  # a pair's stem or another case, written out as the controls it means
     for part in item.split(","):
         name, eq, value = part.partition("=")
         found = resolve_control(name.strip(), names) if eq else None
         parts += [f"{n}={value}" for n in found] if found else [part]
-    values = {index[name]: v for name, v in parse_assignments(
-        ",".join(parts), names, "--expressions", "control",
-        " (or a .json/.npy/.csv file)", typed=item).items()}
-    bounded(np.array(list(values.values())), f"--expressions {item!r}")
-    return keyframe(base, values, companions)
+    return parse_assignments(",".join(parts), names, "--expressions", "control",
+                             " (or a .json/.npy/.csv file)", typed=item)
 
 
 def keyframe(base: np.ndarray, values: dict[int, float],
@@ -221,8 +226,7 @@ def from_items(items: list[str], names: list[str], base: np.ndarray, num: int | 
     notes = ()
     if companions is not None:
         moved = sorted({names[j] for key in keys for j in np.nonzero(key != base)[0]}
-                       - {n for it in items for n in parse_assignments(
-                           it, names, "--expressions", "control")})
+                       - {n for it in items for n in keyframe_values(it, names)})
         if moved:
             notes = (f"keyframes also move {', '.join(moved)}: the controls the tracker reads "
                      "with the named ones (--no-companions to leave them)",)

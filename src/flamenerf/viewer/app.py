@@ -592,6 +592,7 @@ class Viewer:
             self.filmed_clip(t)  # made before the lock: pause() does not wait for it
             # under the lock pause() takes, so that a frame decided before a pause (or a
             # change of track, which pauses) is not shown after it
+            ended = False  # the track ran out (no loop): the player stopped itself
             with self._play_lock:
                 if not self._play.is_set() or t is not self.current_track():
                     continue
@@ -600,14 +601,16 @@ class Viewer:
                     if self.g_loop.value:
                         k %= t.num_frames
                     else:
-                        k = t.num_frames - 1
+                        k, ended = t.num_frames - 1, True
                         self._play.clear()
                         self.g_play.label = "Play"
                 v = self.show_track_frame(t, k, sync=False)
                 self._played = (k, v)
             now = time.monotonic()
-            # the 52 sliders follow at a few Hz; the image follows every frame
-            if now - last_sync > 0.2 or not self._play.is_set():
+            # the 52 sliders follow at a few Hz; the image follows every frame. Not after
+            # a pause by a slider or the frame slider (the user's value is applying: the
+            # Pause button syncs itself, `pause(show_last=True)`)
+            if ended or (self._play.is_set() and now - last_sync > 0.2):
                 self._sync_sliders(v)
                 self.g_frame.value = int(k)
                 last_sync = now
