@@ -39,14 +39,15 @@ class RenderOptions:
         expressions: An expression file, name=value[,name=value] keyframes (a pair's
             stem, e.g. mouthSmile, sets both sides), or `tour` (each control the training
             frames show, in turn). Repeated, its items add up.
-        split: Take expressions, cameras and face meshes from this dataset split
-            (`capture`: the clip as filmed, every frame in order).
+        split: Take expressions, cameras and face meshes from this dataset split (with
+            `capture`: the clip as filmed, every frame in order).
         drive: Track the expressions of this driving video.
         edit: Change controls in every frame of the source, e.g. `--split capture --edit
-            mouthSmileLeft+=0.3,mouthSmileRight+=0.3`: `name=V` sets, `name+=D` /
-            `name-=D` raise or lower, `name*=S` scales (0 stills it, 1.5 exaggerates);
-            `all` is every control no other item names (`all*=0,jawOpen*=1`: only the
-            jaw moves), a pair's stem both sides (`mouthSmile+=0.3`). Companions move
+            mouthSmileLeft+=0.3,mouthSmileRight+=0.3`: `name=V` sets a control,
+            items `name+=D` / `name-=D` raise or lower it, `name*=S` scales it (0 stills
+            it, 1.5 exaggerates); a name `all` is every control no other item names, as
+            in `all*=0,jawOpen*=1` (only the jaw moves); a pair's stem moves both sides,
+            as in `mouthSmile+=0.3`. Companions move
             along and the edited controls are clamped to the training range in each frame
             as for keyframes (a note says in how many). Repeated, its items add up.
         edit_during: Apply --edit only between START:END seconds of the video as rendered,
@@ -62,11 +63,11 @@ class RenderOptions:
         camera: static, orbit, spiral, dolly, split (a --split's own cameras), a JSON
             file of poses, or auto (split with --split, else static).
         head_pose: Head pose relative to frame 0's, independent of --camera: `drive` (the
-            driving video's head turns, with --drive), keyframes
-            `yaw=20,pitch=-5` (degrees; roll too, x/y/z in metres), eased through like
-            expression keyframes, or a .json list of such objects (one per frame). Needs
-            a run trained with head poses. Default: a split's own head poses, else frame
-            0's.
+            driving video's head turns, with --drive), keyframes like `yaw=20,pitch=-5`
+            in degrees (roll too; x/y/z in metres), eased through like expression
+            keyframes, or a .json list of such objects (one per frame). Needs
+            a run trained with head poses. Default: a split's own head poses, else
+            frame 0's.
         frames: Number of frames when the source does not fix it (keyframes, a tour, the
             held expression; a named camera path follows). Unset: 60, a tour 24 a control.
         fps: Frames per second (default: the source's; a split of frames outside the

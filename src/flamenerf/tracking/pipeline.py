@@ -53,8 +53,8 @@ class PreprocessOptions:
             head turn becomes a camera motion; the paper's still-head capture).
         landmarker: face_landmarker.task to use (default: $FLAMENERF_LANDMARKER, then the
             copy installed by scripts/get_landmarker.py).
-        face_model: mediapipe: MediaPipe face mesh + ARKit blendshapes; flame: fit FLAME
-            (needs --flame-dir) and use its expression vector and mesh.
+        face_model: mediapipe: MediaPipe face mesh + ARKit blendshapes; flame: fit
+            FLAME (needs --flame-dir) and use its expression vector and mesh.
         flame_dir: Folder with FLAME's generic_model.pkl (or flame2020/2023 pkl) and a
             landmark embedding (mediapipe_landmark_embedding.npz). Only load files you
             trust: .pkl files can run code (see docs/preprocessing.md).
@@ -67,8 +67,8 @@ class PreprocessOptions:
             qa/tracking_report.json, is always written).
         consistent_expressions: Also fit the β -> mesh model so that each control commanded
             alone reads back through the tracker as that control, and store it with the
-            dataset (expression_model.npz, which training then uses; MediaPipe meshes only;
-            1-3 min on 2 CPU cores). It raises what the mesh itself can show, not yet what
+            dataset (expression_model.npz, which training then uses; MediaPipe meshes
+            only; 1-3 min on 2 CPU cores). It raises what the mesh itself can show, not yet what
             a trained model shows (docs/bench/control_exploration.md), so it is off.
         overwrite: Replace OUT if it exists.
         progress: Show progress bars (not a flag: the command always does).
