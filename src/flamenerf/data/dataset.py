@@ -85,6 +85,12 @@ class Frame:
     extra: dict[str, Any] = field(default_factory=dict)
     head_pose: np.ndarray | None = None  # (4, 4) float64 world-from-head, or None
 
+    @property
+    def in_capture(self) -> bool:
+        """Whether the frame is one of the filmed clip's (it has codes of its own); the
+        built-in scene's re-animation splits' frames are not."""
+        return self.frame_index is not None
+
 
 def frame_rate(frames: list[Frame]) -> float | None:
     """Frames per second of frames in clip order, from their `time`s (`preprocess` stores
@@ -134,13 +140,13 @@ class Dataset:
     @property
     def num_codes(self) -> int:
         """Size of the per-frame code tables (deformation ω, appearance φ)."""
-        idx = [f.frame_index for f in self.frames if f.frame_index is not None]
+        idx = [f.frame_index for f in self.frames if f.in_capture]
         return (max(idx) + 1) if idx else 1
 
     def capture(self) -> list[Frame]:
         """Every capture frame (one with a frame index: train and val) in the order of its
         code, which is the clip's; [] for a dataset of none."""
-        return sorted((f for f in self.frames if f.frame_index is not None),
+        return sorted((f for f in self.frames if f.in_capture),
                       key=lambda f: f.frame_index)
 
     def split(self, name: str) -> list[Frame]:

@@ -480,6 +480,12 @@ def openings(landmarks: np.ndarray) -> dict[str, float]:
     return out
 
 
+def colour_change(before: np.ndarray, after: np.ndarray) -> np.ndarray:
+    """Per pixel, the mean absolute change of colour between two pictures of an edit:
+    (H, W, 3), (H, W, 3) -> (H, W) float32."""
+    return np.abs(np.asarray(after, np.float32) - np.asarray(before, np.float32)).mean(-1)
+
+
 def part_change(before: np.ndarray, after: np.ndarray, landmarks: np.ndarray,
                 outlines: dict[str, list[list[int]]] | None = None) -> dict[str, float]:
     """Where an edit changed a picture: the mean absolute change of colour inside the
@@ -491,7 +497,7 @@ def part_change(before: np.ndarray, after: np.ndarray, landmarks: np.ndarray,
     from skimage.draw import polygon
 
     h, w = before.shape[:2]
-    diff = np.abs(np.asarray(after, np.float32) - np.asarray(before, np.float32)).mean(-1)
+    diff = colour_change(before, after)
     out = {}
     for part, sides in (outlines or part_outlines()).items():
         mask = np.zeros((h, w), bool)
@@ -516,8 +522,7 @@ def edge_change(before: np.ndarray, after: np.ndarray, mask_before: np.ndarray,
     band = inside & ~ndimage.binary_erosion(inside, iterations=width)
     if not band.any():
         return float("nan")
-    diff = np.abs(np.asarray(after, np.float32) - np.asarray(before, np.float32)).mean(-1)
-    return float(diff[band].mean())
+    return float(colour_change(before, after)[band].mean())
 
 
 def geometry_response(driving: list[np.ndarray], renders: list[np.ndarray],

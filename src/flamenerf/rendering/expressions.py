@@ -370,7 +370,7 @@ its 10 frames flashed by in a third of a second."""
 def split_fps(ds, frames) -> float | None:
     """The rate a dataset's frames play at: the clip's (`Dataset.frame_rate`; None where it
     stores no times) for capture frames, `STILLS_FPS` for frames outside the capture."""
-    return ds.frame_rate() if all(f.frame_index is not None for f in frames) else STILLS_FPS
+    return ds.frame_rate() if all(f.in_capture for f in frames) else STILLS_FPS
 
 
 def from_split(ds, split: str, panel_hw: tuple[int, int] | None = None) -> ExpressionSequence:

@@ -601,9 +601,10 @@ def plan_render(opts: RenderOptions, log=print) -> RenderPlan:
                                    chunk=opts.chunk or (REFERENCE.chunk if opts.exact else 0))
     codes, frames = None, ds.split(opts.split)[:n] if opts.split else []
     if own_codes(opts, run, ds, frames):
+        from flamenerf.rendering.filmed import own_codes_settings
+
         codes = run.clip_codes(ds, frames)
-        # a bake per frame's ω would cost what the exact warp costs, and stay in memory
-        settings = dataclasses.replace(settings, warp_grid=0)
+        settings = own_codes_settings(settings)
         trained = {f.frame_index for f in ds.training_frames()}
         between = sum(f.frame_index not in trained for f in frames)
         log("note: each frame renders with its own codes"

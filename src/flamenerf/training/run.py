@@ -67,7 +67,7 @@ class Run:
         """Why `frames` of `ds` have no codes of their own in this run, or None: frames
         outside the capture (a re-animation split) have none, and a capture longer than
         the run's code table is another capture than the one it was trained on."""
-        if any(f.frame_index is None for f in frames):
+        if not all(f.in_capture for f in frames):
             return "its frames have no codes of their own (use a capture split such as val)"
         if max(f.frame_index for f in frames) >= self.model.deform_codes.num_embeddings:
             return (f"{ds.root}: frame indices exceed this run's code table (a different "
@@ -80,8 +80,7 @@ class Run:
         initial values) interpolated in clip order between the nearest training frames'
         on either side (the nearest one's past either end). `frames` must have codes
         (`codes_error`)."""
-        trained = sorted({f.frame_index for f in ds.training_frames()
-                          if f.frame_index is not None}) or [0]
+        trained = sorted({f.frame_index for f in ds.training_frames() if f.in_capture}) or [0]
         at = [f.frame_index for f in frames]
         w, a = self.model.codes(torch.as_tensor(trained, device=self.device))
 

@@ -16,7 +16,6 @@ height at once: β reaches no other ray (the prior), so every other pixel is the
 
 from __future__ import annotations
 
-import dataclasses
 import threading
 import time
 from dataclasses import dataclass, field
@@ -381,12 +380,11 @@ class RenderWorker:
         if v is not None and snap["final"] and self._reusable(v, snap):
             still = v.cache  # only the pixels a new expression reaches
         else:
-            # a frame's own ω is not baked, as render's own codes are not: a bake per
-            # frame (~0.06 s at 128³ on the 2-core CPU) costs a half-resolution image of
-            # a playing track more than the exact warp does
-            f = snap["filmed"]
-            settings = (dataclasses.replace(self.settings, warp_grid=0)
-                        if f is not None and f.own_codes else self.settings)
+            from flamenerf.rendering.filmed import own_codes_settings
+
+            f = snap["filmed"]  # a frame's own ω is not baked, as in render
+            settings = (own_codes_settings(self.settings) if f is not None and f.own_codes
+                        else self.settings)
             still = StillCamera(self.model, intr, c2w, *self._codes(snap), head=head,
                                 settings=settings)
 
