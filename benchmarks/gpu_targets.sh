@@ -52,7 +52,7 @@ WORK=$(mktemp -d)
 SCENE=$WORK/scene
 LOG=$OUT/log.txt
 : >"$LOG"
-say() { echo "== $*" | tee -a "$LOG"; }
+say() { echo "== $(date -u +%T) (${SECONDS} s) $*" | tee -a "$LOG"; }
 
 say "$(date -u +%FT%TZ) $("$PY" -c 'import torch; print(torch.__version__, torch.cuda.get_device_name(0) if torch.cuda.is_available() else "no GPU")') triton $("$PY" -c 'import triton; print(triton.__version__)' 2>/dev/null || echo none)"
 say "commit $(git rev-parse --short HEAD 2>/dev/null || echo unknown)${SET:+, set $SET}"
@@ -74,11 +74,6 @@ for refine in -1 0; do
     --device "$DEVICE" --sizes $SIZES --presets fast --repeats "$REPEATS" \
     --refine-main "$refine" --out "$OUT/$name" 2>&1 | tee -a "$LOG"
 done
-say "profile of a ${SIZES##* } px frame (seed $first's run)"
-# auxiliary: a failure here is logged and the A/B below still runs
-{ "$PY" benchmarks/profile_render.py --run "$WORK/run_s$first" --dataset "$SCENE" \
-    --device "$DEVICE" --size "${SIZES##* }" --frames 3 --rows 45 2>&1 \
-    | grep -v "^\(STAGE\|USDT\)" | tee -a "$LOG"; } || say "the profile failed"
 say "the kernels' launch choices (seed $first's run, $CHOICE_SIZE px)"
 # auxiliary, as the profile; on a CPU the interpreter checks it on a few points
 CHOICE_ENV=(); [[ $DEVICE == cpu ]] && CHOICE_ENV=(TRITON_INTERPRET=1 FLAMENERF_GPU_KERNELS=1 \
@@ -87,6 +82,11 @@ CHOICE_ENV=(); [[ $DEVICE == cpu ]] && CHOICE_ENV=(TRITON_INTERPRET=1 FLAMENERF_
     --dataset "$SCENE" --device "$DEVICE" --size "$CHOICE_SIZE" --repeats "$REPEATS" \
     --points "$CHOICE_POINTS" --json "$OUT/choices.json" 2>&1 | tee -a "$LOG"; } \
   || say "the launch choices' timing failed"
+say "profile of a ${SIZES##* } px frame (seed $first's run)"
+# auxiliary: a failure here is logged and the A/B below still runs
+{ "$PY" benchmarks/profile_render.py --run "$WORK/run_s$first" --dataset "$SCENE" \
+    --device "$DEVICE" --size "${SIZES##* }" --frames 3 --rows 45 2>&1 \
+    | grep -v "^\(STAGE\|USDT\)" | tee -a "$LOG"; } || say "the profile failed"
 if [[ -n "${OLD_SRC:-}" ]]; then
   say "render A/B: $OLD_SRC against src (seed $first's run)"
   # shellcheck disable=SC2086
