@@ -18,7 +18,8 @@ mesh's vertices (V ~ 500-800, k <= 8), in tiles of vertices that a block of poin
 where none of them is nearer than a point's k-th best so far.
 
 Triton comes with PyTorch's CUDA builds; without it (or with `FLAMENERF_GPU_KERNELS=0`)
-the callers fall back to PyTorch ops, and so do a kernel's callers where that kernel
+the callers fall back to PyTorch ops (`FLAMENERF_GPU_KERNELS=knn,hashgrid` keeps only the
+kernels named: benchmarks/gpu_kernel_check.py finds a kernel that fails on a GPU that way), and so do a kernel's callers where that kernel
 fails to build (it alone goes off). `TRITON_INTERPRET=1` runs the kernels on a CPU
 (how the tests check them against the references).
 """
@@ -61,6 +62,14 @@ def _load() -> dict | None:
             _kernels = _define()
         except ImportError:
             _kernels = None
+        chosen = os.environ.get("FLAMENERF_GPU_KERNELS", "1")
+        if _kernels is not None and chosen not in ("0", "1"):
+            names = {n.strip() for n in chosen.split(",") if n.strip()}
+            if names - set(_kernels):
+                raise ValueError(f"FLAMENERF_GPU_KERNELS={chosen}: no kernel "
+                                 f"{', '.join(sorted(names - set(_kernels)))} (there are "
+                                 f"{', '.join(sorted(_kernels))}; or 0, or 1)")
+            _kernels = {n: k for n, k in _kernels.items() if n in names}
     return _kernels
 
 

@@ -14,7 +14,7 @@ from collections.abc import Iterator
 import torch
 
 from flamenerf import meshes, runtime
-from flamenerf.model import flame_nerf, inference, mlp
+from flamenerf.model import flame_nerf, inference, mlp, render_image
 
 
 @contextlib.contextmanager
@@ -30,7 +30,11 @@ def gpu_path_on_cpu(half: bool = True) -> Iterator[None]:
     swaps = [(runtime, "gpu_inference", lambda device: True),
              (mlp, "_oneDNN_linear", lambda: None),  # the lean layers, not oneDNN's fused
              (flame_nerf, "nearest_vertices", meshes.nearest_vertices_off_cpu),
-             (inference, "_autocast", autocast)]
+             (inference, "_autocast", autocast),
+             # one thread: Triton's interpreter patches triton.language while a kernel
+             # runs, so two kernels interpreted at once fail (and go off, `_launch`)
+             (render_image, "map_single_threaded", lambda fn, items, workers: [
+                 fn(x) for x in items])]
     kept = [(mod, name, getattr(mod, name)) for mod, name, _ in swaps]
     try:
         for mod, name, fn in swaps:
