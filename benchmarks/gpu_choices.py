@@ -35,7 +35,7 @@ from view_args import view_args, view_options
 
 KNN_CHOICES = [{"tile": t, "warps": w} for t in (0, 8, 16) for w in (4, 8)]
 # 128 points with 2 warps or fewer spill on sm_80 and sm_90 (scratch builds, 2026-11-28)
-HEADS_CHOICES = [{"block": b, "warps": w} for b in (32, 64, 128) for w in (4, 8)]
+HEADS_CHOICES = [{"block": b, "warps": w} for b in (64, 128) for w in (4, 8)]  # DOT_MIN
 
 
 def record(run, dataset, size: int, points: int, dev: torch.device) -> dict[str, list]:

@@ -34,8 +34,11 @@ def child(args) -> None:
 
     from flamenerf import gpu_kernels
 
-    if args.heads:
-        gpu_kernels.HEADS_BLOCK, gpu_kernels.HEADS_WARPS = map(int, args.heads[0].split(","))
+    if args.heads:  # BLOCK,WARPS[,DOT_MIN]
+        h = [int(v) for v in args.heads[0].split(",")]
+        gpu_kernels.HEADS_BLOCK, gpu_kernels.HEADS_WARPS = h[:2]
+        if len(h) > 2:
+            gpu_kernels.DOT_MIN = h[2]
     dev = torch.device(args.device)
     m = untrained(args.preset, dev)
     w, a = m.codes(torch.tensor([0], device=dev))
@@ -76,7 +79,8 @@ def main() -> int:
     ap.add_argument("--timeout", type=float, default=180.0, help="seconds per render")
     ap.add_argument("--json", type=Path)
     ap.add_argument("--heads", nargs="*", default=[],
-                    help="field_heads launches BLOCK,WARPS to try alone besides the default")
+                    help="field_heads launches BLOCK,WARPS[,DOT_MIN] to try alone besides the "
+                    "default (16,4,16: as before 2026-11-28)")
     ap.add_argument("--only", help="the configurations to run, by label, comma-separated")
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--size", type=int, help=argparse.SUPPRESS)

@@ -14,7 +14,7 @@ say() { echo "== $(date -u +%T) (${SECONDS} s) $*" | tee -a "$LOG"; }
 WORK=$(mktemp -d)
 say "$("$PY" -c 'import torch, triton; print(torch.__version__, torch.cuda.get_device_name(0), "triton", triton.__version__)')"
 "$PY" benchmarks/gpu_kernel_check.py --device cuda --sizes 128 --timeout 90 \
-  --heads 32,4 16,4 64,8 128,4 --json "$OUT/check128.json" 2>&1 | tee -a "$LOG"
+  --heads 16,4,16 64,8 128,4 128,8 --json "$OUT/check128.json" 2>&1 | tee -a "$LOG"
 "$PY" benchmarks/gpu_kernel_check.py --device cuda --sizes 512 --timeout 90 \
   --only "off,all,all but field_heads,all but hashgrid,all but knn" --json "$OUT/check512.json" 2>&1 | tee -a "$LOG"
 SAN=$(command -v compute-sanitizer || ls /usr/local/cuda*/bin/compute-sanitizer 2>/dev/null | head -1)

@@ -76,7 +76,8 @@ for refine in -1 0; do
 done
 say "the kernels' launch choices (seed $first's run, $CHOICE_SIZE px)"
 # auxiliary, as the profile; on a CPU the interpreter checks it on a few points
-CHOICE_ENV=(); [[ $DEVICE == cpu ]] && CHOICE_ENV=(TRITON_INTERPRET=1 FLAMENERF_GPU_KERNELS=1 \
+# every kernel on, field_heads too (gpu_kernels.UNPROVEN)
+CHOICE_ENV=(FLAMENERF_GPU_KERNELS=1); [[ $DEVICE == cpu ]] && CHOICE_ENV=(TRITON_INTERPRET=1 FLAMENERF_GPU_KERNELS=1 \
   FLAMENERF_CPU_KERNELS=0)
 { env "${CHOICE_ENV[@]}" "$PY" benchmarks/gpu_choices.py --run "$WORK/run_s$first" \
     --dataset "$SCENE" --device "$DEVICE" --size "$CHOICE_SIZE" --repeats "$REPEATS" \
