@@ -173,3 +173,26 @@ def test_a_kernel_that_cannot_be_built_gives_way_to_pytorch(monkeypatch):
     with pytest.warns(UserWarning, match="hashgrid failed"):  # still tried: its own failure
         assert gpu_kernels.hashgrid_forward(grid, x) is None
 
+
+def test_a_kernel_that_faults_the_gpu_stops_the_work(monkeypatch):
+    """A fault ends the CUDA context: PyTorch's ops would fail after it, so the kernel does
+    not fall back as an unbuildable one does; the error names it."""
+    import torch
+
+    from flamenerf import gpu_kernels
+    from flamenerf.model.encodings import HashGrid
+
+    class Faulting:
+        def __getitem__(self, grid):
+            def launch(*args, **meta):
+                raise RuntimeError("Triton Error [CUDA]: an illegal memory access was "
+                                   "encountered")
+            return launch
+
+    monkeypatch.setenv("TRITON_INTERPRET", "1")
+    monkeypatch.setattr(gpu_kernels, "_tried", True)
+    monkeypatch.setattr(gpu_kernels, "_kernels", {"hashgrid": Faulting()})
+    with pytest.raises(gpu_kernels.GPUFault, match="hashgrid faulted on the GPU"):
+        gpu_kernels.hashgrid_forward(HashGrid(3, 2, 10, 4, 32), torch.rand(40, 3))
+    assert gpu_kernels.gpu_faulted(RuntimeError("CUDA error: an illegal memory access"))
+    assert not gpu_kernels.gpu_faulted(RuntimeError("no compiler for this device"))

@@ -252,6 +252,22 @@ def test_out_of_memory_is_one_line(tmp_path, capsys, monkeypatch, error):
     assert list(tmp_path.iterdir()) == []
 
 
+def test_a_gpu_fault_is_one_line_naming_the_way_round(tmp_path, capsys, monkeypatch):
+    """A CUDA context lost to a kernel (an H200's first frame, 2026-11-28): one line that
+    says how to run without the Triton kernels, not CUDA's traceback."""
+    import imageio.v3 as iio
+
+    def fault(*a, **k):
+        raise RuntimeError("CUDA error: an illegal memory access was encountered\n"
+                           "CUDA kernel errors might be asynchronously reported")
+
+    monkeypatch.setattr(iio, "imwrite", fault)
+    rc, err = run_cli(capsys, "synth", tmp_path / "sk", *SYNTH)
+    assert rc == 1
+    one_line(err, "GPU faulted", "illegal memory access", "FLAMENERF_GPU_KERNELS=0")
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_an_unreadable_metrics_file_is_one_line(tmp_path, capsys):
     (tmp_path / "m.json").write_bytes(b"\xff\xfe\x00binary")
     rc, err = run_cli(capsys, "compare", tmp_path / "m.json")

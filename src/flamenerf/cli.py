@@ -283,6 +283,15 @@ def main(argv: list[str] | None = None) -> int:
         # --frames): one line, not the allocator's traceback
         oom = (isinstance(e, MemoryError) or type(e).__name__ == "OutOfMemoryError"
                or "DefaultCPUAllocator" in str(e) or "out of memory" in str(e))  # (MPS)
+        from flamenerf.gpu_kernels import gpu_faulted
+
+        if gpu_faulted(e) and not os.environ.get("FLAMENERF_DEBUG"):
+            # the GPU's context is lost; the likeliest cause is one of our Triton kernels
+            first = (str(e).strip().splitlines() or [type(e).__name__])[0]
+            print(f"flamenerf: error: the GPU faulted ({first}); run again "
+                  "with FLAMENERF_GPU_KERNELS=0 (PyTorch's ops only) and please report it "
+                  "(FLAMENERF_DEBUG=1 shows the traceback)", file=sys.stderr)
+            return 1
         if not oom or os.environ.get("FLAMENERF_DEBUG"):
             raise
         print("flamenerf: error: out of memory: the options ask for more than this machine "

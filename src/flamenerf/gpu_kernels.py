@@ -103,10 +103,29 @@ def _launch(name: str, grid: tuple, *args, **meta) -> bool:
         kernels[name][grid](*args, enable_fp_fusion=FP_FUSION, **meta)
         return True
     except Exception as e:  # noqa: BLE001 - any build or launch failure means: do without
+        if gpu_faulted(e):  # the CUDA context is gone: PyTorch's ops would fail too
+            raise GPUFault(f"the Triton kernel {name} faulted on the GPU "
+                           f"({(str(e).strip().splitlines() or [type(e).__name__])[0]}); "
+                           "FLAMENERF_GPU_KERNELS=0 renders without the kernels") from e
         del kernels[name]
         warnings.warn(f"flamenerf: the Triton kernel {name} failed ({type(e).__name__}: "
                       f"{str(e)[:200]}); using PyTorch ops instead", stacklevel=3)
         return False
+
+
+class GPUFault(RuntimeError):
+    """A kernel ended its CUDA context (an access out of bounds, say): nothing on that GPU
+    runs in this process after it."""
+
+
+def gpu_faulted(e: BaseException) -> bool:
+    """Whether `e` says the CUDA context is lost (errors CUDA reports once and then for
+    every call: an illegal address or instruction, a failed assertion, a misaligned
+    access), rather than a kernel that could not be built or launched."""
+    text = str(e).lower()
+    return any(k in text for k in ("illegal memory access", "illegal address",
+                                   "illegal instruction", "misaligned address",
+                                   "device-side assert", "unspecified launch failure"))
 
 
 @contextlib.contextmanager
