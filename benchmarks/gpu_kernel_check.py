@@ -1,9 +1,12 @@
 """Which Triton kernel fails or differs on this GPU: one frame of an untrained preset
-rendered down the inference path with the kernels off, all on, each alone and all but
-each, every render in a fresh process (an illegal memory access ends a CUDA context), and
-each image compared with the kernels-off render. Prints a table and writes JSON.
+rendered down the inference path with the kernels off, then all on, today's default and
+the field heads as they were before 2026-11-28 (widths of 16); where any of those fails,
+each kernel alone and all but each. Every render runs in a fresh process (a fault ends
+the CUDA context) and is compared with the kernels-off render. Prints a table, writes
+JSON, and with --keep writes the largest set of kernels that rendered right, as
+FLAMENERF_GPU_KERNELS takes it (benchmarks/gpu_targets.sh renders with that set).
 
-    python benchmarks/gpu_kernel_check.py --device cuda --sizes 128 512 --json check.json
+    python benchmarks/gpu_kernel_check.py --device cuda --sizes 128 --json check.json
 
 On a CPU the kernels run under Triton's interpreter (TRITON_INTERPRET=1, set here), down
 the GPU's path (model/gpu_emulation.py): slow, tiny sizes only (--sizes 16).
@@ -21,21 +24,25 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 KERNELS = ("hashgrid", "knn", "field_heads")
+RIGHT = 0.05
+"""The largest colour difference from the kernels-off frame that counts as rendering right
+(half precision and the layers' summation order differ by ~1e-3)."""
 
 
 def child(args) -> None:
+    import contextlib
+
     import numpy as np
     import torch
 
     sys.path.insert(0, str(HERE))
     from bench_render import FAST, camera, untrained
 
+    from flamenerf import gpu_kernels
     from flamenerf.model.render_image import render_image
 
-    from flamenerf import gpu_kernels
-
     if args.heads:  # BLOCK,WARPS[,DOT_MIN]
-        h = [int(v) for v in args.heads[0].split(",")]
+        h = [int(v) for v in args.heads.split(",")]
         gpu_kernels.HEADS_BLOCK, gpu_kernels.HEADS_WARPS = h[:2]
         if len(h) > 2:
             gpu_kernels.DOT_MIN = h[2]
@@ -45,30 +52,48 @@ def child(args) -> None:
     intr, c2w = camera(args.size)
     mask = np.zeros((args.size, args.size), bool)
     mask[args.size // 4: 3 * args.size // 4, args.size // 3: 2 * args.size // 3] = True
-    expr = torch.full((m.expr_dim,), 0.3)
     if dev.type == "cpu":
         from flamenerf.model.gpu_emulation import gpu_path_on_cpu
         ctx = gpu_path_on_cpu(half=True)
     else:
-        import contextlib
         ctx = contextlib.nullcontext()
     with ctx:
-        out = render_image(m, intr, c2w, w[0].detach(), a[0].detach(), expr, mask,
-                           settings=FAST)
+        out = render_image(m, intr, c2w, w[0].detach(), a[0].detach(),
+                           torch.full((m.expr_dim,), 0.3), mask, settings=FAST)
         if dev.type == "cuda":
             torch.cuda.synchronize(dev)
-    np.save(args.save, np.asarray(out["rgb"].float().cpu() if hasattr(out["rgb"], "cpu")
-                                  else out["rgb"], dtype=np.float32))
+    np.save(args.save, out["rgb"].float().cpu().numpy())
 
 
-def configs(heads: list[str]) -> list[tuple[str, str, str]]:
-    """(label, FLAMENERF_GPU_KERNELS, field_heads' BLOCK,WARPS or '') triples; the first
-    is the reference."""
-    out = [("off", "0", ""), ("all", "1", "")]
-    out += [(f"{k} alone", k, "") for k in KERNELS]
-    out += [(f"all but {k}", ",".join(x for x in KERNELS if x != k), "") for k in KERNELS]
-    out += [(f"field_heads {h.replace(',', 'x')}", "field_heads", h) for h in heads]
-    return out
+FIRST = [("off", "0", ""), ("all", "1", ""),
+         ("default", ",".join(k for k in KERNELS if k != "field_heads"), ""),
+         ("field_heads widths of 16", "field_heads", "64,4,16")]
+BISECT = [c for c in [(f"{k} alone", k, "") for k in KERNELS]
+          + [(f"all but {k}", ",".join(x for x in KERNELS if x != k), "") for k in KERNELS]
+          if c[1] not in {f[1] for f in FIRST}]  # the default is all but field_heads
+
+
+def render(args, tmp: str, size: int, label: str, chosen: str, heads: str, n: int) -> dict:
+    """One configuration's frame in a fresh process -> its row (the image saved)."""
+    save = f"{tmp}/{size}_{n}.npy"
+    env = {**os.environ, "FLAMENERF_GPU_KERNELS": chosen, "PYTHONUNBUFFERED": "1"}
+    if args.device == "cpu":
+        env.update(TRITON_INTERPRET="1", FLAMENERF_CPU_KERNELS="0")
+    t = time.perf_counter()
+    try:
+        p = subprocess.run([sys.executable, __file__, "--child", "--device", args.device,
+                            "--preset", args.preset, "--size", str(size), "--save", save]
+                           + (["--heads", heads] if heads else []), env=env,
+                           capture_output=True, text=True, timeout=args.timeout)
+        rc, err = p.returncode, (p.stderr or "").strip().splitlines()
+    except subprocess.TimeoutExpired:
+        rc, err = "timeout", []
+    row = {"size": size, "kernels": label, "env": chosen, "heads": heads, "rc": rc,
+           "seconds": round(time.perf_counter() - t, 1), "save": save}
+    if rc != 0:
+        row["error"] = next((ln for ln in reversed(err) if "Error" in ln),
+                            err[-1] if err else "")[:300]
+    return row
 
 
 def main() -> int:
@@ -77,14 +102,15 @@ def main() -> int:
     ap.add_argument("--preset", default="fast")
     ap.add_argument("--sizes", type=int, nargs="+", default=[128])
     ap.add_argument("--timeout", type=float, default=180.0, help="seconds per render")
+    ap.add_argument("--bisect", choices=("on-failure", "always", "never"),
+                    default="on-failure", help="each kernel alone and all but each")
     ap.add_argument("--json", type=Path)
-    ap.add_argument("--heads", nargs="*", default=[],
-                    help="field_heads launches BLOCK,WARPS[,DOT_MIN] to try alone besides the "
-                    "default (16,4,16: as before 2026-11-28)")
-    ap.add_argument("--only", help="the configurations to run, by label, comma-separated")
+    ap.add_argument("--keep", type=Path,
+                    help="write the largest set of kernels that rendered right here")
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--size", type=int, help=argparse.SUPPRESS)
     ap.add_argument("--save", help=argparse.SUPPRESS)
+    ap.add_argument("--heads", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child:
         child(args)
@@ -96,46 +122,53 @@ def main() -> int:
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for size in args.sizes:
-            ref = None
-            for label, chosen, heads in configs(args.heads):
-                if args.only and label not in args.only.split(","):
-                    continue
-                save = f"{tmp}/{size}_{len(rows)}.npy"
-                env = {**os.environ, "FLAMENERF_GPU_KERNELS": chosen,
-                       "PYTHONUNBUFFERED": "1"}
-                if args.device == "cpu":
-                    env.update(TRITON_INTERPRET="1", FLAMENERF_CPU_KERNELS="0")
-                t = time.perf_counter()
-                try:
-                    p = subprocess.run([sys.executable, __file__, "--child", "--device",
-                                        args.device, "--preset", args.preset, "--size",
-                                        str(size), "--save", save]
-                                       + (["--heads", heads] if heads else []), env=env,
-                                       capture_output=True, text=True, timeout=args.timeout)
-                    rc, err = p.returncode, (p.stderr or "").strip().splitlines()
-                except subprocess.TimeoutExpired:
-                    rc, err = "timeout", []
-                row = {"size": size, "kernels": label, "env": chosen, "heads": heads, "rc": rc,
-                       "seconds": round(time.perf_counter() - t, 1)}
-                if rc == 0:
-                    img = np.load(save)
-                    if ref is None and chosen == "0":
+            ref, failed, bisected, todo = None, False, False, list(FIRST)
+            while todo:
+                label, chosen, heads = todo.pop(0)
+                row = render(args, tmp, size, label, chosen, heads, len(rows))
+                if row["rc"] == 0:
+                    img = np.load(row["save"])
+                    if chosen == "0":
                         ref = img
-                    if ref is not None:
-                        d = np.abs(img - ref)
-                        row["max_abs_diff"] = float(d.max())
-                        row["nan"] = int(np.isnan(img).sum())
-                else:
-                    row["error"] = next((ln for ln in reversed(err) if "Error" in ln),
-                                        err[-1] if err else "")[:300]
+                    row["nan"] = int(np.isnan(img).sum())
+                    row["max_abs_diff"] = float(np.nan_to_num(np.abs(img - ref), nan=1.0)
+                                                .max()) if ref is not None else None
+                row["right"] = (row["rc"] == 0 and row["max_abs_diff"] is not None
+                                and row["max_abs_diff"] < RIGHT and not row["nan"])
+                del row["save"]
                 rows.append(row)
-                print(f"{size:4d}px  {label:>20s}  rc {rc!s:>7}  {row['seconds']:6.1f} s  "
-                      + (f"max |diff| {row['max_abs_diff']:.4f}" if "max_abs_diff" in row
-                         else row.get("error", "")), flush=True)
+                print(f"{size:4d}px  {label:>26s}  rc {row['rc']!s:>7}  {row['seconds']:6.1f} s  "
+                      + (f"max |diff| {row['max_abs_diff']:.4f}"
+                         if row.get("max_abs_diff") is not None else row.get("error", "")),
+                      flush=True)
+                if chosen == "0" and not row["right"] and ref is None:
+                    print("the kernels-off render failed: nothing to compare with", flush=True)
+                    break
+                failed |= not row["right"] and not heads
+                if not todo and not bisected and (args.bisect == "always"
+                                                  or args.bisect == "on-failure" and failed):
+                    todo, bisected = list(BISECT), True
+    keep = best_set(rows)
+    print(f"kernels that rendered right at every size: FLAMENERF_GPU_KERNELS={keep}")
+    if args.keep:
+        args.keep.write_text(keep + "\n")
     if args.json:
-        args.json.write_text(json.dumps({"command": " ".join(sys.argv), "rows": rows},
-                                        indent=1))
+        args.json.write_text(json.dumps({"command": " ".join(sys.argv), "right_below": RIGHT,
+                                         "keep": keep, "rows": rows}, indent=1))
     return 0
+
+
+def best_set(rows: list[dict]) -> str:
+    """The largest set of kernels (as FLAMENERF_GPU_KERNELS takes it) whose every render,
+    at every size, was right: '1' for all of them, '0' for none."""
+    ok: dict[str, bool] = {}
+    for r in rows:
+        if not r["heads"]:
+            ok[r["env"]] = ok.get(r["env"], True) and r["right"]
+    sets = sorted((e for e in ok if e != "0"),
+                  key=lambda e: len(KERNELS) + 1 if e == "1" else len(e.split(",")),
+                  reverse=True)
+    return next((e for e in sets if ok[e]), "0")
 
 
 if __name__ == "__main__":

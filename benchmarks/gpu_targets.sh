@@ -1,7 +1,11 @@
 #!/usr/bin/env bash
-# Issue 15's GPU targets in one call of a lent GPU machine (~6 minutes on one H100 by earlier
-# timings, ~8 with the profile and OLD_SRC's A/B: estimates; a
-# 15-minute lease leaves room to rerun it or try a variant):
+# Issue 15's GPU targets in one call of a lent GPU machine (on an H200, 2026-11-28: the
+# scene 25 s, each seed ~97 s; the rest not yet timed, ~8-9 minutes in all by estimate):
+#   0. which Triton kernels render a frame right (gpu_kernel_check.py: off, all, today's
+#      default, the field heads at their old widths; each kernel alone and all but each
+#      where one fails; each render in a fresh process); the rest runs with the largest
+#      set that did (FLAMENERF_GPU_KERNELS), and compute-sanitizer looks at all of them
+#      where that set is not all;
 #   1. the built-in scene at 256 px;
 #   2. `fast-gpu` under bench_train.py's 70 s budget on seeds 0 and 1: the held-out curve
 #      (6 val frames every 10 s) and the final held-out PSNR on all 30 val frames: the
@@ -16,8 +20,9 @@
 #      256 and 512 px with OLD_SRC and with this checkout's src, alternated in fresh
 #      processes (bench_render_ab.py), so that a change to the GPU's inference path is
 #      measured against what it replaced on one warm machine.
-# Everything it prints is also in $OUT/log.txt; the figures are JSON and Markdown in $OUT
-# (eight files, nine with OLD_SRC: what one call brings back).
+# Everything it prints is also in $OUT/log.txt; the figures (JSON and Markdown) in
+# $OUT/figures.tar, made again after every stage (a call brings back 8 files at most, and
+# what it holds when cut off). A stage that fails is logged and the next one runs.
 #
 #   on the GPU machine (its python3 has torch and Triton; nothing is installed):
 #       bash benchmarks/gpu_targets.sh
@@ -30,7 +35,7 @@
 #       there:  OLD_SRC=gpu_old/src bash benchmarks/gpu_targets.sh
 #   here, to check the script itself on a CPU in a few minutes (tiny sizes):
 #       SMOKE=1 OUT=/tmp/gpu_targets bash benchmarks/gpu_targets.sh
-set -euo pipefail
+set -uo pipefail
 OUT=${OUT:?set OUT to the folder for the figures}
 mkdir -p "$OUT"
 PY=${PYTHON:-python3}
@@ -41,59 +46,72 @@ SEEDS=${SEEDS:-0 1}
 SET=${SET:-}
 if [[ -n "${SMOKE:-}" ]]; then
   SIZE=32 BUDGET=3 EVAL_FIT=2 FINAL_FIT=2 SIZES="32 64" DEVICE=cpu REPEATS=1 CHOICE_POINTS=128
+  CHECK_SIZE=8 CHECK_TIMEOUT=300
   CHOICE_SIZE=16  # the interpreter renders the frame: slow
   EXTRA_TRAIN=(--steps 4 --batch-rays 1024)
 else
   SIZE=256 BUDGET=70 EVAL_FIT=60 FINAL_FIT=100 SIZES="128 256 512" DEVICE=cuda REPEATS=5
-  CHOICE_POINTS=0 CHOICE_SIZE=512
+  CHOICE_POINTS=0 CHOICE_SIZE=512 CHECK_SIZE=128 CHECK_TIMEOUT=120
   EXTRA_TRAIN=()
 fi
 WORK=$(mktemp -d)
 SCENE=$WORK/scene
+FIG=$WORK/figures  # brought back as one file, figures.tar: a call returns 8 files at most
+mkdir -p "$FIG"
 LOG=$OUT/log.txt
 : >"$LOG"
 say() { echo "== $(date -u +%T) (${SECONDS} s) $*" | tee -a "$LOG"; }
+pack() { tar -cf "$OUT/figures.tar" -C "$FIG" .; }
+# a stage that fails is logged and the next one runs (a kernel fault once stopped the
+# whole call at its first frame)
+stage() { local what=$1; shift; say "$what"; { "$@" 2>&1 | tee -a "$LOG"; } || say "$what: failed"; pack; }
 
 say "$(date -u +%FT%TZ) $("$PY" -c 'import torch; print(torch.__version__, torch.cuda.get_device_name(0) if torch.cuda.is_available() else "no GPU")') triton $("$PY" -c 'import triton; print(triton.__version__)' 2>/dev/null || echo none)"
 say "commit $(git rev-parse --short HEAD 2>/dev/null || echo unknown)${SET:+, set $SET}"
-"$PY" -c "from flamenerf.synthetic.scene import make_scene; make_scene('$SCENE', size=$SIZE, frames=300)" 2>&1 | tee -a "$LOG"
+CHECK_ENV=(); [[ $DEVICE == cpu ]] && CHECK_ENV=(TRITON_INTERPRET=1)
+stage "which kernels render right (${CHECK_SIZE} px, each render in a fresh process)" \
+  env "${CHECK_ENV[@]}" "$PY" benchmarks/gpu_kernel_check.py --device "$DEVICE" \
+  --sizes "$CHECK_SIZE" --timeout "$CHECK_TIMEOUT" --json "$FIG/check.json" --keep "$WORK/keep"
+KEEP=$(cat "$WORK/keep" 2>/dev/null || echo 0)
+export FLAMENERF_GPU_KERNELS=$KEEP
+say "the rest with FLAMENERF_GPU_KERNELS=$KEEP"
+SAN=$(command -v compute-sanitizer || ls /usr/local/cuda*/bin/compute-sanitizer 2>/dev/null | head -1 || true)
+if [[ $KEEP != 1 && $DEVICE == cuda && -n "$SAN" ]]; then
+  stage "compute-sanitizer on every kernel (128 px)" timeout 120 env FLAMENERF_GPU_KERNELS=1 \
+    "$SAN" --tool memcheck --print-limit 5 "$PY" benchmarks/gpu_kernel_check.py --child \
+    --device cuda --size 128 --save "$WORK/sanitized.npy"
+fi
+stage "the scene" "$PY" -c "from flamenerf.synthetic.scene import make_scene; make_scene('$SCENE', size=$SIZE, frames=300)"
 for seed in $SEEDS; do
-  say "fast-gpu seed $seed"
-  "$PY" benchmarks/bench_train.py --scene "$SCENE" --size "$SIZE" --budget "$BUDGET" \
-    --eval-every 10 --eval-frames 6 --eval-fit-steps "$EVAL_FIT" --final-fit-steps "$FINAL_FIT" \
-    --skip-throughput --targets 25,28,29,30 --quality-preset fast-gpu --seed "$seed" \
-    --set "$SET" --keep-run "$WORK/run_s$seed" --json "$OUT/train_s$seed.json" \
-    "${EXTRA_TRAIN[@]}" 2>&1 | tee -a "$LOG"
+  stage "fast-gpu seed $seed" "$PY" benchmarks/bench_train.py --scene "$SCENE" --size "$SIZE" \
+    --budget "$BUDGET" --eval-every 10 --eval-frames 6 --eval-fit-steps "$EVAL_FIT" \
+    --final-fit-steps "$FINAL_FIT" --skip-throughput --targets 25,28,29,30 \
+    --quality-preset fast-gpu --seed "$seed" --set "$SET" --keep-run "$WORK/run_s$seed" \
+    --json "$FIG/train_s$seed.json" "${EXTRA_TRAIN[@]}"
 done
 first=${SEEDS%% *}
 for refine in -1 0; do
   name=render; [[ $refine == 0 ]] && name=render_no_second_pass
-  say "$name (seed $first's run)"
   # shellcheck disable=SC2086  # the sizes are separate arguments
-  "$PY" benchmarks/bench_render.py --run "$WORK/run_s$first" --dataset "$SCENE" \
-    --device "$DEVICE" --sizes $SIZES --presets fast --repeats "$REPEATS" \
-    --refine-main "$refine" --out "$OUT/$name" 2>&1 | tee -a "$LOG"
+  stage "$name (seed $first's run)" "$PY" benchmarks/bench_render.py --run "$WORK/run_s$first" \
+    --dataset "$SCENE" --device "$DEVICE" --sizes $SIZES --presets fast --repeats "$REPEATS" \
+    --refine-main "$refine" --out "$FIG/$name"
 done
-say "the kernels' launch choices (seed $first's run, $CHOICE_SIZE px)"
-# auxiliary, as the profile; on a CPU the interpreter checks it on a few points
-# every kernel on, field_heads too (gpu_kernels.UNPROVEN)
-CHOICE_ENV=(FLAMENERF_GPU_KERNELS=1); [[ $DEVICE == cpu ]] && CHOICE_ENV=(TRITON_INTERPRET=1 FLAMENERF_GPU_KERNELS=1 \
-  FLAMENERF_CPU_KERNELS=0)
-{ env "${CHOICE_ENV[@]}" "$PY" benchmarks/gpu_choices.py --run "$WORK/run_s$first" \
-    --dataset "$SCENE" --device "$DEVICE" --size "$CHOICE_SIZE" --repeats "$REPEATS" \
-    --points "$CHOICE_POINTS" --json "$OUT/choices.json" 2>&1 | tee -a "$LOG"; } \
-  || say "the launch choices' timing failed"
-say "profile of a ${SIZES##* } px frame (seed $first's run)"
-# auxiliary: a failure here is logged and the A/B below still runs
-{ "$PY" benchmarks/profile_render.py --run "$WORK/run_s$first" --dataset "$SCENE" \
-    --device "$DEVICE" --size "${SIZES##* }" --frames 3 --rows 45 2>&1 \
-    | grep -v "^\(STAGE\|USDT\)" | tee -a "$LOG"; } || say "the profile failed"
+# on a CPU the interpreter checks the choices on a few points
+CHOICE_ENV=(); [[ $DEVICE == cpu ]] && CHOICE_ENV=(TRITON_INTERPRET=1 FLAMENERF_CPU_KERNELS=0)
+stage "the kernels' launch choices (seed $first's run, $CHOICE_SIZE px)" \
+  env "${CHOICE_ENV[@]}" "$PY" benchmarks/gpu_choices.py --run "$WORK/run_s$first" \
+  --dataset "$SCENE" --device "$DEVICE" --size "$CHOICE_SIZE" --repeats "$REPEATS" \
+  --points "$CHOICE_POINTS" --json "$FIG/choices.json"
+stage "profile of a ${SIZES##* } px frame (seed $first's run)" bash -c \
+  "'$PY' benchmarks/profile_render.py --run '$WORK/run_s$first' --dataset '$SCENE' \
+   --device '$DEVICE' --size '${SIZES##* }' --frames 3 --rows 45 | grep -v '^\(STAGE\|USDT\)'"
 if [[ -n "${OLD_SRC:-}" ]]; then
-  say "render A/B: $OLD_SRC against src (seed $first's run)"
   # shellcheck disable=SC2086
-  "$PY" benchmarks/bench_render_ab.py --run "$WORK/run_s$first" --dataset "$SCENE" \
-    --device "$DEVICE" --src "$OLD_SRC" src --sizes ${SIZES#* } --rounds 3 \
-    --repeats "$REPEATS" --json "$OUT/render_ab.json" 2>&1 | tee -a "$LOG"
+  stage "render A/B: $OLD_SRC against src (seed $first's run)" "$PY" benchmarks/bench_render_ab.py \
+    --run "$WORK/run_s$first" --dataset "$SCENE" --device "$DEVICE" --src "$OLD_SRC" src \
+    --sizes ${SIZES#* } --rounds 3 --repeats "$REPEATS" --json "$FIG/render_ab.json"
 fi
+pack
 rm -rf "$WORK"
-say "done: $(ls "$OUT" | tr '\n' ' ')"
+say "done: $(tar -tf "$OUT/figures.tar" | tr '\n' ' ')"

@@ -42,8 +42,8 @@ _recorded: list | None = None  # `recording()`'s launches
 UNPROVEN = frozenset({"field_heads"})
 """Kernels left off unless asked for (`FLAMENERF_GPU_KERNELS=1` or by name) until they have
 rendered right on a GPU: `field_heads` ended an H200's frame with an illegal memory access
-(see DOT_MIN), and how it runs padded is not yet known (benchmarks/gpu_kernel_targets.sh
-finds out on the next GPU)."""
+(see DOT_MIN), and how it runs padded is not yet known (benchmarks/gpu_targets.sh finds
+out first thing on the next GPU)."""
 
 
 def available(device: torch.device) -> bool:
