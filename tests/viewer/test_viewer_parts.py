@@ -346,6 +346,25 @@ def test_status_says_when_the_camera_leaves_the_capture(tiny_run):
     assert note.startswith(" · outside the capture (") and "cm from its cameras" in note
 
 
+def test_a_failed_image_says_what_to_do(tiny_run):
+    """A render that fails says so on the status line; a lost GPU context (every image
+    after it would fail too) says how to start again without the Triton kernels."""
+    from types import SimpleNamespace
+
+    from flamenerf.training.run import load_run
+    from flamenerf.viewer.app import Viewer
+    from flamenerf.viewer.options import ViewerOptions
+
+    run = load_run(tiny_run, device="cpu")
+    v = Viewer(run, ViewerOptions(port=1, resolution=16, verbose=False))  # never started
+    v._status[7] = status = SimpleNamespace(content="")
+    v._render_failed(7, ValueError("bad β"))
+    assert "failed (ValueError: bad β); see the terminal" in status.content
+    v._render_failed(7, RuntimeError("CUDA error: an illegal memory access was encountered"))
+    assert "illegal memory access" in status.content
+    assert "restart the viewer with FLAMENERF_GPU_KERNELS=0" in status.content
+
+
 def test_the_first_image_of_a_change_is_always_shown(tiny_run):
     """A state that changes again while its image renders (a track playing faster than
     the renderer) still gets that image shown, with Progressive off too, and an expression

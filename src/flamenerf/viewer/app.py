@@ -680,9 +680,14 @@ class Viewer:
     def _render_failed(self, key, err: BaseException) -> None:
         status = self._status.get(key)
         if status is not None:
+            from flamenerf.gpu_kernels import gpu_faulted
+
             msg = str(err).splitlines()[0][:160] if str(err) else type(err).__name__
+            # a lost CUDA context fails every image after it: say how to get going again
+            after = ("the GPU cannot render in this process again: restart the viewer with "
+                     "FLAMENERF_GPU_KERNELS=0" if gpu_faulted(err) else "see the terminal")
             status.content = (f"{STATUS_PREFIX}: failed ({type(err).__name__}: {msg}); "
-                              f"see the terminal")
+                              f"{after}")
 
     def _display(self, key, frame: Frame) -> None:
         client = self._clients.get(key)
