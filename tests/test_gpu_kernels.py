@@ -79,6 +79,15 @@ CHECK = textwrap.dedent("""
             sig32, rgb32 = gk.field_heads(feats, term, 4, dh, ch, block=block)  # float32
             assert (rgb32 - rgb_ref).abs().max() < 1e-5, block
             assert torch.allclose(sig32, sig_ref, rtol=1e-4), block
+        # a hidden width under DOT_MIN is padded with units that stay 0
+        dh2, ch2 = MLP(48, 32, 1, (), out_dim=16), MLP(15 + 35, 32, 2, (), out_dim=3)
+        term2 = torch.nn.functional.linear(cond, ch2.layers[0].weight[:, 15:],
+                                           ch2.layers[0].bias)
+        g2 = dh2(feats)
+        sig2, rgb2 = gk.field_heads(feats, term2, 4, dh2, ch2)
+        assert (rgb2 - torch.sigmoid(ch2(g2[:, 1:], cond.repeat_interleave(4, 0)[:203]))
+                ).abs().max() < 1e-5
+        assert torch.allclose(sig2, torch.exp(g2[:, 0].clamp(max=15)), rtol=1e-4)
         # heads of another shape are left to PyTorch
         assert gk.field_heads(feats, term, 4, MLP(48, 64, 2, (), out_dim=16), ch) is None
 
@@ -196,3 +205,27 @@ def test_a_kernel_that_faults_the_gpu_stops_the_work(monkeypatch):
         gpu_kernels.hashgrid_forward(HashGrid(3, 2, 10, 4, 32), torch.rand(40, 3))
     assert gpu_kernels.gpu_faulted(RuntimeError("CUDA error: an illegal memory access"))
     assert not gpu_kernels.gpu_faulted(RuntimeError("no compiler for this device"))
+
+
+def test_the_kernels_named_in_the_environment(monkeypatch):
+    """FLAMENERF_GPU_KERNELS: unset leaves the unproven kernels off, 1 turns every one on, a
+    list keeps those named, a name that is no kernel is one clear error."""
+    from flamenerf import gpu_kernels
+    from flamenerf.errors import UserError
+
+    every = {"hashgrid": 1, "knn": 2, "field_heads": 3}
+    monkeypatch.setattr(gpu_kernels, "_define", lambda: dict(every))
+
+    def loaded(value):
+        monkeypatch.setattr(gpu_kernels, "_tried", False)
+        if value is None:
+            monkeypatch.delenv("FLAMENERF_GPU_KERNELS", raising=False)
+        else:
+            monkeypatch.setenv("FLAMENERF_GPU_KERNELS", value)
+        return set(gpu_kernels._load())
+
+    assert loaded(None) == set(every) - gpu_kernels.UNPROVEN
+    assert loaded("1") == set(every)
+    assert loaded("knn, field_heads") == {"knn", "field_heads"}
+    with pytest.raises(UserError, match="no kernel knnn"):
+        loaded("knnn,hashgrid")

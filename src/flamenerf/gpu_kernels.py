@@ -76,7 +76,9 @@ def _load() -> dict | None:
         elif _kernels is not None and chosen not in ("0", "1"):
             names = {n.strip() for n in chosen.split(",") if n.strip()}
             if names - set(_kernels):
-                raise ValueError(f"FLAMENERF_GPU_KERNELS={chosen}: no kernel "
+                from flamenerf.errors import UserError
+
+                raise UserError(f"FLAMENERF_GPU_KERNELS={chosen}: no kernel "
                                  f"{', '.join(sorted(names - set(_kernels)))} (there are "
                                  f"{', '.join(sorted(_kernels))}; or 0, or 1)")
             _kernels = {n: k for n, k in _kernels.items() if n in names}
