@@ -215,6 +215,7 @@ def test_the_kernels_named_in_the_environment(monkeypatch):
 
     every = {"hashgrid": 1, "knn": 2, "field_heads": 3}
     monkeypatch.setattr(gpu_kernels, "_define", lambda: dict(every))
+    monkeypatch.setattr(gpu_kernels, "_kernels", None)  # restored after: _load sets it
 
     def loaded(value):
         monkeypatch.setattr(gpu_kernels, "_tried", False)
