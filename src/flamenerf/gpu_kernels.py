@@ -152,7 +152,9 @@ def _define() -> dict:
                      F: tl.constexpr, FP: tl.constexpr, BLOCK: tl.constexpr,
                      RANK: tl.constexpr, FE: tl.constexpr):
         lv = tl.program_id(1)
-        rows = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
+        # int64 rows: a 512 px frame's second pass can hold up to 262144 x 128 points,
+        # whose offsets into a features buffer of 48 columns reach 1.6e9 (2^31 at 64)
+        rows = tl.program_id(0).to(tl.int64) * BLOCK + tl.arange(0, BLOCK)
         ok = rows < n
         r = tl.load(res_ptr + lv)  # int64
         dense = tl.load(dense_ptr + lv) != 0
