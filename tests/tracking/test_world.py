@@ -211,3 +211,27 @@ def test_controls_that_follow_the_view_are_named():
     assert list(got) == ["eyeLookOutRight"]
     assert got["eyeLookOutRight"]["azimuth_r"] > 0.9
     assert got["eyeLookOutRight"]["elevation_r"] is None  # the camera stays level
+
+
+def test_a_nodding_head_before_a_still_camera_is_a_changing_view():
+    """A still camera and a head that nods: the world's cameras do not move, but the view
+    of the head does, and a control that follows the nod is named (the expressions clip's
+    brows rise with the head up; the report once judged the world's cameras and named
+    nothing)."""
+    from flamenerf.tracking.report import expression_coverage
+
+    n = 40
+    pitch = np.radians(np.linspace(-10, 10, n))
+    c2w = np.tile(np.eye(4), (n, 1, 1))
+    c2w[:, 2, 3] = 0.6  # the camera stays put, 0.6 m in front of the head
+    head = np.tile(np.eye(4), (n, 1, 1))
+    head[:, :3, :3] = Rotation.from_euler("x", pitch[:, None]).as_matrix()
+    rng = np.random.default_rng(0)
+    names = ["browOuterUpLeft", "jawOpen"]
+    expr = np.stack([0.3 + 0.02 * np.degrees(pitch) + 0.01 * rng.normal(size=n),
+                     rng.uniform(0, 0.5, n)], 1)
+    splits = ["train"] * n
+    assert expression_coverage(expr, names, splits, c2w)["follow_the_view"] == {}
+    got = expression_coverage(expr, names, splits, c2w, head)["follow_the_view"]
+    assert list(got) == ["browOuterUpLeft"]
+    assert abs(got["browOuterUpLeft"]["elevation_r"]) > 0.9

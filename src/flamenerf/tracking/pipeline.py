@@ -280,6 +280,7 @@ def write_dataset(video: Path, out: Path, opts: PreprocessOptions, clip, sol, sc
             video_out = VideoWriter(writer.tmp / "qa" / "overlay.mp4", min(info.fps, 30.0),
                                     quality=7)
 
+        seen = R.cameras_in_head(sol.c2w, head_pose)
         pos_of = {int(s): k for k, s in enumerate(clip.frames)}
         it = iter_frames(info, clip.frames)
         for i, rgb in progress_bar(it, N, "writing", opts.progress):
@@ -297,9 +298,7 @@ def write_dataset(video: Path, out: Path, opts: PreprocessOptions, clip, sol, sc
             if opts.qa:
                 label = f"{k:04d} src {i} {splits[k]} err {sol.rigid_error[k] * crop.scale:.2f}px"
                 # head axes: the camera seen from the head
-                cam_in_head = sol.c2w[k] if head_pose is None else np.linalg.inv(
-                    head_pose[k]) @ sol.c2w[k]
-                ov = qa.overlay_frame(img, mask, lm_out[k, :468], intr, cam_in_head, label)
+                ov = qa.overlay_frame(img, mask, lm_out[k, :468], intr, seen[k], label)
                 video_out.write(ov)
                 if k in sheet_pos:
                     sheet_frames.append(ov)

@@ -106,21 +106,31 @@ def tracking_report(video: Path, clip, sol, scene, intr, crop, crop_facts, n_tra
         "near": near, "far": far,
         "expression_model": {"kind": kind, "dim": len(names)},
         "expressions": (None if expressions is None
-                        else expression_coverage(expressions, names, splits, sol.c2w)),
+                        else expression_coverage(expressions, names, splits, sol.c2w,
+                                                 scene.world.head_pose)),
         "splits": {s: splits.count(s) for s in sorted(set(splits))},
         "timings_s": timings,
         "frames": per_frame,
     }
 
 
+def cameras_in_head(c2w: np.ndarray, head_pose: np.ndarray | None) -> np.ndarray:
+    """The cameras seen from the head: c2w (N, 4, 4) world cameras, head_pose (N, 4, 4)
+    world-from-head or None (the head is the world) -> (N, 4, 4)."""
+    return c2w if head_pose is None else np.linalg.inv(head_pose) @ c2w
+
+
 def expression_coverage(expressions: np.ndarray, names: list[str], splits: list[str],
-                        c2w: np.ndarray | None = None) -> dict:
+                        c2w: np.ndarray | None = None, head_pose: np.ndarray | None = None
+                        ) -> dict:
     """What a model of this clip can learn about each control: over the training frames,
     its range (what `render` and the viewer clamp to, data/expression_range.py) and the
     span of most frames (5th-95th percentile; `eval` sweeps the controls whose span is at
-    least 0.1); with the cameras in the head's frame (c2w (N, 4, 4)), the controls that
-    move with the view (`view_confounds`). -> {"varying": [...], "barely_moving": [...],
-    "controls": {name: {...}}, "follow_the_view": {name: {...}}}"""
+    least 0.1); with the cameras (c2w (N, 4, 4), and the head's poses where it moves in the
+    world), the controls that move with the view of the head (`view_confounds`): a head that
+    nods before a still camera is seen from above and below as an orbit sees it. ->
+    {"varying": [...], "barely_moving": [...], "controls": {name: {...}},
+    "follow_the_view": {name: {...}}}"""
     from flamenerf.data.expression_range import ExpressionRange, span, varies
 
     x = np.asarray(expressions, np.float64)
@@ -134,8 +144,8 @@ def expression_coverage(expressions: np.ndarray, names: list[str], splits: list[
         (moving if varies(x[train, k]) else still).append(n)
     out = {"varying": moving, "barely_moving": still, "controls": controls}
     if c2w is not None:
-        out["follow_the_view"] = view_confounds(x[train], names, np.asarray(c2w)[train],
-                                                moving)
+        seen = cameras_in_head(np.asarray(c2w), head_pose)
+        out["follow_the_view"] = view_confounds(x[train], names, seen[train], moving)
     return out
 
 
