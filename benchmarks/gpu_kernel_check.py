@@ -23,7 +23,10 @@ import time
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
-KERNELS = ("hashgrid", "knn", "field_heads")
+sys.path.insert(0, str(HERE.parent / "src"))
+from flamenerf.gpu_kernels import NAMES, UNPROVEN  # noqa: E402
+
+DEFAULT = ",".join(k for k in NAMES if k not in UNPROVEN)
 RIGHT = 0.05
 """The largest colour difference from the kernels-off frame that counts as rendering right
 (half precision and the layers' summation order differ by ~1e-3)."""
@@ -66,17 +69,26 @@ def child(args) -> None:
 
 
 FIRST = [("off", "0", ""), ("all", "1", ""),
-         ("default", ",".join(k for k in KERNELS if k != "field_heads"), ""),
+         ("default", "", ""),  # FLAMENERF_GPU_KERNELS unset: what a user gets
          ("field_heads widths of 16", "field_heads", "64,4,16")]
-BISECT = [c for c in [(f"{k} alone", k, "") for k in KERNELS]
-          + [(f"all but {k}", ",".join(x for x in KERNELS if x != k), "") for k in KERNELS]
-          if c[1] not in {f[1] for f in FIRST}]  # the default is all but field_heads
+"""(label, FLAMENERF_GPU_KERNELS ('' unset), field_heads' BLOCK,WARPS,DOT_MIN or '')"""
+BISECT = [c for c in [(f"{k} alone", k, "") for k in NAMES]
+          + [(f"all but {k}", ",".join(x for x in NAMES if x != k), "") for k in NAMES]
+          if ("" if c[1] == DEFAULT else c[1], c[2]) not in {(f[1], f[2]) for f in FIRST}]
+"""Each kernel alone and all but each, less what FIRST rendered already."""
+
+
+def kernel_set(env: str) -> str:
+    """FLAMENERF_GPU_KERNELS's value as the list of names it turns on ('1': all, '0')."""
+    return DEFAULT if env == "" else env
 
 
 def render(args, tmp: str, size: int, label: str, chosen: str, heads: str, n: int) -> dict:
     """One configuration's frame in a fresh process -> its row (the image saved)."""
     save = f"{tmp}/{size}_{n}.npy"
     env = {**os.environ, "FLAMENERF_GPU_KERNELS": chosen, "PYTHONUNBUFFERED": "1"}
+    if not chosen:
+        del env["FLAMENERF_GPU_KERNELS"]
     if args.device == "cpu":
         env.update(TRITON_INTERPRET="1", FLAMENERF_CPU_KERNELS="0")
     t = time.perf_counter()
@@ -137,25 +149,33 @@ def main() -> int:
                                 and row["max_abs_diff"] < RIGHT and not row["nan"])
                 del row["save"]
                 rows.append(row)
+                save(args, rows)
                 print(f"{size:4d}px  {label:>26s}  rc {row['rc']!s:>7}  {row['seconds']:6.1f} s  "
                       + (f"max |diff| {row['max_abs_diff']:.4f}"
                          if row.get("max_abs_diff") is not None else row.get("error", "")),
                       flush=True)
-                if chosen == "0" and not row["right"] and ref is None:
+                if chosen == "0" and ref is None:
                     print("the kernels-off render failed: nothing to compare with", flush=True)
                     break
                 failed |= not row["right"] and not heads
                 if not todo and not bisected and (args.bisect == "always"
                                                   or args.bisect == "on-failure" and failed):
                     todo, bisected = list(BISECT), True
-    keep = best_set(rows)
+    keep = save(args, rows)
     print(f"kernels that rendered right at every size: FLAMENERF_GPU_KERNELS={keep}")
+    return 0
+
+
+def save(args, rows: list[dict]) -> str:
+    """The JSON and the kept set as they stand (after every render: a check stopped by a
+    time limit leaves what it found) -> the kept set."""
+    keep = best_set(rows)
     if args.keep:
         args.keep.write_text(keep + "\n")
     if args.json:
         args.json.write_text(json.dumps({"command": " ".join(sys.argv), "right_below": RIGHT,
                                          "keep": keep, "rows": rows}, indent=1))
-    return 0
+    return keep
 
 
 def best_set(rows: list[dict]) -> str:
@@ -164,9 +184,10 @@ def best_set(rows: list[dict]) -> str:
     ok: dict[str, bool] = {}
     for r in rows:
         if not r["heads"]:
-            ok[r["env"]] = ok.get(r["env"], True) and r["right"]
+            e = kernel_set(r["env"])
+            ok[e] = ok.get(e, True) and r["right"]
     sets = sorted((e for e in ok if e != "0"),
-                  key=lambda e: len(KERNELS) + 1 if e == "1" else len(e.split(",")),
+                  key=lambda e: len(NAMES) + 1 if e == "1" else len(e.split(",")),
                   reverse=True)
     return next((e for e in sets if ok[e]), "0")
 

@@ -5,7 +5,7 @@
 #      default, the field heads at their old widths; each kernel alone and all but each
 #      where one fails; each render in a fresh process); the rest runs with the largest
 #      set that did (FLAMENERF_GPU_KERNELS), and compute-sanitizer looks at all of them
-#      where that set is not all;
+#      where that set is not all (the last stage);
 #   1. the built-in scene at 256 px;
 #   2. `fast-gpu` under bench_train.py's 70 s budget on seeds 0 and 1: the held-out curve
 #      (6 val frames every 10 s) and the final held-out PSNR on all 30 val frames: the
@@ -46,12 +46,13 @@ SEEDS=${SEEDS:-0 1}
 SET=${SET:-}
 if [[ -n "${SMOKE:-}" ]]; then
   SIZE=32 BUDGET=3 EVAL_FIT=2 FINAL_FIT=2 SIZES="32 64" DEVICE=cpu REPEATS=1 CHOICE_POINTS=128
-  CHECK_SIZE=8 CHECK_TIMEOUT=300
+  CHECK_SIZES=8 CHECK_TIMEOUT=300 CHECK_BUDGET=1500
   CHOICE_SIZE=16  # the interpreter renders the frame: slow
   EXTRA_TRAIN=(--steps 4 --batch-rays 1024)
 else
   SIZE=256 BUDGET=70 EVAL_FIT=60 FINAL_FIT=100 SIZES="128 256 512" DEVICE=cuda REPEATS=5
-  CHOICE_POINTS=0 CHOICE_SIZE=512 CHECK_SIZE=128 CHECK_TIMEOUT=120
+  CHOICE_POINTS=0 CHOICE_SIZE=512 CHECK_SIZES="128 512" CHECK_TIMEOUT=60
+  CHECK_BUDGET=240  # the check as a whole: a GPU that hangs must leave time for the rest
   EXTRA_TRAIN=()
 fi
 WORK=$(mktemp -d)
@@ -61,26 +62,20 @@ mkdir -p "$FIG"
 LOG=$OUT/log.txt
 : >"$LOG"
 say() { echo "== $(date -u +%T) (${SECONDS} s) $*" | tee -a "$LOG"; }
-pack() { tar -cf "$OUT/figures.tar" -C "$FIG" .; }
+pack() { tar -cf "$OUT/.figures.tar" -C "$FIG" . && mv "$OUT/.figures.tar" "$OUT/figures.tar"; }
 # a stage that fails is logged and the next one runs (a kernel fault once stopped the
 # whole call at its first frame)
 stage() { local what=$1; shift; say "$what"; { "$@" 2>&1 | tee -a "$LOG"; } || say "$what: failed"; pack; }
 
 say "$(date -u +%FT%TZ) $("$PY" -c 'import torch; print(torch.__version__, torch.cuda.get_device_name(0) if torch.cuda.is_available() else "no GPU")') triton $("$PY" -c 'import triton; print(triton.__version__)' 2>/dev/null || echo none)"
 say "commit $(git rev-parse --short HEAD 2>/dev/null || echo unknown)${SET:+, set $SET}"
-CHECK_ENV=(); [[ $DEVICE == cpu ]] && CHECK_ENV=(TRITON_INTERPRET=1)
-stage "which kernels render right (${CHECK_SIZE} px, each render in a fresh process)" \
-  env "${CHECK_ENV[@]}" "$PY" benchmarks/gpu_kernel_check.py --device "$DEVICE" \
-  --sizes "$CHECK_SIZE" --timeout "$CHECK_TIMEOUT" --json "$FIG/check.json" --keep "$WORK/keep"
+# shellcheck disable=SC2086  # the sizes are separate arguments
+stage "which kernels render right ($CHECK_SIZES px, each render in a fresh process)" \
+  timeout "$CHECK_BUDGET" "$PY" benchmarks/gpu_kernel_check.py --device "$DEVICE" \
+  --sizes $CHECK_SIZES --timeout "$CHECK_TIMEOUT" --json "$FIG/check.json" --keep "$WORK/keep"
 KEEP=$(cat "$WORK/keep" 2>/dev/null || echo 0)
 export FLAMENERF_GPU_KERNELS=$KEEP
 say "the rest with FLAMENERF_GPU_KERNELS=$KEEP"
-SAN=$(command -v compute-sanitizer || ls /usr/local/cuda*/bin/compute-sanitizer 2>/dev/null | head -1 || true)
-if [[ $KEEP != 1 && $DEVICE == cuda && -n "$SAN" ]]; then
-  stage "compute-sanitizer on every kernel (128 px)" timeout 120 env FLAMENERF_GPU_KERNELS=1 \
-    "$SAN" --tool memcheck --print-limit 5 "$PY" benchmarks/gpu_kernel_check.py --child \
-    --device cuda --size 128 --save "$WORK/sanitized.npy"
-fi
 stage "the scene" "$PY" -c "from flamenerf.synthetic.scene import make_scene; make_scene('$SCENE', size=$SIZE, frames=300)"
 for seed in $SEEDS; do
   stage "fast-gpu seed $seed" "$PY" benchmarks/bench_train.py --scene "$SCENE" --size "$SIZE" \
@@ -103,14 +98,31 @@ stage "the kernels' launch choices (seed $first's run, $CHOICE_SIZE px)" \
   env "${CHOICE_ENV[@]}" "$PY" benchmarks/gpu_choices.py --run "$WORK/run_s$first" \
   --dataset "$SCENE" --device "$DEVICE" --size "$CHOICE_SIZE" --repeats "$REPEATS" \
   --points "$CHOICE_POINTS" --json "$FIG/choices.json"
-stage "profile of a ${SIZES##* } px frame (seed $first's run)" bash -c \
-  "'$PY' benchmarks/profile_render.py --run '$WORK/run_s$first' --dataset '$SCENE' \
-   --device '$DEVICE' --size '${SIZES##* }' --frames 3 --rows 45 | grep -v '^\(STAGE\|USDT\)'"
+profile() {
+  "$PY" benchmarks/profile_render.py --run "$WORK/run_s$first" --dataset "$SCENE" \
+    --device "$DEVICE" --size "${SIZES##* }" --frames 3 --rows 45 2>&1 \
+    | { grep -v "^\(STAGE\|USDT\)" || true; }
+}
+stage "profile of a ${SIZES##* } px frame (seed $first's run)" profile
 if [[ -n "${OLD_SRC:-}" ]]; then
+  # the old src knows FLAMENERF_GPU_KERNELS=0 alone: any other value turns on all of its
+  # kernels (hashgrid and knn; it has no field heads' kernel), like for like with today's
+  # default set
   # shellcheck disable=SC2086
   stage "render A/B: $OLD_SRC against src (seed $first's run)" "$PY" benchmarks/bench_render_ab.py \
     --run "$WORK/run_s$first" --dataset "$SCENE" --device "$DEVICE" --src "$OLD_SRC" src \
     --sizes ${SIZES#* } --rounds 3 --repeats "$REPEATS" --json "$FIG/render_ab.json"
+fi
+SAN=$(command -v compute-sanitizer || ls /usr/local/cuda*/bin/compute-sanitizer 2>/dev/null \
+  | head -1 || true)
+if [[ $KEEP != 1 && $DEVICE == cuda ]]; then
+  if [[ -n "$SAN" ]]; then  # last: it can take minutes, and the figures come first
+    stage "compute-sanitizer, every kernel on (128 px)" timeout 150 env FLAMENERF_GPU_KERNELS=1 \
+      "$SAN" --tool memcheck --error-exitcode 1 --print-limit 5 "$PY" \
+      benchmarks/gpu_kernel_check.py --child --device cuda --size 128 --save "$WORK/san.npy"
+  else
+    say "compute-sanitizer: not found"
+  fi
 fi
 pack
 rm -rf "$WORK"

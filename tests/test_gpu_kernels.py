@@ -88,6 +88,11 @@ CHECK = textwrap.dedent("""
         assert (rgb2 - torch.sigmoid(ch2(g2[:, 1:], cond.repeat_interleave(4, 0)[:203]))
                 ).abs().max() < 1e-5
         assert torch.allclose(sig2, torch.exp(g2[:, 0].clamp(max=15)), rtol=1e-4)
+        try:  # blocks of 32: dots of that size fault on sm_90 (DOT_MIN)
+            gk.field_heads(feats, term, 4, dh, ch, block=32)
+            raise AssertionError("a block of 32 was taken")
+        except ValueError as e:
+            assert "power of two" in str(e)
         # heads of another shape are left to PyTorch
         assert gk.field_heads(feats, term, 4, MLP(48, 64, 2, (), out_dim=16), ch) is None
 
@@ -201,7 +206,7 @@ def test_a_kernel_that_faults_the_gpu_stops_the_work(monkeypatch):
     monkeypatch.setenv("TRITON_INTERPRET", "1")
     monkeypatch.setattr(gpu_kernels, "_tried", True)
     monkeypatch.setattr(gpu_kernels, "_kernels", {"hashgrid": Faulting()})
-    with pytest.raises(gpu_kernels.GPUFault, match="hashgrid faulted on the GPU"):
+    with pytest.raises(gpu_kernels.GPUFault, match="launch of the Triton kernel hashgrid"):
         gpu_kernels.hashgrid_forward(HashGrid(3, 2, 10, 4, 32), torch.rand(40, 3))
     assert gpu_kernels.gpu_faulted(RuntimeError("CUDA error: an illegal memory access"))
     assert not gpu_kernels.gpu_faulted(RuntimeError("no compiler for this device"))
@@ -210,9 +215,13 @@ def test_a_kernel_that_faults_the_gpu_stops_the_work(monkeypatch):
 def test_the_kernels_named_in_the_environment(monkeypatch):
     """FLAMENERF_GPU_KERNELS: unset leaves the unproven kernels off, 1 turns every one on, a
     list keeps those named, a name that is no kernel is one clear error."""
+    import torch
+
     from flamenerf import gpu_kernels
     from flamenerf.errors import UserError
 
+    if importlib.util.find_spec("triton") is not None:
+        assert tuple(gpu_kernels._define()) == gpu_kernels.NAMES
     every = {"hashgrid": 1, "knn": 2, "field_heads": 3}
     monkeypatch.setattr(gpu_kernels, "_define", lambda: dict(every))
     monkeypatch.setattr(gpu_kernels, "_kernels", None)  # restored after: _load sets it
@@ -225,8 +234,43 @@ def test_the_kernels_named_in_the_environment(monkeypatch):
             monkeypatch.setenv("FLAMENERF_GPU_KERNELS", value)
         return set(gpu_kernels._load())
 
-    assert loaded(None) == set(every) - gpu_kernels.UNPROVEN
+    assert loaded(None) == loaded("") == set(every) - gpu_kernels.UNPROVEN
     assert loaded("1") == set(every)
     assert loaded("knn, field_heads") == {"knn", "field_heads"}
     with pytest.raises(UserError, match="no kernel knnn"):
         loaded("knnn,hashgrid")
+    assert not gpu_kernels._tried  # nothing kept from the wrong name: it raises again
+    with pytest.raises(UserError):
+        gpu_kernels._load()
+    monkeypatch.setenv("FLAMENERF_GPU_KERNELS", "0")
+    assert gpu_kernels.working() == [] and not gpu_kernels.available(torch.device("cuda"))
+    assert "were off" in gpu_kernels.fault_advice()
+
+
+def test_the_kernel_check_tries_each_configuration_once_and_keeps_the_largest_right(
+        monkeypatch):
+    """benchmarks/gpu_kernel_check.py, which the next GPU call runs first: the padded heads
+    alone are among its renders (a first version dropped them), nothing twice, and the set
+    it hands on is the largest that rendered right at every size."""
+    from pathlib import Path
+
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    import gpu_kernel_check as g
+
+    configs = g.FIRST + g.BISECT
+    labels = [c[0] for c in configs]
+    assert {"off", "all", "default", "field_heads alone", "field_heads widths of 16"} <= set(
+        labels)
+    assert len({(g.kernel_set(c[1]), c[2]) for c in configs}) == len(configs)
+
+    def row(env, right, heads=""):
+        return {"env": env, "heads": heads, "right": right}
+
+    assert g.best_set([row("0", True), row("1", True), row("", True)]) == "1"
+    assert g.best_set([row("0", True), row("1", False), row("", True),
+                       row("field_heads", False, "64,4,16")]) == g.DEFAULT
+    assert g.best_set([row("0", True), row("1", False), row("", False), row("knn", True),
+                       row("hashgrid", False)]) == "knn"
+    assert g.best_set([row("0", True), row("1", True), row("", True, ""),
+                       row("1", False)]) == g.DEFAULT  # wrong at a second size
+    assert g.best_set([row("0", True), row("1", False)]) == "0"

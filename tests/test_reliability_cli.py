@@ -268,6 +268,14 @@ def test_a_gpu_fault_is_one_line_naming_the_way_round(tmp_path, capsys, monkeypa
     assert list(tmp_path.iterdir()) == []
 
 
+def test_a_mistyped_kernel_name_is_one_line_before_any_work(tmp_path, capsys, monkeypatch):
+    monkeypatch.setenv("FLAMENERF_GPU_KERNELS", "knn,hashgird")
+    rc, err = run_cli(capsys, "synth", tmp_path / "sk", *SYNTH)
+    assert rc == 2
+    one_line(err, "FLAMENERF_GPU_KERNELS=knn,hashgird", "no kernel hashgird")
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_an_unreadable_metrics_file_is_one_line(tmp_path, capsys):
     (tmp_path / "m.json").write_bytes(b"\xff\xfe\x00binary")
     rc, err = run_cli(capsys, "compare", tmp_path / "m.json")

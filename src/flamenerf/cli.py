@@ -257,6 +257,14 @@ def main(argv: list[str] | None = None) -> int:
         print(f"flamenerf: error: {args[0]!r} is not a command{suggest(args[0], list(cmds))} "
               "(`flamenerf --help` lists them)", file=sys.stderr)
         return 2
+    if os.environ.get("FLAMENERF_GPU_KERNELS", "").strip() not in ("", "0", "1"):
+        from flamenerf.gpu_kernels import chosen
+
+        try:  # a mistyped kernel name: said now, not at the first render after training
+            chosen()
+        except UserError as e:
+            print(f"flamenerf: error: {e}", file=sys.stderr)
+            return 2
     if args and args[0] in cmds:
         merged = merge_repeated(args[1:], list_flags(cmds[args[0]]))
         if merged != args[1:]:
@@ -283,14 +291,13 @@ def main(argv: list[str] | None = None) -> int:
         # --frames): one line, not the allocator's traceback
         oom = (isinstance(e, MemoryError) or type(e).__name__ == "OutOfMemoryError"
                or "DefaultCPUAllocator" in str(e) or "out of memory" in str(e))  # (MPS)
-        from flamenerf.gpu_kernels import gpu_faulted
+        from flamenerf import gpu_kernels
 
-        if gpu_faulted(e) and not os.environ.get("FLAMENERF_DEBUG"):
+        if gpu_kernels.gpu_faulted(e) and not os.environ.get("FLAMENERF_DEBUG"):
             # the GPU's context is lost; the likeliest cause is one of our Triton kernels
-            first = (str(e).strip().splitlines() or [type(e).__name__])[0]
-            print(f"flamenerf: error: the GPU faulted ({first}); run again "
-                  "with FLAMENERF_GPU_KERNELS=0 (PyTorch's ops only) and please report it "
-                  "(FLAMENERF_DEBUG=1 shows the traceback)", file=sys.stderr)
+            what = (gpu_kernels.first_line(e) if isinstance(e, gpu_kernels.GPUFault)
+                    else f"the GPU faulted ({gpu_kernels.first_line(e)})")
+            print(f"flamenerf: error: {what}; {gpu_kernels.fault_advice()}", file=sys.stderr)
             return 1
         if not oom or os.environ.get("FLAMENERF_DEBUG"):
             raise

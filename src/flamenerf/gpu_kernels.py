@@ -39,6 +39,9 @@ _tried = False
 _recorded: list | None = None  # `recording()`'s launches
 
 
+NAMES = ("hashgrid", "knn", "field_heads")
+"""The kernels, by name (what FLAMENERF_GPU_KERNELS lists)."""
+
 UNPROVEN = frozenset({"field_heads"})
 """Kernels left off unless asked for (`FLAMENERF_GPU_KERNELS=1` or by name) until they have
 rendered right on a GPU: `field_heads` ended an H200's frame with an illegal memory access
@@ -46,9 +49,27 @@ rendered right on a GPU: `field_heads` ended an H200's frame with an illegal mem
 out first thing on the next GPU)."""
 
 
+def chosen() -> frozenset[str]:
+    """The kernels FLAMENERF_GPU_KERNELS asks for: unset or empty, all but UNPROVEN; `0`,
+    none; `1`, all; else the names listed (comma-separated). A name that is no kernel is a
+    UserError (the CLI checks it before any work)."""
+    value = os.environ.get("FLAMENERF_GPU_KERNELS", "").strip()
+    if value in ("", "0", "1"):
+        return {"": frozenset(NAMES) - UNPROVEN, "0": frozenset(),
+                "1": frozenset(NAMES)}[value]
+    names = {n.strip() for n in value.split(",") if n.strip()}
+    if names - set(NAMES):
+        from flamenerf.errors import UserError
+
+        raise UserError(f"FLAMENERF_GPU_KERNELS={value}: no kernel "
+                        f"{', '.join(sorted(names - set(NAMES)))} (there are "
+                        f"{', '.join(NAMES)}; or 0 for none, 1 for all)")
+    return frozenset(names)
+
+
 def available(device: torch.device) -> bool:
     """Whether the kernels can run on tensors of `device`."""
-    if os.environ.get("FLAMENERF_GPU_KERNELS", "1") == "0":
+    if not chosen():
         return False
     interpret = os.environ.get("TRITON_INTERPRET") == "1"
     if device.type != "cuda" and not (interpret and device.type == "cpu"):
@@ -57,32 +78,38 @@ def available(device: torch.device) -> bool:
 
 
 def working() -> list[str]:
-    """The kernels built or not yet tried, by name (one that failed is off: `_launch`)."""
-    kernels = _load()
+    """The kernels chosen and built or not yet tried, by name (one that failed is off:
+    `_launch`)."""
+    kernels = _load() if chosen() else None
     return sorted(kernels) if kernels is not None else []
 
 
 def _load() -> dict | None:
     global _kernels, _tried
     if not _tried:
+        keep = chosen()  # a wrong name raises before anything is kept
         _tried = True
         try:
-            _kernels = _define()
+            kernels = _define()
         except ImportError:
-            _kernels = None
-        chosen = os.environ.get("FLAMENERF_GPU_KERNELS")
-        if _kernels is not None and chosen is None:
-            _kernels = {n: k for n, k in _kernels.items() if n not in UNPROVEN}
-        elif _kernels is not None and chosen not in ("0", "1"):
-            names = {n.strip() for n in chosen.split(",") if n.strip()}
-            if names - set(_kernels):
-                from flamenerf.errors import UserError
-
-                raise UserError(f"FLAMENERF_GPU_KERNELS={chosen}: no kernel "
-                                 f"{', '.join(sorted(names - set(_kernels)))} (there are "
-                                 f"{', '.join(sorted(_kernels))}; or 0, or 1)")
-            _kernels = {n: k for n, k in _kernels.items() if n in names}
+            kernels = None
+        _kernels = None if kernels is None else {n: k for n, k in kernels.items() if n in keep}
     return _kernels
+
+
+def first_line(e: BaseException) -> str:
+    """An error's first line (its type where it says nothing): for one-line messages."""
+    return (str(e).strip().splitlines() or [type(e).__name__])[0]
+
+
+def fault_advice(again: str = "run again") -> str:
+    """What to do after a GPU fault, for a one-line message: `again` ('run again', 'restart
+    the viewer') without the Triton kernels, unless they were off already."""
+    if not chosen():
+        return ("the Triton kernels were off, so PyTorch or the driver faulted "
+                "(FLAMENERF_DEBUG=1 shows the traceback)")
+    return (f"{again} with FLAMENERF_GPU_KERNELS=0 (PyTorch's ops only) and please report "
+            "it (FLAMENERF_DEBUG=1 shows the traceback)")
 
 
 FP_FUSION = True
@@ -106,9 +133,9 @@ def _launch(name: str, grid: tuple, *args, **meta) -> bool:
         return True
     except Exception as e:  # noqa: BLE001 - any build or launch failure means: do without
         if gpu_faulted(e):  # the CUDA context is gone: PyTorch's ops would fail too
-            raise GPUFault(f"the Triton kernel {name} faulted on the GPU "
-                           f"({(str(e).strip().splitlines() or [type(e).__name__])[0]}); "
-                           "FLAMENERF_GPU_KERNELS=0 renders without the kernels") from e
+            raise GPUFault(f"a GPU fault was reported at the launch of the Triton kernel "
+                           f"{name} ({first_line(e)}; CUDA reports faults late: "
+                           "CUDA_LAUNCH_BLOCKING=1 names the kernel that made it)") from e
         del kernels[name]
         warnings.warn(f"flamenerf: the Triton kernel {name} failed ({type(e).__name__}: "
                       f"{str(e)[:200]}); using PyTorch ops instead", stacklevel=3)

@@ -680,12 +680,13 @@ class Viewer:
     def _render_failed(self, key, err: BaseException) -> None:
         status = self._status.get(key)
         if status is not None:
-            from flamenerf.gpu_kernels import gpu_faulted
+            from flamenerf.gpu_kernels import fault_advice, first_line, gpu_faulted
 
-            msg = str(err).splitlines()[0][:160] if str(err) else type(err).__name__
+            msg = first_line(err)[:160]
             # a lost CUDA context fails every image after it: say how to get going again
-            after = ("the GPU cannot render in this process again: restart the viewer with "
-                     "FLAMENERF_GPU_KERNELS=0" if gpu_faulted(err) else "see the terminal")
+            after = ("the GPU cannot render in this process again: "
+                     + fault_advice("restart the viewer") if gpu_faulted(err)
+                     else "see the terminal")
             status.content = (f"{STATUS_PREFIX}: failed ({type(err).__name__}: {msg}); "
                               f"{after}")
 
