@@ -160,13 +160,15 @@ def test_case_detection_from_motion():
         status = "registered"
 
     for cam_deg, head_deg, case in ((30, 0, CASES[0]), (30, 15, CASES[2]),
-                                    (0.5, 0, CASES[3])):
+                                    (0.5, 0, CASES[3]), (0.5, 15, CASES[1])):
         c2w, head = _poses(cam_deg=cam_deg, head_deg=head_deg)
         Reg.c2w = c2w
         w = compose_world(np.linalg.inv(c2w) @ head, Reg, np.zeros(3))
         assert w.case == case, (cam_deg, head_deg)
         assert w.scale == pytest.approx(1.0, rel=1e-6) or cam_deg < 1
         assert any("novel views will extrapolate" in m for m in w.warnings) == (cam_deg < 5)
+        # a head that turns before a still camera is seen from other sides: the room is not
+        assert any("the head's own turns" in m for m in w.warnings) == (case == CASES[1])
 
 
 def test_preprocess_tells_the_case_the_still_head_check_and_every_warning():

@@ -181,7 +181,7 @@ def compose_world(cam_from_head: np.ndarray, reg, head_centre: np.ndarray,
     to_head = np.linalg.inv(mean_pose(head))  # the world is the head's mean pose
     c2w, head = to_head @ c2w, to_head @ head
     cam, hm = motion_stats(c2w, head, head_centre)
-    warnings += _motion_warnings(case, cam, th)
+    warnings += _motion_warnings(case, cam, th, hm)
     return World(case, c2w, head, scale, cam, hm, warnings)
 
 
@@ -192,11 +192,17 @@ def _fallback(cam_from_head, head_centre, th, warnings) -> World:
     return World(CASES[4], c2w, None, None, cam, hm, warnings)
 
 
-def _motion_warnings(case: str, cam: dict, th: MotionThresholds) -> list[str]:
+def _motion_warnings(case: str, cam: dict, th: MotionThresholds,
+                     head: dict | None = None) -> list[str]:
     if cam["baseline_deg"] < th.small_baseline_deg:
         what = ("the camera does not move" if case in (CASES[1], CASES[3])
                 else "the camera barely moves")
+        # a head that turns before a still camera is seen from other sides all the same:
+        # what novel views extrapolate is the room's
+        turns = head is not None and head["rotation_max_deg"] > th.head_deg
+        of = (f" of the room (the head's own turns, up to {head['rotation_max_deg']:.0f} deg "
+              "from its mean pose, show it from other sides)" if turns else "")
         return [f"{what} ({cam['baseline_deg']:.1f} deg of baseline seen from the head): "
-                "novel views will extrapolate beyond what the clip shows; default camera "
-                "paths stay within the captured range"]
+                f"novel views will extrapolate beyond what the clip shows{of}; default "
+                "camera paths stay within the captured range"]
     return []
