@@ -48,12 +48,15 @@ CHECK = textwrap.dedent("""
     mlp.MLP.forward_lean = counted("lean", mlp.MLP.forward_lean)
     with gpu_path_on_cpu():
         gpu = render(m, settings)
-    assert all(v > 0 for v in calls.values()), calls
+    heads_on = "field_heads" in gpu_kernels.working()
+    assert all(v > 0 for k, v in calls.items() if k != "heads"), calls
+    assert (calls["heads"] > 0) == heads_on, calls
     assert 0.2 < float(cpu["acc"].mean()) < 0.999
     for k in ("rgb", "acc", "depth"):
         err = (gpu[k] - cpu[k]).abs().max()
         assert err < 2e-4, (k, float(err))
-    print("gpu path agrees", calls)
+    import json
+    print("gpu path agrees", json.dumps(calls))
 """)
 
 RECORD = textwrap.dedent("""
@@ -95,14 +98,27 @@ BUILD = textwrap.dedent("""
 
 
 def test_gpu_inference_path_matches_the_cpu_one_under_the_interpreter():
-    env = {**os.environ, "TRITON_INTERPRET": "1", "FLAMENERF_GPU_KERNELS": "1",
-           "FLAMENERF_CPU_KERNELS": "0",  # the hash grid's encoding from the Triton kernel
-           "PYTHONPATH": os.pathsep.join([str(TESTS / "model"), str(TESTS),
-                                          os.environ.get("PYTHONPATH", "")])}
-    out = subprocess.run([sys.executable, "-W", "ignore", "-c", CHECK], env=env,
-                         capture_output=True, text=True, timeout=600)
-    assert out.returncode == 0, out.stderr[-3000:]
-    assert "gpu path agrees" in out.stdout
+    """With every kernel on, and with the default set (the field heads' kernel off): the
+    same image as the CPU's path, and the features computed once either way (the heads'
+    fallback once computed them a second time)."""
+    import json
+
+    calls = {}
+    for chosen in ("1", None):
+        env = {**os.environ, "TRITON_INTERPRET": "1",
+               "FLAMENERF_CPU_KERNELS": "0",  # the hash grid's encoding from the Triton kernel
+               "PYTHONPATH": os.pathsep.join([str(TESTS / "model"), str(TESTS),
+                                              os.environ.get("PYTHONPATH", "")])}
+        env.pop("FLAMENERF_GPU_KERNELS", None)
+        if chosen is not None:
+            env["FLAMENERF_GPU_KERNELS"] = chosen
+        out = subprocess.run([sys.executable, "-W", "ignore", "-c", CHECK], env=env,
+                             capture_output=True, text=True, timeout=600)
+        assert out.returncode == 0, out.stderr[-3000:]
+        assert "gpu path agrees" in out.stdout
+        calls[chosen] = json.loads(out.stdout.split("gpu path agrees", 1)[1])
+    assert calls["1"]["heads"] > 0 and calls[None]["heads"] == 0, calls
+    assert calls["1"]["encode"] == calls[None]["encode"], calls
 
 
 def _nvidia_tools() -> bool:

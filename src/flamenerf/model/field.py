@@ -224,10 +224,13 @@ class HashField(nn.Module):
         """`forward` on the GPU's inference path: the features in one buffer, then both
         heads in one Triton kernel (gpu_kernels.field_heads), the colour head's per-ray
         conditioning applied once per ray. None where the kernel does not apply (β fed to
-        the density head directly, per-sample conditioning of another shape, no Triton)."""
+        the density head directly, per-sample conditioning of another shape, no Triton, the
+        kernel off: gpu_kernels.UNPROVEN), before any work (the caller then computes the
+        features itself)."""
         from flamenerf import gpu_kernels
 
-        if self.direct or not gpu_kernels.available(x.device):
+        if (self.direct or not gpu_kernels.available(x.device)
+                or "field_heads" not in gpu_kernels.working()):
             return None
         bs, geo = x.shape[:-1], self.cfg.geo_features
         cond = _view_conditioning(d, app, self.cfg)
