@@ -12,7 +12,8 @@
 #      target is >= 30 dB within 60 s;
 #   3. the seed-0 run's frames per second at 128 / 256 / 512 px (bench_render.py), with
 #      the second pass over unfinished rays and without it: the targets are 60 fps at
-#      256 px and 20 fps at 512 px, within 0.2 dB of the reference renderer.
+#      256 px and 20 fps at 512 px, within 0.2 dB of the reference renderer; where every
+#      kernel rendered right, also without the field heads' kernel (does it pay?).
 #   4. a profile of one 512 px frame (profile_render.py: where the GPU's time goes), in
 #      the log, and the nearest-vertex kernel's and the field heads' launch choices timed
 #      on that frame's calls (gpu_choices.py);
@@ -92,6 +93,15 @@ for refine in -1 0; do
     --dataset "$SCENE" --device "$DEVICE" --sizes $SIZES --presets fast --repeats "$REPEATS" \
     --refine-main "$refine" --out "$FIG/$name"
 done
+if [[ $KEEP == 1 ]]; then
+  # the field heads' kernel rendered right: does it pay, padded to DOT_MIN, against the
+  # PyTorch heads of the default set (gpu_kernels.UNPROVEN)?
+  # shellcheck disable=SC2086
+  stage "render without the field heads' kernel (seed $first's run)" env \
+    FLAMENERF_GPU_KERNELS=hashgrid,knn "$PY" benchmarks/bench_render.py --run "$WORK/run_s$first" \
+    --dataset "$SCENE" --device "$DEVICE" --sizes ${SIZES#* } --presets fast \
+    --repeats "$REPEATS" --out "$FIG/render_without_heads"
+fi
 # on a CPU the interpreter checks the choices on a few points
 CHOICE_ENV=(); [[ $DEVICE == cpu ]] && CHOICE_ENV=(TRITON_INTERPRET=1 FLAMENERF_CPU_KERNELS=0)
 stage "the kernels' launch choices (seed $first's run, $CHOICE_SIZE px)" \
