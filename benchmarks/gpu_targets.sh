@@ -31,9 +31,10 @@
 #   CPU whether it keeps the quality per step: docs/presets.md, fast-gpu on a CPU):
 #       SET=KEY=VALUE,KEY=VALUE bash benchmarks/gpu_targets.sh
 #   the GPU inference path of commit C beside this one (a plain copy of its src inside the
-#   checkout, so that it travels: a git worktree would travel without its files):
-#       here:   git archive C src | tar -x -C gpu_old   (mkdir gpu_old first)
-#       there:  OLD_SRC=gpu_old/src bash benchmarks/gpu_targets.sh
+#   checkout, git-ignored, so that the device tool carries it: name it in `carry`; a git
+#   worktree would travel without its files):
+#       here:   mkdir gpu_old && git archive C src | tar -x -C gpu_old
+#       there:  OLD_SRC=gpu_old/src bash benchmarks/gpu_targets.sh   (carry: gpu_old)
 #   here, to check the script itself on a CPU in a few minutes (tiny sizes):
 #       SMOKE=1 OUT=/tmp/gpu_targets bash benchmarks/gpu_targets.sh
 set -uo pipefail
