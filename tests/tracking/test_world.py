@@ -237,3 +237,21 @@ def test_a_nodding_head_before_a_still_camera_is_a_changing_view():
     got = expression_coverage(expr, names, splits, c2w, head)["follow_the_view"]
     assert list(got) == ["browOuterUpLeft"]
     assert abs(got["browOuterUpLeft"]["elevation_r"]) > 0.9
+
+
+def test_the_report_gives_the_azimuths_the_head_is_seen_from():
+    """A still camera and a head that turns ±15°: the report's azimuth range is the head's
+    view's (what the model sees it from), the room's is kept apart (it once gave the room's
+    alone, 0° for such a clip)."""
+    from flamenerf.tracking.report import azimuth_ranges
+
+    n = 31
+    yaw = np.radians(np.linspace(-15, 15, n))
+    c2w = np.tile(np.eye(4), (n, 1, 1))
+    c2w[:, 2, 3] = 0.6
+    head = np.tile(np.eye(4), (n, 1, 1))
+    head[:, :3, :3] = Rotation.from_euler("y", yaw[:, None]).as_matrix()
+    got = azimuth_ranges(c2w, head)
+    assert got["room_azimuth_range_deg"] == pytest.approx([0.0, 0.0], abs=1e-6)
+    assert got["azimuth_range_deg"] == pytest.approx([-15.0, 15.0], abs=1e-4)
+    assert azimuth_ranges(c2w, None)["azimuth_range_deg"] == pytest.approx([0.0, 0.0], abs=1e-6)

@@ -92,7 +92,7 @@ def tracking_report(video: Path, clip, sol, scene, intr, crop, crop_facts, n_tra
             "focal_scan": sol.history.get("focal_scan"),
             "intrinsics_out": asdict(intr),
             "camera_distance_m": [float(cam_dist.min()), float(cam_dist.max())],
-            "azimuth_range_deg": _azimuth_range(sol.c2w),
+            **azimuth_ranges(sol.c2w, scene.world.head_pose),
         },
         "crop": {**crop.to_dict(), **crop_facts},
         "reprojection_error_px": {
@@ -221,9 +221,17 @@ def view_angles(c2w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.degrees(np.arctan2(C[:, 0], C[:, 2])), np.degrees(el)
 
 
-def _azimuth_range(c2w: np.ndarray) -> list[float]:
-    az = view_angles(c2w)[0]
-    return [float(az.min()), float(az.max())]
+def azimuth_ranges(c2w: np.ndarray, head_pose: np.ndarray | None) -> dict[str, list[float]]:
+    """The (lowest, highest) azimuth, degrees, the cameras c2w (N, 4, 4) see the head from
+    (`azimuth_range_deg`: a head that turns before a still camera is seen from as many
+    sides as it turns) and the room from (`room_azimuth_range_deg`); head_pose (N, 4, 4)
+    world-from-head or None (the head is the world)."""
+    out = {}
+    for key, cams in (("azimuth_range_deg", cameras_in_head(c2w, head_pose)),
+                      ("room_azimuth_range_deg", c2w)):
+        az = view_angles(cams)[0]
+        out[key] = [float(az.min()), float(az.max())]
+    return out
 
 
 def _top(vec: np.ndarray, names: list[str], k: int = 3) -> dict[str, float]:
