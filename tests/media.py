@@ -60,6 +60,32 @@ def astronaut_video(tmp_path_factory) -> Path:
     return write_mp4(tmp_path_factory.mktemp("vid") / "astronaut.mp4", astronaut_frames())
 
 
+def two_faces_frames(n: int = 8) -> list[np.ndarray]:
+    """The astronaut twice, side by side in 480x300 frames: the left face shrinks from 220
+    to 187 px while the right one grows as much, so the most prominent face changes sides
+    two thirds of the way (whom a tracker of one face follows then jumps). Both are found
+    in every frame (MediaPipe misses a face much smaller than the other)."""
+    from skimage import data
+
+    img = data.astronaut()
+    frames = []
+    for k in range(n):
+        t = k / max(1, n - 1)
+        out = np.full((300, 480, 3), 120, np.uint8)
+        for zoom, right in ((1.0 - 0.15 * t, False), (0.85 + 0.15 * t, True)):
+            face = _warp(img, 1.0, 0, 0, int(220 * zoom))
+            s = face.shape[0]
+            x = 470 - s if right else 10
+            out[150 - s // 2:150 - s // 2 + s, x:x + s] = face
+        frames.append(out)
+    return frames
+
+
+@pytest.fixture(scope="session")
+def two_faces_video(tmp_path_factory) -> Path:
+    return write_mp4(tmp_path_factory.mktemp("vid") / "two_faces.mp4", two_faces_frames())
+
+
 @pytest.fixture(scope="session")
 def gappy_video(tmp_path_factory) -> Path:
     """12 frames, frames 3 and 7 without a face (grey)."""

@@ -109,3 +109,37 @@ def test_detects_the_astronaut(landmarker_path):
     names = lm.blendshape_names()
     smile = d.blendshapes[[names.index("mouthSmileLeft"), names.index("mouthSmileRight")]]
     assert smile.mean() > 0.3
+
+
+def test_the_clip_s_person_is_followed_when_another_face_is_more_prominent(two_faces_video,
+                                                                         landmarker_path):
+    """Two faces whose prominence swaps halfway: MediaPipe's single most prominent face
+    changes sides, the tracked clip stays with the largest face of its first frame and
+    lists the frames with other faces in view."""
+    from flamenerf.tracking.clip import face_box, track_clip
+    from media import two_faces_frames
+
+    with lm.FaceLandmarker(landmarker_path) as one:
+        sides = [face_box(one.detect(f).landmarks)[0][0] < 240 for f in two_faces_frames()]
+    assert sides[0] and not sides[-1]  # what following the most prominent face did
+
+    clip = track_clip(two_faces_video, progress=False)
+    assert len(clip.frames) == 8
+    assert np.all(clip.landmarks[:, :, 0].mean(1) < 240)  # the left face, every frame
+    assert clip.crowded == list(range(8))
+
+
+def test_choose_face_follows_the_nearest_and_refuses_a_distant_one():
+    from flamenerf.tracking.clip import choose_face, face_box
+
+    def face(cx, size):
+        return np.array([[cx - size / 2, 50.0], [cx + size / 2, 50.0 + size]])
+
+    small, large = face(40, 20), face(200, 60)
+    assert choose_face([small, large], None, False) == 1  # first: the largest
+    last = face_box(small)
+    assert choose_face([large, face(45, 20)], last, True) == 1  # then: the nearest
+    # alone in view far from where the person was: theirs, unless others have been seen
+    assert choose_face([large], last, False) == 0
+    assert choose_face([large], last, True) is None
+    assert choose_face([], last, True) is None

@@ -74,6 +74,12 @@ def preprocess(
         print(f"expression model: fitted so that each of the {mm['controls']} varying controls "
               f"commanded alone reads back through the tracker as itself "
               f"({mm['seconds']:.0f} s; {out}/expression_model.npz)")
+    crowded = rep.get("crowded_frames") or []
+    if crowded:
+        print(f"note: other faces were in view in {len(crowded)} of the selected frames (the "
+              f"first: frame {crowded[0]}); the largest face of the first frame with a face "
+              f"was followed and frames with only other faces were dropped "
+              f"(qa/tracking_report.json: crowded_frames)")
     for d in rep["dropped"][:10]:
         print(f"  dropped frame {d['source_frame']} ({d['time']:.2f}s): {d['reason']}")
     if len(rep["dropped"]) > 10:

@@ -16,6 +16,15 @@ from flamenerf.errors import UserError
 MAX_ERROR = 0.03
 """Default misfit limit of the camera solve, as a fraction of the face size."""
 
+MAX_FACES = 4
+"""Faces looked for in each frame; the clip's person is followed among them (MediaPipe's
+one most prominent face changes to whoever is more prominent in that frame: a bystander who
+comes closer, or the person turning away)."""
+
+FOLLOW_LIMIT = 1.0
+"""While more than one face is in view, a face whose centre is further than this many face
+sizes from where the followed face was last is taken for someone else's."""
+
 
 @dataclass
 class TrackedClip:
@@ -31,6 +40,33 @@ class TrackedClip:
     names: list[str]
     dropped: list[dict] = field(default_factory=list)  # {"source_frame", "time", "reason"}
     seconds: float = 0.0
+    crowded: list[int] = field(default_factory=list)
+    """Source frames where faces other than the followed one were found."""
+
+
+def face_box(landmarks: np.ndarray) -> tuple[np.ndarray, float]:
+    """landmarks (K, ≥2) pixels -> the face's centre (2,) and size (the larger side of its
+    landmarks' box)."""
+    xy = np.asarray(landmarks, np.float64)[:, :2]
+    return xy.mean(0), float(np.ptp(xy, axis=0).max())
+
+
+def choose_face(faces: list[np.ndarray], last: tuple[np.ndarray, float] | None,
+                crowd: bool) -> int | None:
+    """Which of a frame's faces (landmarks (K, ≥2) each) is the followed person's: without
+    a previous face (`last`: its `face_box`), the largest; else the one nearest to it,
+    unless `crowd` (other faces have been in view) and it lies further than FOLLOW_LIMIT
+    face sizes away (then None: the person is not in this frame)."""
+    if not faces:
+        return None
+    boxes = [face_box(f) for f in faces]
+    if last is None:
+        return int(np.argmax([size for _, size in boxes]))
+    dist = [np.linalg.norm(c - last[0]) / max(last[1], 1e-9) for c, _ in boxes]
+    k = int(np.argmin(dist))
+    if crowd and dist[k] > FOLLOW_LIMIT:
+        return None
+    return k
 
 
 def progress_bar(it, total: int, desc: str, enabled: bool):
@@ -54,16 +90,22 @@ def track_clip(video: str | os.PathLike, fps: float | None = None,
     info = probe_video(video)
     sel = select_frames(info.num_frames, info.fps, fps, max_frames)
     t0 = time.perf_counter()
-    frames, L, B, M, dropped = [], [], [], [], []
-    seen = set()
-    with FaceLandmarker(model) as lm:
+    frames, L, B, M, dropped, crowded = [], [], [], [], [], []
+    seen, last = set(), None
+    with FaceLandmarker(model, num_faces=MAX_FACES) as lm:
         for i, rgb in progress_bar(iter_frames(info, sel), len(sel), "tracking", progress):
             seen.add(i)
-            det = lm.detect(rgb)
-            if det is None:
+            found = lm.detect_all(rgb)
+            if len(found) > 1:
+                crowded.append(int(i))
+            k = choose_face([d.landmarks for d in found], last, bool(crowded))
+            if k is None:
                 dropped.append({"source_frame": i, "time": i / info.fps,
-                                "reason": "no face detected"})
+                                "reason": ("no face detected" if not found else
+                                           "only faces other than the followed one")})
                 continue
+            det = found[k]
+            last = face_box(det.landmarks)
             frames.append(i)
             L.append(det.landmarks)
             B.append(det.blendshapes)
@@ -80,7 +122,7 @@ def track_clip(video: str | os.PathLike, fps: float | None = None,
         blendshapes=np.asarray(B, np.float32).reshape(len(frames), len(names)),
         transforms=np.asarray(M, np.float64).reshape(-1, 4, 4), names=list(names),
         dropped=sorted(dropped, key=lambda d: d["source_frame"]),
-        seconds=time.perf_counter() - t0,
+        seconds=time.perf_counter() - t0, crowded=crowded,
     )
 
 
@@ -113,7 +155,7 @@ def drop_frames(clip: TrackedClip, keep: np.ndarray, reasons: dict[int, str]) ->
         times=clip.times[keep], landmarks=clip.landmarks[keep],
         blendshapes=clip.blendshapes[keep], transforms=clip.transforms[keep],
         names=clip.names, dropped=sorted(dropped, key=lambda d: d["source_frame"]),
-        seconds=clip.seconds)
+        seconds=clip.seconds, crowded=clip.crowded)
 
 
 def solve_clip(clip: TrackedClip, mesh, fov: float | None, max_error: float = MAX_ERROR,

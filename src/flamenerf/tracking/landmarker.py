@@ -286,13 +286,14 @@ class Detection:
 
 
 class FaceLandmarker:
-    """MediaPipe FaceLandmarker in IMAGE mode (every frame independently), one face.
+    """MediaPipe FaceLandmarker in IMAGE mode (every frame independently), up to `num_faces`
+    faces (`detect_all`; `detect`: the most prominent).
 
     Use as a context manager so the native graph is closed deterministically.
     """
 
     def __init__(self, model_path: str | os.PathLike | None = None,
-                 min_detection_confidence: float = 0.5):
+                 min_detection_confidence: float = 0.5, num_faces: int = 1):
         self.model_path = find_model(model_path)
         import mediapipe as mp  # noqa: F401 - heavy
         from mediapipe.tasks.python import BaseOptions, vision
@@ -300,7 +301,7 @@ class FaceLandmarker:
         opts = vision.FaceLandmarkerOptions(
             base_options=BaseOptions(model_asset_path=str(self.model_path)),
             running_mode=vision.RunningMode.IMAGE,
-            num_faces=1,
+            num_faces=num_faces,
             min_face_detection_confidence=min_detection_confidence,
             output_face_blendshapes=True,
             output_facial_transformation_matrixes=True,
@@ -316,24 +317,31 @@ class FaceLandmarker:
 
     def detect(self, rgb: np.ndarray) -> Detection | None:
         """rgb (H, W, 3) uint8 -> the most prominent face, or None when none is found."""
+        found = self.detect_all(rgb)
+        return found[0] if found else None
+
+    def detect_all(self, rgb: np.ndarray) -> list[Detection]:
+        """rgb (H, W, 3) uint8 -> every face found (at most `num_faces`), MediaPipe's most
+        prominent first."""
         import mediapipe as mp
 
         h, w = rgb.shape[:2]
         img = mp.Image(image_format=mp.ImageFormat.SRGB, data=np.ascontiguousarray(rgb[..., :3]))
         res = self._lm.detect(img)
-        if not res.face_landmarks or not res.face_blendshapes:
-            return None
-        lms = res.face_landmarks[0]
-        pts = np.array([[p.x * w, p.y * h, p.z * w] for p in lms], np.float64)
-        cats = res.face_blendshapes[0]
-        if self.names is None:
-            self.names = [c.category_name for c in cats]
-        scores = np.array([c.score for c in cats], np.float32)
-        mat = (np.asarray(res.facial_transformation_matrixes[0], np.float64)
-               if res.facial_transformation_matrixes else np.eye(4))
-        if pts.shape != (NUM_LANDMARKS, 3) or not np.all(np.isfinite(pts)):
-            return None
-        return Detection(landmarks=pts, blendshapes=scores, transform=mat)
+        out = []
+        for k, lms in enumerate(res.face_landmarks or []):
+            if k >= len(res.face_blendshapes or []):
+                break
+            pts = np.array([[p.x * w, p.y * h, p.z * w] for p in lms], np.float64)
+            cats = res.face_blendshapes[k]
+            if self.names is None:
+                self.names = [c.category_name for c in cats]
+            scores = np.array([c.score for c in cats], np.float32)
+            mats = res.facial_transformation_matrixes or []
+            mat = np.asarray(mats[k], np.float64) if k < len(mats) else np.eye(4)
+            if pts.shape == (NUM_LANDMARKS, 3) and np.all(np.isfinite(pts)):
+                out.append(Detection(landmarks=pts, blendshapes=scores, transform=mat))
+        return out
 
     def close(self) -> None:
         if getattr(self, "_lm", None) is not None:

@@ -85,6 +85,8 @@ def tracking_report(video: Path, clip, sol, scene, intr, crop, crop_facts, n_tra
         "tracked_percent": 100.0 * n_tracked / max(1, len(clip.selected)),
         "kept_percent": 100.0 * N / max(1, len(clip.selected)),
         "dropped": clip.dropped,
+        # frames where faces other than the followed one were in view (tracking/clip.py)
+        "crowded_frames": clip.crowded,
         "scene": scene_report(scene),
         "camera": {
             "focal_px_source": sol.focal, "fov_x_deg": _fov(sol.focal, info.width),
