@@ -142,4 +142,7 @@ def test_choose_face_follows_the_nearest_and_refuses_a_distant_one():
     # alone in view far from where the person was: theirs, unless others have been seen
     assert choose_face([large], last, False) == 0
     assert choose_face([large], last, True) is None
+    # near where the person was, but twice their size: someone in front of the camera
+    assert choose_face([face(42, 40)], last, True) is None
+    assert choose_face([face(42, 25)], last, True) == 0
     assert choose_face([], last, True) is None

@@ -22,8 +22,11 @@ one most prominent face changes to whoever is more prominent in that frame: a by
 comes closer, or the person turning away)."""
 
 FOLLOW_LIMIT = 1.0
-"""While more than one face is in view, a face whose centre is further than this many face
-sizes from where the followed face was last is taken for someone else's."""
+"""Once more than one face has been in view, a face whose centre is further than this many
+face sizes from where the followed face was last, or whose size differs from its size then
+by more than a factor SIZE_LIMIT, is taken for someone else's."""
+
+SIZE_LIMIT = 1.5
 
 
 @dataclass
@@ -56,7 +59,8 @@ def choose_face(faces: list[np.ndarray], last: tuple[np.ndarray, float] | None,
     """Which of a frame's faces (landmarks (K, ≥2) each) is the followed person's: without
     a previous face (`last`: its `face_box`), the largest; else the one nearest to it,
     unless `crowd` (other faces have been in view) and it lies further than FOLLOW_LIMIT
-    face sizes away (then None: the person is not in this frame)."""
+    face sizes away or its size differs by more than SIZE_LIMIT (then None: the person is
+    not in this frame)."""
     if not faces:
         return None
     boxes = [face_box(f) for f in faces]
@@ -64,7 +68,8 @@ def choose_face(faces: list[np.ndarray], last: tuple[np.ndarray, float] | None,
         return int(np.argmax([size for _, size in boxes]))
     dist = [np.linalg.norm(c - last[0]) / max(last[1], 1e-9) for c, _ in boxes]
     k = int(np.argmin(dist))
-    if crowd and dist[k] > FOLLOW_LIMIT:
+    ratio = boxes[k][1] / max(last[1], 1e-9)
+    if crowd and (dist[k] > FOLLOW_LIMIT or not 1 / SIZE_LIMIT <= ratio <= SIZE_LIMIT):
         return None
     return k
 
