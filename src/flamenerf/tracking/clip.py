@@ -48,10 +48,12 @@ class TrackedClip:
 
 
 def face_box(landmarks: np.ndarray) -> tuple[np.ndarray, float]:
-    """landmarks (K, ≥2) pixels -> the face's centre (2,) and size (the larger side of its
-    landmarks' box)."""
-    xy = np.asarray(landmarks, np.float64)[:, :2]
-    return xy.mean(0), float(np.ptp(xy, axis=0).max())
+    """landmarks (K, ≥2) pixels -> the centre (2,) and size (the larger side) of their box
+    (`crop.face_boxes`)."""
+    from flamenerf.tracking.crop import face_boxes
+
+    box = face_boxes(np.asarray(landmarks, np.float64)[None])[0]
+    return (box[:2] + box[2:]) / 2, float((box[2:] - box[:2]).max())
 
 
 def choose_face(faces: list[np.ndarray], last: tuple[np.ndarray, float] | None,
