@@ -131,6 +131,20 @@ def rotated_video(tmp_path_factory) -> Path:
     return out
 
 
+def variable_rate_clip(path: Path, n: int = 20, gap_after: int = 10) -> Path:
+    """n flat frames of grey 10·k at 30 fps with a 0.5 s gap after frame `gap_after` (as a
+    phone drops frames in low light), stored at their variable rate."""
+    import imageio_ffmpeg
+
+    frames = np.concatenate([np.full((1, 32, 32, 3), 10 * k, np.uint8) for k in range(n)])
+    subprocess.run([imageio_ffmpeg.get_ffmpeg_exe(), "-y", "-loglevel", "error", "-f",
+                    "rawvideo", "-pix_fmt", "rgb24", "-s", "32x32", "-r", "30", "-i", "-",
+                    "-vf", f"setpts='(N+if(gte(N\\,{gap_after})\\,15\\,0))/30/TB'",
+                    "-fps_mode", "passthrough", "-c:v", "libx264", "-qp", "0",
+                    "-pix_fmt", "yuv444p", str(path)], input=frames.tobytes(), check=True)
+    return path
+
+
 def clip_with_sound(path, seconds: float = 3.0, volume: float = 1.0):
     """A 32 px clip with a 440 Hz tone (`volume` 0: a silent sound track, as a muted
     phone records), made by ffmpeg's own generators."""

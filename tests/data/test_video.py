@@ -8,7 +8,7 @@ import pytest
 
 from flamenerf.data.video import VideoWriter, iter_frames, probe_video, select_frames
 from flamenerf.errors import UserError
-from media import clip_with_sound
+from media import clip_with_sound, variable_rate_clip
 
 
 def test_probe_and_decode(astronaut_video):
@@ -90,3 +90,18 @@ def test_loudest_tells_a_muted_recording_from_sound(tmp_path):
     assert tone > -20 and muted < SILENT_DB
     # a file without a sound track, or none at all: ffmpeg cannot tell
     assert loudest(Soundtrack(tmp_path / "missing.mp4", 0.0), 1.0) is None
+
+
+def test_a_variable_rate_clip_decodes_its_own_frames(tmp_path):
+    """A clip that dropped frames (a gap of half a second, its nominal rate kept): each
+    decoded frame is the stream's own, as many as `probe_video` counts, none repeated (a
+    constant-rate decode filled the gap with 15 copies and cut as many from the end)."""
+    info = probe_video(variable_rate_clip(tmp_path / "vfr.mp4"))
+    assert info.num_frames == 20
+    got = list(iter_frames(info))
+    assert [i for i, _ in got] == list(range(20))
+    greys = [float(img.mean()) for _, img in got]
+    assert np.allclose(greys, [10 * k for k in range(20)], atol=2)
+    # the selection by index picks those frames too
+    assert [round(float(img.mean()) / 10) for _, img in iter_frames(info, np.array([3, 12, 19]))] \
+        == [3, 12, 19]

@@ -135,13 +135,17 @@ def select_frames(num_frames: int, native_fps: float, fps: float | None = None,
 def iter_frames(info: VideoInfo, indices: np.ndarray | None = None
                 ) -> Iterator[tuple[int, np.ndarray]]:
     """Yield (source frame index, (H, W, 3) uint8 RGB) for the frames in `indices` (all if
-    None), in order, decoding the stream once."""
+    None), in order, decoding the stream once. Frame i is the stream's i-th frame, as
+    `probe_video` counts them: a variable-rate clip (a phone's in low light drops frames
+    and keeps the nominal rate) is not resampled to a constant rate, which repeated frames
+    in its gaps and shifted every later index."""
     import imageio_ffmpeg
 
     logging.getLogger("imageio_ffmpeg").setLevel(logging.ERROR)
     want = None if indices is None else set(int(i) for i in indices)
     last = -1 if want is None else max(want, default=-1)
-    gen = imageio_ffmpeg.read_frames(str(info.path), pix_fmt="rgb24")
+    gen = imageio_ffmpeg.read_frames(str(info.path), pix_fmt="rgb24",
+                                     output_params=["-fps_mode", "passthrough"])
     try:
         meta = next(gen)
         w, h = meta["size"]
