@@ -86,6 +86,25 @@ def two_faces_video(tmp_path_factory) -> Path:
     return write_mp4(tmp_path_factory.mktemp("vid") / "two_faces.mp4", two_faces_frames())
 
 
+def cut_frames(n: int = 24, cut: int = 12) -> list[np.ndarray]:
+    """The astronaut filmed in two shots: a slow push-in, then from frame `cut` another
+    framing (closer, shifted), as an edited clip's jump cut."""
+    from skimage import data
+
+    img = data.astronaut()
+    frames = []
+    for k in range(n):
+        t = k / max(1, n - 1)
+        frames.append(_warp(img, 1.0 + 0.05 * t, 10 * t, 0, 256) if k < cut
+                      else _warp(img, 1.35 + 0.05 * t, -40 + 10 * t, 25, 256))
+    return frames
+
+
+@pytest.fixture(scope="session")
+def cut_video(tmp_path_factory) -> Path:
+    return write_mp4(tmp_path_factory.mktemp("vid") / "cut.mp4", cut_frames())
+
+
 @pytest.fixture(scope="session")
 def gappy_video(tmp_path_factory) -> Path:
     """12 frames, frames 3 and 7 without a face (grey)."""

@@ -78,3 +78,30 @@ def test_smoothness_reduces_jitter(canonical_mesh):
         return np.linalg.norm(C[2:] - 2 * C[1:-1] + C[:-2], axis=1).mean()
 
     assert jitter(5.0) < 0.7 * jitter(0.0)
+
+
+def test_shots_split_at_a_cut_and_not_at_motion():
+    from flamenerf.tracking.shots import shot_indices
+
+    y, x = np.mgrid[:32, :32] / 32.0
+    # a picture drifting (motion), then another picture
+    thumbs = [0.5 + 0.3 * np.sin(6 * (x + 0.02 * k)) * np.cos(4 * y) for k in range(10)]
+    thumbs += [0.5 + 0.3 * np.cos(5 * (y + 0.02 * k)) for k in range(6)]
+    got = shot_indices(np.stack(thumbs))
+    assert got.tolist() == [0] * 10 + [1] * 6
+    assert shot_indices(np.stack(thumbs[:10])).tolist() == [0] * 10
+    assert shot_indices(np.zeros((1, 32, 32))).tolist() == [0]
+
+
+def test_a_jump_cut_keeps_its_frames(cut_video, canonical_mesh, landmarker_path):
+    """An edited clip's jump cut: the solve smoothed the cameras' motion across it, and the
+    frames either side of the cut missed their landmarks (three were dropped as misfits);
+    now the cut is found and nothing is smoothed across it."""
+    from flamenerf.tracking.clip import solve_clip, track_clip
+
+    clip = track_clip(cut_video, progress=False)
+    assert clip.cuts == [12]
+    assert clip.shots.tolist() == [0] * 12 + [1] * 12
+    kept, sol = solve_clip(clip, canonical_mesh, None)
+    assert len(kept.frames) == 24 and not kept.dropped
+    assert sol.rigid_error.max() < 1.0  # px, at 256 px

@@ -74,6 +74,12 @@ def preprocess(
         print(f"expression model: fitted so that each of the {mm['controls']} varying controls "
               f"commanded alone reads back through the tracker as itself "
               f"({mm['seconds']:.0f} s; {out}/expression_model.npz)")
+    cuts = rep.get("cuts") or []
+    if cuts:
+        print(f"note: the clip has {len(cuts)} cut{'s' * (len(cuts) > 1)} (a new shot at frame"
+              f"{'s' * (len(cuts) > 1)} {', '.join(map(str, cuts[:8]))}"
+              f"{', ...' if len(cuts) > 8 else ''}): the camera solve does not smooth the "
+              f"motion across them (qa/tracking_report.json: cuts)")
     crowded = rep.get("crowded_frames") or []
     if crowded:
         print(f"note: other faces were in view in {len(crowded)} of the selected frames (the "

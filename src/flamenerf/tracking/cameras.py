@@ -141,16 +141,23 @@ def _lbfgs(params: list[torch.Tensor], closure_loss, iters: int) -> list[float]:
     return hist
 
 
-def _smooth_terms(x: torch.Tensor, times: torch.Tensor, step: float) -> torch.Tensor:
+def _smooth_terms(x: torch.Tensor, times: torch.Tensor, step: float,
+                  shots: torch.Tensor | None = None) -> torch.Tensor:
     """Squared discrete accelerations of a sequence x (N, D) sampled at `times` (N,) seconds,
     times step² (the source video's frame step): the same physical motion costs the same
-    whether or not frames were subsampled."""
+    whether or not frames were subsampled. `shots` (N,): the shot of each frame; an
+    acceleration across a cut (its three frames not of one shot) is left out."""
     if x.shape[0] < 3:
         return x.new_zeros(())
     dt = (times[1:] - times[:-1]).clamp_min(1e-6)
     vel = (x[1:] - x[:-1]) / dt[:, None]
     acc = (vel[1:] - vel[:-1]) / (0.5 * (dt[1:] + dt[:-1]))[:, None]
-    return ((acc * step * step) ** 2).sum(-1).mean()
+    terms = ((acc * step * step) ** 2).sum(-1)
+    if shots is not None:
+        within = (shots[:-2] == shots[1:-1]) & (shots[1:-1] == shots[2:])
+        if not bool(within.all()):
+            return terms[within].mean() if bool(within.any()) else x.new_zeros(())
+    return terms.mean()
 
 
 # ----------------------------------------------------------------------------- the solve
@@ -167,12 +174,15 @@ def solve_cameras(
     init_transforms: np.ndarray | None = None,
     cfg: SolveConfig | None = None,
     frame_step: float | None = None,
+    shots: np.ndarray | None = None,
 ) -> SolveResult:
     """landmarks (N, >=468, 3) pixels (+ MediaPipe relative depth); times (N,) seconds;
     template0 (468, 3) metres; faces (F, 3); stable_weights (468,) (>0 = expression-stable);
     init_transforms (N, 4, 4) MediaPipe head poses (canonical cm -> camera) or None for a
-    frontal guess; frame_step: the source's 1/fps (default: the smallest gap in `times`).
-    The principal point is the image centre. See the module docstring for the model."""
+    frontal guess; frame_step: the source's 1/fps (default: the smallest gap in `times`);
+    shots (N,): each frame's shot (tracking/shots.py; None: one), the cameras are not
+    smoothed across a cut. The principal point is the image centre. See the module
+    docstring for the model."""
     cfg = cfg or SolveConfig()
     if landmarks.shape[0] < 2:
         raise ValueError("the camera solve needs at least 2 frames")
@@ -183,14 +193,15 @@ def solve_cameras(
     # ~10x more when other processes compete for the cores
     with torch_threads(1):
         return _solve(landmarks, times, template0, faces, stable_weights, width, height,
-                      init_transforms, cfg, frame_step)
+                      init_transforms, cfg, frame_step, shots)
 
 
 class _Problem:
     """Observations and fixed quantities shared by every stage."""
 
     def __init__(self, landmarks, times, template0, faces, stable_weights, width, height,
-                 init_transforms, cfg: SolveConfig, step: float):
+                 init_transforms, cfg: SolveConfig, step: float,
+                 shots: np.ndarray | None = None):
         dt = torch.float64
         self.cfg, self.step = cfg, step
         self.N, self.V = landmarks.shape[0], template0.shape[0]
@@ -198,6 +209,7 @@ class _Problem:
         self.obs = torch.from_numpy(np.ascontiguousarray(landmarks[:, :V, :2])).to(dt)
         self.zrel = torch.from_numpy(np.ascontiguousarray(landmarks[:, :V, 2])).to(dt)
         self.times = torch.from_numpy(np.asarray(times, np.float64))
+        self.shots = None if shots is None else torch.from_numpy(np.asarray(shots, np.int64))
         self.X0 = torch.from_numpy(np.asarray(template0, np.float64))
         self.width, self.height = width, height
         self.cx, self.cy = width / 2.0, height / 2.0
@@ -216,6 +228,7 @@ class _Problem:
         p.__dict__.update(self.__dict__)
         p.N = len(idx)
         p.obs, p.zrel, p.times = self.obs[idx], self.zrel[idx], self.times[idx]
+        p.shots = None if self.shots is None else self.shots[idx]
         if self.init_transforms is not None:
             p.init_transforms = self.init_transforms[idx]
         return p
@@ -402,8 +415,8 @@ def _joint(P: _Problem, f: float, rvec0: torch.Tensor, tvec0: torch.Tensor,
             C = -torch.einsum("nba,nb->na", so3_exp(rvec), tvec)  # centres, c = -R^T t
             # rotation accelerations weighted as the motion they cause at the face's radius
             loss = loss + cfg.smooth * (
-                _smooth_terms(C / d0, P.times, P.step)
-                + _smooth_terms(rvec * (P.radius / d0), P.times, P.step)) / (c * c)
+                _smooth_terms(C / d0, P.times, P.step, P.shots)
+                + _smooth_terms(rvec * (P.radius / d0), P.times, P.step, P.shots)) / (c * c)
         loss = loss + cfg.template_prior * (
             dhat.pow(2).sum(-1).mean() + (P.lap @ dhat).pow(2).sum(-1).mean())
         if refine_focal:
@@ -444,9 +457,10 @@ def _scan_focal(P: _Problem) -> tuple[float, list[tuple[float, float]]]:
 
 
 def _solve(landmarks, times, template0, faces, stable_weights, width, height,
-           init_transforms, cfg: SolveConfig, step: float) -> SolveResult:
+           init_transforms, cfg: SolveConfig, step: float,
+           shots: np.ndarray | None = None) -> SolveResult:
     P = _Problem(landmarks, times, template0, faces, stable_weights, width, height,
-                 init_transforms, cfg, step)
+                 init_transforms, cfg, step, shots)
     history: dict = {}
     if cfg.fov_deg is not None:
         f0 = P.focal_of_fov(cfg.fov_deg)

@@ -45,6 +45,10 @@ class TrackedClip:
     seconds: float = 0.0
     crowded: list[int] = field(default_factory=list)
     """Source frames where faces other than the followed one were found."""
+    shots: np.ndarray | None = None
+    """(T,) int64: the shot of each frame (tracking/shots.py); None: one shot."""
+    cuts: list[int] = field(default_factory=list)
+    """Source frames that begin a new shot."""
 
 
 def face_box(landmarks: np.ndarray) -> tuple[np.ndarray, float]:
@@ -92,16 +96,19 @@ def track_clip(video: str | os.PathLike, fps: float | None = None,
     """Decode the selected frames and run FaceLandmarker on each (IMAGE mode)."""
     from flamenerf.data.video import iter_frames, probe_video, select_frames
     from flamenerf.tracking.landmarker import FaceLandmarker, blendshape_names, find_model
+    from flamenerf.tracking.shots import shot_indices, thumbnail
 
     model = find_model(landmarker)  # fail on a bad model path before decoding anything
     info = probe_video(video)
     sel = select_frames(info.num_frames, info.fps, fps, max_frames)
     t0 = time.perf_counter()
     frames, L, B, M, dropped, crowded = [], [], [], [], [], []
-    seen, last = set(), None
+    seen, last, decoded, thumbs = set(), None, [], []
     with FaceLandmarker(model, num_faces=MAX_FACES) as lm:
         for i, rgb in progress_bar(iter_frames(info, sel), len(sel), "tracking", progress):
             seen.add(i)
+            decoded.append(int(i))
+            thumbs.append(thumbnail(rgb))
             found = lm.detect_all(rgb)
             if len(found) > 1:
                 crowded.append(int(i))
@@ -123,13 +130,16 @@ def track_clip(video: str | os.PathLike, fps: float | None = None,
             dropped.append({"source_frame": int(i), "time": int(i) / info.fps,
                             "reason": "frame could not be decoded"})
     fr = np.asarray(frames, np.int64)
+    shot_of = dict(zip(decoded, shot_indices(np.asarray(thumbs)).tolist()))
+    shots = np.array([shot_of[int(i)] for i in fr], np.int64)
+    cuts = [i for k, i in enumerate(decoded) if k and shot_of[i] != shot_of[decoded[k - 1]]]
     return TrackedClip(
         info=info, selected=sel, frames=fr, times=fr / info.fps,
         landmarks=np.asarray(L, np.float64).reshape(-1, 478, 3),
         blendshapes=np.asarray(B, np.float32).reshape(len(frames), len(names)),
         transforms=np.asarray(M, np.float64).reshape(-1, 4, 4), names=list(names),
         dropped=sorted(dropped, key=lambda d: d["source_frame"]),
-        seconds=time.perf_counter() - t0, crowded=crowded,
+        seconds=time.perf_counter() - t0, crowded=crowded, shots=shots, cuts=cuts,
     )
 
 
@@ -162,7 +172,8 @@ def drop_frames(clip: TrackedClip, keep: np.ndarray, reasons: dict[int, str]) ->
         times=clip.times[keep], landmarks=clip.landmarks[keep],
         blendshapes=clip.blendshapes[keep], transforms=clip.transforms[keep],
         names=clip.names, dropped=sorted(dropped, key=lambda d: d["source_frame"]),
-        seconds=clip.seconds, crowded=clip.crowded)
+        seconds=clip.seconds, crowded=clip.crowded,
+        shots=None if clip.shots is None else clip.shots[keep], cuts=clip.cuts)
 
 
 def solve_clip(clip: TrackedClip, mesh, fov: float | None, max_error: float = MAX_ERROR,
@@ -178,7 +189,7 @@ def solve_clip(clip: TrackedClip, mesh, fov: float | None, max_error: float = MA
 
     def run(c: TrackedClip):
         return solve_cameras(c.landmarks, c.times, mesh.vertices, mesh.faces, mesh.weights,
-                             c.info.width, c.info.height, c.transforms, cfg, step)
+                             c.info.width, c.info.height, c.transforms, cfg, step, c.shots)
 
     res = run(clip)
     limit = max(max_error * res.face_size, 3 * float(np.median(res.rigid_error)))

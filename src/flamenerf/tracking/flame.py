@@ -327,6 +327,10 @@ def _fit(m, clip, sol, num_expr, num_shape, iters, reg_shape, reg_expr, reg_pose
     neck_s = zeros(N, 3, dtype=dt, requires_grad=True)
     c = 0.01
     fs = sol.face_size
+    # consecutive frames of one shot: an expression may change at once across a cut
+    shots = getattr(clip, "shots", None)
+    pairs = (torch.ones(max(N - 1, 0), dtype=torch.bool) if shots is None
+             else torch.as_tensor(shots[1:] == shots[:-1]))
 
     def world(verts: torch.Tensor) -> torch.Tensor:
         R = so3_exp(0.1 * g_rot) @ so3_exp(r0)
@@ -343,9 +347,9 @@ def _fit(m, clip, sol, num_expr, num_shape, iters, reg_shape, reg_expr, reg_pose
         loss = cauchy(r2, c).mean() / c**2
         loss = loss + reg_shape * shape.pow(2).sum() + reg_expr * expr.pow(2).sum(-1).mean()
         loss = loss + reg_pose * (jaw_s.pow(2).sum(-1).mean() + neck_s.pow(2).sum(-1).mean())
-        if N >= 2 and smooth > 0:
-            loss = loss + smooth * ((expr[1:] - expr[:-1]).pow(2).sum(-1).mean()
-                                    + (jaw_s[1:] - jaw_s[:-1]).pow(2).sum(-1).mean())
+        if N >= 2 and smooth > 0 and bool(pairs.any()):
+            loss = loss + smooth * ((expr[1:] - expr[:-1])[pairs].pow(2).sum(-1).mean()
+                                    + (jaw_s[1:] - jaw_s[:-1])[pairs].pow(2).sum(-1).mean())
         return loss
 
     _lbfgs([g_rot, g_t, g_logs], loss_fn, 30)  # place the neutral head first

@@ -87,6 +87,8 @@ def tracking_report(video: Path, clip, sol, scene, intr, crop, crop_facts, n_tra
         "dropped": clip.dropped,
         # frames where faces other than the followed one were in view (tracking/clip.py)
         "crowded_frames": clip.crowded,
+        # frames that begin a new shot (tracking/shots.py)
+        "cuts": clip.cuts,
         "scene": scene_report(scene),
         "camera": {
             "focal_px_source": sol.focal, "fov_x_deg": _fov(sol.focal, info.width),
