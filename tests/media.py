@@ -164,6 +164,25 @@ def variable_rate_clip(path: Path, n: int = 20, gap_after: int = 10) -> Path:
     return path
 
 
+def hdr_clip(path: Path, transfer: str, frames: np.ndarray) -> Path:
+    """SDR frames (N, H, W, 3) uint8 stored as a phone's HDR video: HEVC, 10 bits, BT.2020
+    colours, `transfer` HLG (arib-std-b67) or PQ (smpte2084), SDR white at BT.2408's
+    reference white (203 nits), losslessly."""
+    import imageio_ffmpeg
+
+    n, h, w, _ = frames.shape
+    subprocess.run([imageio_ffmpeg.get_ffmpeg_exe(), "-y", "-loglevel", "error", "-f",
+                    "rawvideo", "-pix_fmt", "rgb24", "-s", f"{w}x{h}", "-r", "10", "-i", "-",
+                    "-vf", "zscale=tin=iec61966-2-1:min=gbr:pin=bt709:rin=full:"
+                    f"t={transfer}:m=bt2020nc:p=bt2020:r=tv:npl=203,format=yuv420p10le",
+                    "-c:v", "libx265", "-x265-params",
+                    f"log-level=error:lossless=1:colorprim=bt2020:transfer={transfer}:"
+                    "colormatrix=bt2020nc", "-color_primaries", "bt2020", "-color_trc",
+                    transfer, "-colorspace", "bt2020nc", str(path)],
+                   input=np.ascontiguousarray(frames).tobytes(), check=True)
+    return path
+
+
 def clip_with_sound(path, seconds: float = 3.0, volume: float = 1.0):
     """A 32 px clip with a 440 Hz tone (`volume` 0: a silent sound track, as a muted
     phone records), made by ffmpeg's own generators."""

@@ -8,7 +8,7 @@ import pytest
 
 from flamenerf.data.video import VideoWriter, iter_frames, probe_video, select_frames
 from flamenerf.errors import UserError
-from media import clip_with_sound, variable_rate_clip
+from media import astronaut_frames, clip_with_sound, hdr_clip, variable_rate_clip
 
 
 def test_probe_and_decode(astronaut_video):
@@ -105,3 +105,32 @@ def test_a_variable_rate_clip_decodes_its_own_frames(tmp_path):
     # the selection by index picks those frames too
     assert [round(float(img.mean()) / 10) for _, img in iter_frames(info, np.array([3, 12, 19]))] \
         == [3, 12, 19]
+
+
+@pytest.mark.parametrize("transfer", ["arib-std-b67", "smpte2084"])
+def test_an_hdr_clip_decodes_to_sdr(tmp_path, transfer):
+    """A phone's HDR video (HLG or PQ, BT.2020, 10 bits) of an SDR picture at the reference
+    white decodes close to that picture; taken as stored it came out dim and pale."""
+    src = np.stack(astronaut_frames(3, 64))
+    info = probe_video(hdr_clip(tmp_path / "hdr.mp4", transfer, src))
+    assert info.hdr == transfer and info.num_frames == 3
+    got = np.stack([img for _, img in iter_frames(info)]).astype(np.float64)
+    assert np.abs(got - src).mean() < 14
+    info.hdr = None  # as stored
+    raw = np.stack([img for _, img in iter_frames(info)]).astype(np.float64)
+    assert np.abs(raw - src).mean() > 18
+
+
+def test_an_ffmpeg_failure_is_one_line(tmp_path, monkeypatch):
+    """ffmpeg's whole log came through in the error; now its line that says what failed
+    (here an ffmpeg without the HDR filters)."""
+    from flamenerf.data import video
+
+    info = probe_video(hdr_clip(tmp_path / "hdr.mp4", "arib-std-b67",
+                                np.stack(astronaut_frames(2, 32))))
+    monkeypatch.setattr(video, "SDR_FILTER", "nosuchfilter")
+    with pytest.raises(UserError) as e:
+        list(iter_frames(info))
+    msg = str(e.value)
+    assert "\n" not in msg and "hdr.mp4" in msg and "nosuchfilter" in msg
+    assert "tone-map" in msg

@@ -74,6 +74,9 @@ def preprocess(
         print(f"expression model: fitted so that each of the {mm['controls']} varying controls "
               f"commanded alone reads back through the tracker as itself "
               f"({mm['seconds']:.0f} s; {out}/expression_model.npz)")
+    if rep["video"].get("hdr"):
+        print(f"note: an HDR clip ({rep['video']['hdr']}): its frames were tone-mapped to SDR "
+              f"(BT.709) for training")
     cuts = rep.get("cuts") or []
     if cuts:
         print(f"note: the clip has {len(cuts)} cut{'s' * (len(cuts) > 1)} (a new shot at frame"

@@ -78,7 +78,7 @@ def tracking_report(video: Path, clip, sol, scene, intr, crop, crop_facts, n_tra
     return {
         "video": {"path": str(video), "width": info.width, "height": info.height,
                   "fps": info.fps, "frames": info.num_frames, "rotation": info.rotation,
-                  "codec": info.codec},
+                  "codec": info.codec, "hdr": info.hdr},
         "selected_frames": int(len(clip.selected)),
         "tracked_frames": n_tracked,
         "kept_frames": N,
