@@ -30,6 +30,15 @@ def test_track_writes_the_documented_format(tmp_path, gappy_video, landmarker_pa
     assert tr.frames[:, smile].mean() > 0.3  # the astronaut smiles
 
 
+def test_a_driver_among_other_faces_is_followed(tmp_path, two_faces_video, landmarker_path,
+                                                capsys):
+    out = tmp_path / "drive.json"
+    assert main(["track", str(two_faces_video), "--out", str(out)]) == 0
+    assert "other faces were in view in 8 of the selected frames" in capsys.readouterr().out
+    d = json.loads(out.read_text())
+    assert d["source"]["crowded_frames"] == list(range(8)) and len(d["frames"]) == 8
+
+
 def test_dropped_frames_are_listed(tmp_path, gappy_video, landmarker_path):
     out = tmp_path / "drive.json"
     assert main(["track", str(gappy_video), "--out", str(out)]) == 0

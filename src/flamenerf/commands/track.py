@@ -86,5 +86,10 @@ def track(
     print(f"wrote {out}: {len(tr.frames)} frames x {len(tr.names)} {tr.kind} values at "
           f"{tr.fps:g} fps; dropped {len(tr.dropped)}"
           + (f"; relative to {relative_to}" if subject is not None else ""))
+    crowded = (tr.source or {}).get("crowded_frames") or []
+    if crowded:
+        print(f"note: other faces were in view in {len(crowded)} of the selected frames (the "
+              f"first: frame {crowded[0]}); the largest face of the first frame with a face "
+              f"was followed")
     for d in tr.dropped[:10]:
         print(f"  dropped frame {d['source_frame']} ({d['time']:.2f}s): {d['reason']}")

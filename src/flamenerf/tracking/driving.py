@@ -52,7 +52,9 @@ def track_expressions(video: str | os.PathLike, fps: float | None = None,
         times=[round(float(t), 6) for t in clip.times], dropped=clip.dropped,
         source={"video": str(video), "tool": "flamenerf track",
                 "version": flamenerf.__version__, "video_fps": clip.info.fps,
-                "selected_frames": int(len(clip.selected))})
+                "selected_frames": int(len(clip.selected)),
+                # frames with other faces in view (the driver followed among them)
+                "crowded_frames": list(clip.crowded)})
 
 
 def relative_head_pose(transforms: np.ndarray) -> np.ndarray:
