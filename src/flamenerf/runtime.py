@@ -1,11 +1,12 @@
 """The process and its hardware: allocator tuning (before any heavy work), the torch device,
-CPU threads."""
+CPU threads, native libraries' log lines."""
 
 from __future__ import annotations
 
 import contextlib
 import os
 import sys
+import tempfile
 from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from typing import TYPE_CHECKING, TypeVar
@@ -118,3 +119,26 @@ def map_single_threaded(fn: Callable[[T], R], items: list[T], workers: int) -> l
             return list(pool.map(fn, items))
     finally:
         torch.set_num_threads(before)
+
+
+@contextlib.contextmanager
+def quiet_native_stderr() -> Iterator[None]:
+    """Silence the log lines native libraries print to the process's stderr within the
+    block (glog and TFLite while MediaPipe builds its graph; pycolmap's bundle adjustment,
+    which sets its own log level). Set FLAMENERF_VERBOSE=1 to see them."""
+    if os.environ.get("FLAMENERF_VERBOSE"):
+        yield
+        return
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+    except (OSError, ValueError):  # no real fd 2 (e.g. some notebook kernels)
+        yield
+        return
+    with tempfile.TemporaryFile() as sink:
+        os.dup2(sink.fileno(), 2)
+        try:
+            yield
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)

@@ -184,3 +184,16 @@ def test_a_clip_too_short_for_a_val_split_says_so(tmp_path, astronaut_video, cap
     assert "val" not in json.loads((out / "qa" / "tracking_report.json").read_text())["splits"]
     note = [line for line in capsys.readouterr().out.splitlines() if line.startswith("note:")]
     assert note and "no val split" in note[0] and "--val-every 20" in note[0]
+
+
+def test_other_faces_are_named_and_native_logs_stay_out(tmp_path, two_faces_video, capfd):
+    """preprocess on a clip with two faces: one line says so; and COLMAP's bundle
+    adjustment (its binding sets its own log level) prints none of its log lines."""
+    out = tmp_path / "ds"
+    assert main(["preprocess", str(two_faces_video), str(out), "--size", "32", "--no-qa"]) == 0
+    got = capfd.readouterr()
+    assert "other faces were in view in 8 of the selected frames" in got.out
+    rep = json.loads((out / "qa" / "tracking_report.json").read_text())
+    assert rep["crowded_frames"] == list(range(8)) and rep["cuts"] == []
+    assert rep["scene"]["background"]["status"] == "registered"  # so the adjustment ran
+    assert "bundle_adjustment" not in got.err + got.out

