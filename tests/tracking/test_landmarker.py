@@ -127,6 +127,9 @@ def test_the_clip_s_person_is_followed_when_another_face_is_more_prominent(two_f
     assert len(clip.frames) == 8
     assert np.all(clip.landmarks[:, :, 0].mean(1) < 240)  # the left face, every frame
     assert clip.crowded == list(range(8))
+    # --face right: the other person, throughout
+    clip = track_clip(two_faces_video, progress=False, face="right")
+    assert len(clip.frames) == 8 and np.all(clip.landmarks[:, :, 0].mean(1) > 240)
 
 
 def test_choose_face_follows_the_nearest_and_refuses_a_distant_one():
@@ -137,6 +140,8 @@ def test_choose_face_follows_the_nearest_and_refuses_a_distant_one():
 
     small, large = face(40, 20), face(200, 60)
     assert choose_face([small, large], None, False) == 1  # first: the largest
+    assert choose_face([small, large], None, False, "left") == 0
+    assert choose_face([large, small], None, False, "right") == 0
     last = face_box(small)
     assert choose_face([large, face(45, 20)], last, True) == 1  # then: the nearest
     # alone in view far from where the person was: theirs, unless others have been seen

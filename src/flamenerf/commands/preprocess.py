@@ -37,6 +37,7 @@ def preprocess(
         out: Output dataset directory (written atomically).
     """
     from flamenerf.tracking.pipeline import preprocess_video
+    from flamenerf.tracking.clip import FACE_WORDS
     from flamenerf.tracking.report import scene_lines
 
     rep = preprocess_video(video, out, opts)
@@ -86,8 +87,8 @@ def preprocess(
     crowded = rep.get("crowded_frames") or []
     if crowded:
         print(f"note: other faces were in view in {len(crowded)} of the selected frames (the "
-              f"first: frame {crowded[0]}); the largest face of the first frame with a face "
-              f"was followed and frames with only other faces were dropped "
+              f"first: frame {crowded[0]}); the {FACE_WORDS[opts.face]} face of the first frame with a face "
+              f"was followed (--face) and frames with only other faces were dropped "
               f"(qa/tracking_report.json: crowded_frames)")
     for d in rep["dropped"][:10]:
         print(f"  dropped frame {d['source_frame']} ({d['time']:.2f}s): {d['reason']}")

@@ -20,6 +20,7 @@ def track(
     flame_dir: Path | None = None,
     flame_expr_dim: int = 50,
     min_tracked: float = 0.5,
+    face: Literal["largest", "left", "right"] = "largest",
     overwrite: bool = False,
 ) -> None:
     """Extract per-frame expression vectors from a driving video, for `render --drive`.
@@ -50,11 +51,14 @@ def track(
         flame_dir: Folder with FLAME's model pickle and MediaPipe landmark embedding.
         flame_expr_dim: Number of FLAME expression coefficients (the jaw pose follows them).
         min_tracked: Fail unless at least this fraction of the selected frames is tracked.
+        face: Whose face to follow where several are in view: the largest of the first
+            frame with a face, or the leftmost or rightmost there.
         overwrite: Replace OUT if it exists.
     """
     from flamenerf.errors import UserError
     from flamenerf.outdir import folders_kept_only_on_success, writable_dir
     from flamenerf.tracking.expressions import save_expressions, transfer_to_subject
+    from flamenerf.tracking.clip import FACE_WORDS
     from flamenerf.tracking.driving import track_expressions
 
     if out.is_dir():
@@ -79,7 +83,7 @@ def track(
 
             subject = load_dataset(relative_to, check_files=False)
         tr = track_expressions(video, fps, max_frames, landmarker, face_model, flame_dir,
-                               flame_expr_dim, min_tracked)
+                               flame_expr_dim, min_tracked, face=face)
         if subject is not None:
             tr = transfer_to_subject(tr, subject, driver_neutral_frame)
         save_expressions(out, tr)
@@ -89,7 +93,7 @@ def track(
     crowded = (tr.source or {}).get("crowded_frames") or []
     if crowded:
         print(f"note: other faces were in view in {len(crowded)} of the selected frames (the "
-              f"first: frame {crowded[0]}); the largest face of the first frame with a face "
-              f"was followed")
+              f"first: frame {crowded[0]}); the {FACE_WORDS[face]} face of the first frame with a face "
+              f"was followed (--face)")
     for d in tr.dropped[:10]:
         print(f"  dropped frame {d['source_frame']} ({d['time']:.2f}s): {d['reason']}")

@@ -60,10 +60,16 @@ def face_box(landmarks: np.ndarray) -> tuple[np.ndarray, float]:
     return (box[:2] + box[2:]) / 2, float((box[2:] - box[:2]).max())
 
 
+FACE_CHOICES = ("largest", "left", "right")
+"""Whose face a clip follows from its first frame with a face (`--face`)."""
+FACE_WORDS = {"largest": "largest", "left": "leftmost", "right": "rightmost"}
+
+
 def choose_face(faces: list[np.ndarray], last: tuple[np.ndarray, float] | None,
-                crowd: bool) -> int | None:
+                crowd: bool, first: str = "largest") -> int | None:
     """Which of a frame's faces (landmarks (K, ≥2) each) is the followed person's: without
-    a previous face (`last`: its `face_box`), the largest; else the one nearest to it,
+    a previous face (`last`: its `face_box`), the one `first` names (FACE_CHOICES: the
+    largest, or the leftmost or rightmost in the picture); else the one nearest to it,
     unless `crowd` (other faces have been in view) and it lies further than FOLLOW_LIMIT
     face sizes away or its size differs by more than SIZE_LIMIT (then None: the person is
     not in this frame)."""
@@ -71,6 +77,10 @@ def choose_face(faces: list[np.ndarray], last: tuple[np.ndarray, float] | None,
         return None
     boxes = [face_box(f) for f in faces]
     if last is None:
+        if first == "left":
+            return int(np.argmin([c[0] for c, _ in boxes]))
+        if first == "right":
+            return int(np.argmax([c[0] for c, _ in boxes]))
         return int(np.argmax([size for _, size in boxes]))
     dist = [np.linalg.norm(c - last[0]) / max(last[1], 1e-9) for c, _ in boxes]
     k = int(np.argmin(dist))
@@ -92,8 +102,11 @@ def progress_bar(it, total: int, desc: str, enabled: bool):
 
 def track_clip(video: str | os.PathLike, fps: float | None = None,
                max_frames: int | None = None, landmarker: str | os.PathLike | None = None,
-               progress: bool = True) -> TrackedClip:
-    """Decode the selected frames and run FaceLandmarker on each (IMAGE mode)."""
+               progress: bool = True, face: str = "largest") -> TrackedClip:
+    """Decode the selected frames and run FaceLandmarker on each (IMAGE mode), following
+    one person among other faces (`choose_face`; `face`: whose, FACE_CHOICES)."""
+    if face not in FACE_CHOICES:
+        raise UserError(f"--face {face}: one of {', '.join(FACE_CHOICES)}")
     from flamenerf.data.video import iter_frames, probe_video, select_frames
     from flamenerf.tracking.landmarker import FaceLandmarker, blendshape_names, find_model
     from flamenerf.tracking.shots import shot_indices, thumbnail
@@ -112,7 +125,7 @@ def track_clip(video: str | os.PathLike, fps: float | None = None,
             found = lm.detect_all(rgb)
             if len(found) > 1:
                 crowded.append(int(i))
-            k = choose_face([d.landmarks for d in found], last, bool(crowded))
+            k = choose_face([d.landmarks for d in found], last, bool(crowded), face)
             if k is None:
                 dropped.append({"source_frame": i, "time": i / info.fps,
                                 "reason": ("no face detected" if not found else

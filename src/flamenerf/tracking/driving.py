@@ -16,7 +16,8 @@ def track_expressions(video: str | os.PathLike, fps: float | None = None,
                       max_frames: int | None = None, landmarker: str | os.PathLike | None = None,
                       face_model: Literal["mediapipe", "flame"] = "mediapipe",
                       flame_dir: str | os.PathLike | None = None, flame_expr_dim: int = 50,
-                      min_tracked: float = 0.5, progress: bool = True):
+                      min_tracked: float = 0.5, progress: bool = True,
+                      face: str = "largest"):
     """Per-frame expression vectors of a (driving) video -> ExpressionTrack."""
     import flamenerf
     from flamenerf.tracking.crop import face_boxes
@@ -27,7 +28,7 @@ def track_expressions(video: str | os.PathLike, fps: float | None = None,
         from flamenerf.tracking.flame import load_flame_dir
 
         flame = load_flame_dir(flame_dir)
-    clip = track_clip(video, fps, max_frames, landmarker, progress)
+    clip = track_clip(video, fps, max_frames, landmarker, progress, face)
     require_enough(clip, min_tracked, minimum=1)
     if flame is not None:
         from flamenerf.tracking.flame import fit_flame

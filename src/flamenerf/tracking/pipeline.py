@@ -61,6 +61,9 @@ class PreprocessOptions:
         flame_expr_dim: Number of FLAME expression coefficients to fit and store (β also
             holds the 3 jaw-pose angles after them).
         min_tracked: Fail unless at least this fraction of the selected frames is tracked.
+        face: Whose face to follow where several are in view: the largest of the first
+            frame with a face, or the leftmost or rightmost there (then the same person
+            from frame to frame).
         max_error: Drop frames whose median reprojection error exceeds this fraction of
             the face size (and 3x the clip's median).
         qa: Write OUT/qa's overlay video, contact sheet and plots (the report,
@@ -90,6 +93,7 @@ class PreprocessOptions:
     flame_dir: Path | None = None
     flame_expr_dim: int = 50
     min_tracked: float = 0.5
+    face: Literal["largest", "left", "right"] = "largest"
     max_error: float = MAX_ERROR
     qa: bool = True
     consistent_expressions: bool = False
@@ -134,7 +138,7 @@ def preprocess_video(video: str | os.PathLike, out: str | os.PathLike,
     model = find_model(opts.landmarker)
     mesh = load_canonical_mesh(model)
 
-    clip = track_clip(video, opts.fps, opts.max_frames, model, opts.progress)
+    clip = track_clip(video, opts.fps, opts.max_frames, model, opts.progress, opts.face)
     n_tracked = len(clip.frames)
     require_enough(clip, opts.min_tracked)
     t_track = time.perf_counter()
