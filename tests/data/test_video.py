@@ -12,6 +12,7 @@ from media import astronaut_frames, clip_with_sound, hdr_clip, variable_rate_cli
 
 
 def test_probe_and_decode(astronaut_video):
+    assert probe_video(astronaut_video).times is None  # evenly spaced: frame i at i / fps
     info = probe_video(astronaut_video)
     assert (info.width, info.height, info.num_frames) == (256, 256, 12)
     assert info.fps == pytest.approx(10.0) and info.rotation == 0
@@ -102,6 +103,16 @@ def test_a_variable_rate_clip_decodes_its_own_frames(tmp_path):
     assert [i for i, _ in got] == list(range(20))
     greys = [float(img.mean()) for _, img in got]
     assert np.allclose(greys, [10 * k for k in range(20)], atol=2)
+    # their own times: 30 fps, then half a second without a frame; evenly spaced frames
+    # (every other video here) keep i / fps
+    assert info.times is not None
+    assert np.allclose(np.diff(info.times), [1 / 30] * 9 + [0.5 + 1 / 30] + [1 / 30] * 9,
+                       atol=1e-3)
+    assert info.frame_time(10) == pytest.approx(25 / 30, abs=1e-3)
+    # --fps by those times: the frame nearest each tick of 10 a second (by index, at the
+    # clip's average rate, it took ~17 a second wherever the clip has frames)
+    sel = select_frames(info.num_frames, info.fps, 10, None, info.times)
+    assert sel.tolist() == [0, 3, 6, 9, 10, 12, 15, 18]
     # the selection by index picks those frames too
     assert [round(float(img.mean()) / 10) for _, img in iter_frames(info, np.array([3, 12, 19]))] \
         == [3, 12, 19]

@@ -5,7 +5,8 @@ never leaves a truncated video under the final name).
 Phones store portrait videos as landscape frames plus a display-matrix rotation; ffmpeg
 applies it while decoding (its default `autorotate`), so the frames we return, and the
 `width`/`height` we report, are as the video is meant to be seen. `rotation` records the
-angle for the report. Frame times assume a constant frame rate (`index / fps`).
+angle for the report. Frame times are `index / fps`, or for a variable-rate clip each
+frame's own presentation time (`VideoInfo.times`).
 
 HDR clips (a phone's default HDR video: HLG or PQ, BT.2020 colours, 10 bits) are decoded
 to SDR BT.709 (`SDR_FILTER`): taken as they are stored, they came out dim and pale.
@@ -51,6 +52,15 @@ class VideoInfo:
     rotation: int  # degrees the player rotates the stored frames (0, 90, 180, 270)
     codec: str
     hdr: str | None = None  # the HDR transfer (arib-std-b67: HLG, smpte2084: PQ), or None
+    times: np.ndarray | None = None
+    """(num_frames,) seconds from the first frame, each frame's own, for a variable-rate
+    clip; None where the frames are evenly spaced (frame i at i / fps)."""
+
+    def frame_time(self, index):
+        """Seconds from the first frame of frame(s) `index` (int or (n,) array)."""
+        if self.times is None:
+            return np.asarray(index) / self.fps
+        return self.times[np.asarray(index)]
 
 
 HDR_TRANSFERS = ("arib-std-b67", "smpte2084")
@@ -129,13 +139,37 @@ def probe_video(path: str | os.PathLike) -> VideoInfo:
         raise UserError(f"{path}: video has no frames")
     if fps <= 0:
         fps = nframes / secs if secs > 0 else 30.0
-    return VideoInfo(path, w, h, fps, int(nframes), float(secs), rot, codec, hdr)
+    times = _frame_times(path, int(nframes), fps)
+    return VideoInfo(path, w, h, fps, int(nframes), float(secs), rot, codec, hdr, times)
+
+
+def _frame_times(path: Path, nframes: int, fps: float) -> np.ndarray | None:
+    """Each frame's presentation time, seconds from the first, from the stream's packets
+    (no decoding), where they are not evenly spaced at `fps` (more than half a frame off
+    i / fps somewhere); None where they are, or where they cannot be read as one per frame."""
+    r = subprocess.run([_ffmpeg(), "-hide_banner", "-nostdin", "-loglevel", "error", "-i",
+                        str(path), "-map", "0:v:0", "-c", "copy", "-f", "framecrc", "-"],
+                       capture_output=True, text=True, errors="replace")
+    m = re.search(r"^#tb 0: (\d+)/(\d+)", r.stdout, re.M)
+    try:
+        pts = [int(ln.split(",")[2]) for ln in r.stdout.splitlines()
+               if ln and not ln.startswith("#")]
+    except (IndexError, ValueError):
+        return None
+    if m is None or len(pts) != nframes or nframes < 2:
+        return None
+    t = np.sort(np.asarray(pts, np.float64)) * int(m.group(1)) / int(m.group(2))
+    t -= t[0]
+    return t if np.abs(t - np.arange(nframes) / fps).max() > 0.5 / fps else None
 
 
 def select_frames(num_frames: int, native_fps: float, fps: float | None = None,
-                  max_frames: int | None = None) -> np.ndarray:
+                  max_frames: int | None = None, times: np.ndarray | None = None
+                  ) -> np.ndarray:
     """Indices of the frames to keep: subsample to `fps` (nearest source frame to each
-    tick), then, when more than `max_frames` remain, that many spread evenly over the clip."""
+    tick; by the frames' own `times` (num_frames,) seconds where given, a variable-rate
+    clip's), then, when more than `max_frames` remain, that many spread evenly over the
+    clip."""
     if num_frames <= 0:
         return np.zeros(0, np.int64)
     if fps is not None:
@@ -144,6 +178,11 @@ def select_frames(num_frames: int, native_fps: float, fps: float | None = None,
         raise UserError(f"--max-frames must be positive, got {max_frames}")
     if fps is None or fps >= native_fps:
         idx = np.arange(num_frames)
+    elif times is not None:
+        ticks = np.arange(0.0, times[-1] + 0.5 / fps, 1.0 / fps)
+        right = np.clip(np.searchsorted(times, ticks), 1, num_frames - 1)
+        nearer_left = ticks - times[right - 1] <= times[right] - ticks
+        idx = np.unique(np.where(nearer_left, right - 1, right)).astype(np.int64)
     else:
         step = native_fps / fps
         idx = np.unique(np.round(np.arange(0, num_frames - 0.5, step)).astype(np.int64))

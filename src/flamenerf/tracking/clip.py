@@ -113,7 +113,7 @@ def track_clip(video: str | os.PathLike, fps: float | None = None,
 
     model = find_model(landmarker)  # fail on a bad model path before decoding anything
     info = probe_video(video)
-    sel = select_frames(info.num_frames, info.fps, fps, max_frames)
+    sel = select_frames(info.num_frames, info.fps, fps, max_frames, info.times)
     t0 = time.perf_counter()
     frames, L, B, M, dropped, crowded = [], [], [], [], [], []
     seen, last, decoded, thumbs = set(), None, [], []
@@ -127,7 +127,7 @@ def track_clip(video: str | os.PathLike, fps: float | None = None,
                 crowded.append(int(i))
             k = choose_face([d.landmarks for d in found], last, bool(crowded), face)
             if k is None:
-                dropped.append({"source_frame": i, "time": i / info.fps,
+                dropped.append({"source_frame": i, "time": float(info.frame_time(i)),
                                 "reason": ("no face detected" if not found else
                                            "only faces other than the followed one")})
                 continue
@@ -140,14 +140,14 @@ def track_clip(video: str | os.PathLike, fps: float | None = None,
         names = lm.names or blendshape_names()
     for i in sel:
         if int(i) not in seen:
-            dropped.append({"source_frame": int(i), "time": int(i) / info.fps,
+            dropped.append({"source_frame": int(i), "time": float(info.frame_time(int(i))),
                             "reason": "frame could not be decoded"})
     fr = np.asarray(frames, np.int64)
     shot_of = dict(zip(decoded, shot_indices(np.asarray(thumbs)).tolist()))
     shots = np.array([shot_of[int(i)] for i in fr], np.int64)
     cuts = [i for k, i in enumerate(decoded) if k and shot_of[i] != shot_of[decoded[k - 1]]]
     return TrackedClip(
-        info=info, selected=sel, frames=fr, times=fr / info.fps,
+        info=info, selected=sel, frames=fr, times=np.asarray(info.frame_time(fr), np.float64),
         landmarks=np.asarray(L, np.float64).reshape(-1, 478, 3),
         blendshapes=np.asarray(B, np.float32).reshape(len(frames), len(names)),
         transforms=np.asarray(M, np.float64).reshape(-1, 4, 4), names=list(names),
