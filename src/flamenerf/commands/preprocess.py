@@ -37,7 +37,7 @@ def preprocess(
         out: Output dataset directory (written atomically).
     """
     from flamenerf.tracking.pipeline import preprocess_video
-    from flamenerf.tracking.clip import FACE_WORDS
+    from flamenerf.tracking.clip import crowded_note
     from flamenerf.tracking.report import scene_lines
 
     rep = preprocess_video(video, out, opts)
@@ -84,11 +84,9 @@ def preprocess(
               f"{'s' * (len(cuts) > 1)} {', '.join(map(str, cuts[:8]))}"
               f"{', ...' if len(cuts) > 8 else ''}): the camera solve does not smooth the "
               f"motion across them (qa/tracking_report.json: cuts)")
-    crowded = rep.get("crowded_frames") or []
-    if crowded:
-        print(f"note: other faces were in view in {len(crowded)} of the selected frames (the "
-              f"first: frame {crowded[0]}); the {FACE_WORDS[opts.face]} face of the first frame with a face "
-              f"was followed (--face) and frames with only other faces were dropped "
+    note = crowded_note(rep.get("crowded_frames") or [], opts.face)
+    if note:
+        print(f"{note} and frames with only other faces were dropped "
               f"(qa/tracking_report.json: crowded_frames)")
     for d in rep["dropped"][:10]:
         print(f"  dropped frame {d['source_frame']} ({d['time']:.2f}s): {d['reason']}")

@@ -58,7 +58,7 @@ def track(
     from flamenerf.errors import UserError
     from flamenerf.outdir import folders_kept_only_on_success, writable_dir
     from flamenerf.tracking.expressions import save_expressions, transfer_to_subject
-    from flamenerf.tracking.clip import FACE_WORDS
+    from flamenerf.tracking.clip import crowded_note
     from flamenerf.tracking.driving import track_expressions
 
     if out.is_dir():
@@ -90,10 +90,8 @@ def track(
     print(f"wrote {out}: {len(tr.frames)} frames x {len(tr.names)} {tr.kind} values at "
           f"{tr.fps:g} fps; dropped {len(tr.dropped)}"
           + (f"; relative to {relative_to}" if subject is not None else ""))
-    crowded = (tr.source or {}).get("crowded_frames") or []
-    if crowded:
-        print(f"note: other faces were in view in {len(crowded)} of the selected frames (the "
-              f"first: frame {crowded[0]}); the {FACE_WORDS[face]} face of the first frame with a face "
-              f"was followed (--face)")
+    note = crowded_note((tr.source or {}).get("crowded_frames") or [], face)
+    if note:
+        print(note)
     for d in tr.dropped[:10]:
         print(f"  dropped frame {d['source_frame']} ({d['time']:.2f}s): {d['reason']}")

@@ -65,6 +65,16 @@ FACE_CHOICES = ("largest", "left", "right")
 FACE_WORDS = {"largest": "largest", "left": "leftmost", "right": "rightmost"}
 
 
+def crowded_note(crowded: list[int], face: str) -> str | None:
+    """The line `preprocess` and `track` print where other faces were in view (source
+    frames `crowded`; `face`: the --face followed), or None."""
+    if not crowded:
+        return None
+    return (f"note: other faces were in view in {len(crowded)} of the selected frames (the "
+            f"first: frame {crowded[0]}); the {FACE_WORDS[face]} face of the first frame "
+            f"with a face was followed (--face)")
+
+
 def choose_face(faces: list[np.ndarray], last: tuple[np.ndarray, float] | None,
                 crowd: bool, first: str = "largest") -> int | None:
     """Which of a frame's faces (landmarks (K, ≥2) each) is the followed person's: without
