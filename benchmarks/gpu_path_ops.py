@@ -18,7 +18,6 @@ from __future__ import annotations
 import argparse
 import collections
 import dataclasses
-import json
 import sys
 from pathlib import Path
 
@@ -106,15 +105,16 @@ def main() -> int:
            "waits": sum(counter.waits.values()),
            "by_pass": {p: {"ops": counter.ops[p], "views": counter.views[p],
                            "waits": counter.waits[p]} for p in phases}}
+    if a.json:
+        from flamenerf.io import write_json
+
+        a.json.parent.mkdir(parents=True, exist_ok=True)
+        write_json(a.json, out)
     print(f"{a.size} px frame down the GPU path: {out['ops']} ops (+{out['views']} views), "
-          f"{out['waits']} waits for the device")
+          f"{out['waits']} waits for the device" + (f" (written to {a.json})" if a.json else ""))
     for p in phases:
         print(f"  {p:15s} {counter.ops[p]:5d} ops  {counter.views[p]:5d} views  "
               f"{counter.waits[p]:3d} waits")
-    if a.json:
-        a.json.parent.mkdir(parents=True, exist_ok=True)
-        a.json.write_text(json.dumps(out, indent=1))
-        print(f"wrote {a.json}")
     return 0
 
 
