@@ -3,8 +3,8 @@ ATen operations dispatched (on a GPU each is a launch or at least a Python-and-d
 call; a 256 px frame there is bound by them) and those that wait for the device (nonzero,
 boolean indexing, a tensor read as a Python number), per pass of the renderer (the
 proposal, the main samples, the second pass over unfinished rays). The render goes down
-the GPU path on the CPU (model/gpu_emulation.py, float32, one chunk as on a GPU, the
-proposal checked once per ray as on a GPU); the Triton kernels run under the interpreter
+the GPU path on the CPU (model/gpu_emulation.py, float32; its passes are the GPU's: one
+chunk, the proposal checked once per ray); the Triton kernels run under the interpreter
 only when FLAMENERF_GPU_KERNELS asks for them (then TRITON_INTERPRET=1: slow), so the
 default here is the path with none (`FLAMENERF_GPU_KERNELS=0`). A count, not a time: it
 says how much host work a change to the inference path adds or removes without a GPU.
@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import argparse
 import collections
-import dataclasses
 import sys
 from pathlib import Path
 
@@ -68,8 +67,6 @@ def main() -> int:
 
     run = load_run(a.run, torch.device("cpu"))
     args = view_args(run, run.dataset(a.dataset), a.size)
-    # one chunk and one proposal check per ray, as on a GPU
-    settings = dataclasses.replace(inference.FAST, chunk=1 << 18, threads=1)
     counter = Counter()
     passes = iter(["proposal", "main", "second pass"])
     march = inference.march
@@ -81,20 +78,16 @@ def main() -> int:
         finally:
             counter.phase = "between passes"
 
-    proposal_check = inference.RenderSettings.proposal_samples_per_check
-    inference.RenderSettings.proposal_samples_per_check = (
-        lambda self, device, samples: self.proposal_group or samples)
     inference.march = counted_march
     try:
         with gpu_emulation.gpu_path_on_cpu(half=False):
-            render_image(*args, settings=settings)  # the bakes, made once per ω
+            render_image(*args, settings=inference.FAST)  # the bakes, made once per ω
             passes = iter(["proposal", "main", "second pass"])
             counter.phase = "setup"
             with counter:
-                render_image(*args, settings=settings)
+                render_image(*args, settings=inference.FAST)
     finally:
         inference.march = march
-        inference.RenderSettings.proposal_samples_per_check = proposal_check
     from flamenerf import gpu_kernels
 
     phases = sorted(set(counter.ops) | set(counter.views))

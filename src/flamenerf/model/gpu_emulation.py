@@ -3,8 +3,10 @@ layers and kernels (`runtime.gpu_inference`), its nearest vertices (distance blo
 the Triton kernel, not the CPU's k-d tree or compiled kernel) and, with `half`, CPU
 autocast in float16 standing in for CUDA's. The Triton kernels then need Triton's
 interpreter (`TRITON_INTERPRET=1` before Triton is imported, with
-`FLAMENERF_GPU_KERNELS=1`). Used by tests/model/test_gpu_path.py and
-benchmarks/gpu_kernels_build.py (which records the launches to compile them for GPUs)."""
+`FLAMENERF_GPU_KERNELS=1`). Its passes are the GPU's too: rays in the GPU's chunks, one
+thread, the proposal's termination checked once per ray (`RenderSettings`'s choices as for
+CUDA). Used by tests/model/test_gpu_path.py, benchmarks/gpu_kernels_build.py (which records
+the launches to compile them for GPUs) and benchmarks/gpu_path_ops.py."""
 
 from __future__ import annotations
 
@@ -14,7 +16,7 @@ from collections.abc import Iterator
 import torch
 
 from flamenerf import meshes, runtime
-from flamenerf.model import flame_nerf, inference, mlp, render_image
+from flamenerf.model import flame_nerf, inference, mlp
 
 
 @contextlib.contextmanager
@@ -27,14 +29,23 @@ def gpu_path_on_cpu(half: bool = True) -> Iterator[None]:
         return (torch.autocast("cpu", dtype=torch.float16) if half and settings.half
                 else contextlib.nullcontext())
 
+    cuda = torch.device("cuda")
+    Settings = inference.RenderSettings
+
+    def as_on_cuda(name):  # a RenderSettings choice made as for a CUDA device
+        fn = getattr(Settings, name)
+        return lambda self, device, *a: fn(self, cuda, *a)
+
     swaps = [(runtime, "gpu_inference", lambda device: True),
              (mlp, "_oneDNN_linear", lambda: None),  # the lean layers, not oneDNN's fused
              (flame_nerf, "nearest_vertices", meshes.nearest_vertices_off_cpu),
              (inference, "_autocast", autocast),
-             # one thread: Triton's interpreter patches triton.language while a kernel
-             # runs, so two kernels interpreted at once fail (and go off, `_launch`)
-             (render_image, "map_single_threaded", lambda fn, items, workers: [
-                 fn(x) for x in items])]
+             # the GPU's passes: one chunk of a frame's rays, the proposal's termination
+             # checked once per ray, and one render thread (which the interpreter needs too:
+             # it patches triton.language while a kernel runs, so two kernels interpreted at
+             # once fail, and go off, `_launch`)
+             *[(Settings, name, as_on_cuda(name)) for name in
+               ("rays_per_chunk", "render_threads", "proposal_samples_per_check")]]
     kept = [(mod, name, getattr(mod, name)) for mod, name, _ in swaps]
     try:
         for mod, name, fn in swaps:
