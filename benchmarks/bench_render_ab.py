@@ -1,5 +1,5 @@
-"""Render (or training-step) speed of two source trees side by side, for machines whose
-speed drifts.
+"""Render (or training-step) speed of two or more source trees side by side, for machines
+whose speed drifts.
 
 On a shared machine the same frame's time drifts by up to ~35 % between runs minutes apart,
 so a before/after figure from two separate `bench_render.py` runs says little. This script
@@ -96,8 +96,8 @@ def main() -> int:
     ap.add_argument("--train", default=None, metavar="PRESET",
                     help="time training steps of this preset on --dataset instead")
     ap.add_argument("--dataset", type=Path, default=None)
-    ap.add_argument("--src", nargs=2, required=True, metavar=("A", "B"),
-                    help="two source trees (folders holding the flamenerf package)")
+    ap.add_argument("--src", nargs="+", required=True, metavar="SRC",
+                    help="source trees (folders holding the flamenerf package), two or more")
     ap.add_argument("--sizes", type=int, nargs="+", default=[128, 256])
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--repeats", type=int, default=4)
@@ -112,6 +112,8 @@ def main() -> int:
     a = ap.parse_args()
     if (a.run is None) == (a.train is None) or (a.train and a.dataset is None):
         ap.error("give --run RUN (render), or --train PRESET with --dataset")
+    if len(a.src) < 2:
+        ap.error("give two or more --src trees")
     child, what = ((_TRAIN_CHILD, a.train) if a.train else (_CHILD, a.settings))
     times: dict[str, dict[str, list[float]]] = {s: {} for s in a.src}
     for r in range(a.rounds):
@@ -126,7 +128,11 @@ def main() -> int:
             proc = subprocess.run(
                 [sys.executable, "-c", child, str(a.run), str(a.dataset or ""),
                  str(a.threads), json.dumps(a.sizes), str(a.repeats), what, a.device],
-                env=env, capture_output=True, text=True, check=True)
+                env=env, capture_output=True, text=True)
+            if proc.returncode:  # one tree that fails (a kernel fault) leaves the others timed
+                last = (proc.stderr.strip().splitlines() or ["no output"])[-1]
+                print(f"round {r + 1} {src}: failed ({last})", flush=True)
+                continue
             got = json.loads(proc.stdout.strip().splitlines()[-1])
             for size, ts in got.items():
                 times[src].setdefault(size, []).extend(ts)
@@ -139,6 +145,9 @@ def main() -> int:
            + " ".join(sys.argv[1:]), "machine": f"{platform.processor() or platform.machine()}, "
            f"{os.cpu_count()} cores, {a.threads} threads, device {a.device}", "results": {}}
     for src, per in times.items():
+        if not per:
+            res["results"][src] = "failed"
+            continue
         res["results"][src] = {s: {"best_s": round(min(ts), 4), "median_s":
                                    round(float(np.median(ts)), 4), "n": len(ts)}
                                for s, ts in per.items()}

@@ -54,8 +54,9 @@ if [[ -n "${SMOKE:-}" ]]; then
   EXTRA_TRAIN=(--steps 4 --batch-rays 1024)
 else
   SIZE=256 BUDGET=70 EVAL_FIT=60 FINAL_FIT=100 SIZES="128 256 512" DEVICE=cuda REPEATS=5
-  CHOICE_POINTS=0 CHOICE_SIZE=512 CHECK_SIZES="128 512" CHECK_TIMEOUT=60
-  CHECK_BUDGET=240  # the check as a whole: a GPU that hangs must leave time for the rest
+  CHOICE_POINTS=0 CHOICE_SIZE=512 CHECK_SIZES=${CHECK_SIZES:-128 512} CHECK_TIMEOUT=60
+  # the check as a whole: a GPU that hangs must leave time for the rest
+  CHECK_BUDGET=${CHECK_BUDGET:-240}
   EXTRA_TRAIN=()
 fi
 WORK=$(mktemp -d)
@@ -104,6 +105,15 @@ if [[ $KEEP == 1 ]]; then
     --dataset "$SCENE" --device "$DEVICE" --sizes ${SIZES#* } --presets fast \
     --repeats "$REPEATS" --out "$FIG/render_without_heads"
 fi
+if [[ -n "${OLD_SRC:-}" ]]; then
+  # each old src knows FLAMENERF_GPU_KERNELS=0 alone: any other value turns on all of its
+  # kernels (hashgrid and knn; none has a field heads' kernel), like for like with today's
+  # default set; OLD_SRC may name several trees, oldest first
+  # shellcheck disable=SC2086
+  stage "render A/B: $OLD_SRC against src (seed $first's run)" "$PY" benchmarks/bench_render_ab.py \
+    --run "$WORK/run_s$first" --dataset "$SCENE" --device "$DEVICE" --src $OLD_SRC src \
+    --sizes ${SIZES#* } --rounds 3 --repeats "$REPEATS" --json "$FIG/render_ab.json"
+fi
 # on a CPU the interpreter checks the choices on a few points
 CHOICE_ENV=(); [[ $DEVICE == cpu ]] && CHOICE_ENV=(TRITON_INTERPRET=1 FLAMENERF_CPU_KERNELS=0)
 stage "the kernels' launch choices (seed $first's run, $CHOICE_SIZE px)" \
@@ -116,19 +126,28 @@ profile() {
     | { grep -v "^\(STAGE\|USDT\)" || true; }
 }
 stage "profile of a ${SIZES##* } px frame (seed $first's run)" profile
-if [[ -n "${OLD_SRC:-}" ]]; then
-  # the old src knows FLAMENERF_GPU_KERNELS=0 alone: any other value turns on all of its
-  # kernels (hashgrid and knn; it has no field heads' kernel), like for like with today's
-  # default set
-  # shellcheck disable=SC2086
-  stage "render A/B: $OLD_SRC against src (seed $first's run)" "$PY" benchmarks/bench_render_ab.py \
-    --run "$WORK/run_s$first" --dataset "$SCENE" --device "$DEVICE" --src "$OLD_SRC" src \
-    --sizes ${SIZES#* } --rounds 3 --repeats "$REPEATS" --json "$FIG/render_ab.json"
+if [[ -n "${PAPER_BUDGET:-}" ]]; then
+  # the paper's preset under the same protocol as fast-gpu, side by side, for as long as the
+  # call has left (DEADLINE: seconds since the start by which the script must be done; the
+  # curve's lines are in the log as they come, should it be cut off)
+  left=$(( ${DEADLINE:-100000} - SECONDS - 15 ))
+  if (( left > 60 )); then
+    stage "flame-in-nerf seed $first (at most $left s)" timeout "$left" "$PY" \
+      benchmarks/bench_train.py --scene "$SCENE" --size "$SIZE" --budget "$PAPER_BUDGET" \
+      --eval-every "${PAPER_EVAL_EVERY:-10}" --eval-frames 6 --eval-fit-steps "$EVAL_FIT" \
+      --final-fit-steps "$FINAL_FIT" --skip-throughput --targets 20,25,28,30 \
+      --quality-preset flame-in-nerf --seed "$first" --json "$FIG/train_paper_s$first.json" \
+      "${EXTRA_TRAIN[@]}"
+  else
+    say "flame-in-nerf: skipped, $left s left"
+  fi
 fi
 SAN=$(command -v compute-sanitizer || ls /usr/local/cuda*/bin/compute-sanitizer 2>/dev/null \
   | head -1 || true)
 if [[ $KEEP != 1 && $DEVICE == cuda ]]; then
-  if [[ -n "$SAN" ]]; then  # last: it can take minutes, and the figures come first
+  if (( ${DEADLINE:-100000} - SECONDS < 170 )); then
+    say "compute-sanitizer: skipped, too little time left"
+  elif [[ -n "$SAN" ]]; then  # last: it can take minutes, and the figures come first
     stage "compute-sanitizer, every kernel on (128 px)" timeout 150 env FLAMENERF_GPU_KERNELS=1 \
       "$SAN" --tool memcheck --error-exitcode 1 --print-limit 5 "$PY" \
       benchmarks/gpu_kernel_check.py --child --device cuda --size 128 --save "$WORK/san.npy"
