@@ -213,8 +213,8 @@ def test_a_kernel_that_faults_the_gpu_stops_the_work(monkeypatch):
 
 
 def test_the_kernels_named_in_the_environment(monkeypatch):
-    """FLAMENERF_GPU_KERNELS: unset leaves the unproven kernels off, 1 turns every one on, a
-    list keeps those named, a name that is no kernel is one clear error."""
+    """FLAMENERF_GPU_KERNELS: unset leaves the unproven kernels (none now) off, 1 turns every
+    one on, a list keeps those named, a name that is no kernel is one clear error."""
     import torch
 
     from flamenerf import gpu_kernels

@@ -42,11 +42,12 @@ _recorded: list | None = None  # `recording()`'s launches
 NAMES = ("hashgrid", "knn", "field_heads")
 """The kernels, by name (what FLAMENERF_GPU_KERNELS lists)."""
 
-UNPROVEN = frozenset({"field_heads"})
+UNPROVEN: frozenset[str] = frozenset()
 """Kernels left off unless asked for (`FLAMENERF_GPU_KERNELS=1` or by name) until they have
-rendered right on a GPU: `field_heads` ended an H200's frame with an illegal memory access
-(see DOT_MIN), and how it runs padded is not yet known (benchmarks/gpu_targets.sh finds
-out first thing on the next GPU)."""
+rendered right on a GPU (benchmarks/gpu_kernel_check.py). None now: `field_heads` with
+widths of 16 ended an H200's frame with an illegal memory access; padded to DOT_MIN it
+rendered right there (2026-11-28, Triton 3.6: within 1.3e-4 of the kernels-off frame,
+512 px at 33.2 fps against 30.1 without it; docs/bench/gpu_h200_20261128b.json)."""
 
 
 def chosen() -> frozenset[str]:
@@ -323,15 +324,16 @@ def _define() -> dict:
     return {"hashgrid": hashgrid_fwd, "knn": knn, "field_heads": field_heads}
 
 
-KNN_TILE, KNN_WARPS = 8, 8
+KNN_TILE, KNN_WARPS = 8, 4
 """The nearest-vertex kernel's tile of vertices (0: none, every vertex inserted in turn)
-and warps a block: chosen by registers a thread on sm_90 (`gpu_build.build`), not yet timed
-on a GPU (benchmarks/gpu_choices.py times the choices)."""
+and warps a block: timed on an H200 on a 512 px frame's calls (benchmarks/gpu_choices.py,
+2026-11-28): on its 1.03M points tile 8 with 4 warps 2.69 ms, 8 warps 3.09, no tile 4.6-4.8,
+tile 16 3.1-3.5; on the second pass's 20k points every choice 0.23-0.37 ms."""
 
 HEADS_BLOCK, HEADS_WARPS = 64, 4
-"""The field heads' points a block and warps a block: not timed on a GPU either (128
-registers a thread on sm_90 with every width padded to DOT_MIN, 96 with widths of 16: four
-blocks an SM; benchmarks/gpu_choices.py times others)."""
+"""The field heads' points a block and warps a block: timed on an H200 on a 512 px frame's
+calls (benchmarks/gpu_choices.py, 2026-11-28): on its 8.4M points 2.10 ms, against 2.34 ms
+for 128 points a block and 3.2-4.4 ms with 8 warps; on 67k points all within 0.09-0.10 ms."""
 
 
 def knn(pts: Tensor, meshes: Tensor, which: Tensor, k: int, tile: int | None = None,

@@ -98,13 +98,13 @@ BUILD = textwrap.dedent("""
 
 
 def test_gpu_inference_path_matches_the_cpu_one_under_the_interpreter():
-    """With every kernel on, and with the default set (the field heads' kernel off): the
-    same image as the CPU's path, and the features computed once either way (the heads'
+    """With every kernel on (the default), and with the field heads' kernel off: the same
+    image as the CPU's path, and the features computed once either way (the heads'
     fallback once computed them a second time)."""
     import json
 
     calls = {}
-    for chosen in ("1", None):
+    for chosen in (None, "hashgrid,knn"):
         env = {**os.environ, "TRITON_INTERPRET": "1",
                "FLAMENERF_CPU_KERNELS": "0",  # the hash grid's encoding from the Triton kernel
                "PYTHONPATH": os.pathsep.join([str(TESTS / "model"), str(TESTS),
@@ -117,8 +117,8 @@ def test_gpu_inference_path_matches_the_cpu_one_under_the_interpreter():
         assert out.returncode == 0, out.stderr[-3000:]
         assert "gpu path agrees" in out.stdout
         calls[chosen] = json.loads(out.stdout.split("gpu path agrees", 1)[1])
-    assert calls["1"]["heads"] > 0 and calls[None]["heads"] == 0, calls
-    assert calls["1"]["encode"] == calls[None]["encode"], calls
+    assert calls[None]["heads"] > 0 and calls["hashgrid,knn"]["heads"] == 0, calls
+    assert calls[None]["encode"] == calls["hashgrid,knn"]["encode"], calls
 
 
 def _nvidia_tools() -> bool:

@@ -225,7 +225,7 @@ class HashField(nn.Module):
         heads in one Triton kernel (gpu_kernels.field_heads), the colour head's per-ray
         conditioning applied once per ray. None where the kernel does not apply (β fed to
         the density head directly, per-sample conditioning of another shape, no Triton, the
-        kernel off: gpu_kernels.UNPROVEN), before any work (the caller then computes the
+        kernel turned off: FLAMENERF_GPU_KERNELS), before any work (the caller then computes the
         features itself)."""
         from flamenerf import gpu_kernels
 
