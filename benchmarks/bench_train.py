@@ -63,15 +63,9 @@ def reanimation_face_psnr(model, ds, intr, frames) -> float:
 
     dev = next(model.parameters()).device
     omega0, phi0 = model.codes(torch.zeros(1, dtype=torch.long, device=dev))
-    # as a render outside training: the second pass over unfinished rays, the trained
-    # background's mean, the captured view directions (a training model has none of them)
-    was_training = model.training
-    model.eval()
-    try:
+    with model.outside_training():
         res, _ = reanimation(model, FrameSet(ds, frames, intr), omega0[0].detach(),
                              phi0[0].detach())
-    finally:
-        model.train(was_training)
     return res["psnr_face"]
 
 

@@ -1,6 +1,8 @@
 #!/usr/bin/env bash
-# Issue 15's GPU targets in one call of a lent GPU machine (on an H200, 2026-11-28: the
-# scene 25 s, each seed ~97 s; the rest not yet timed, ~8-9 minutes in all by estimate):
+# Issue 15's GPU targets in one call of a lent GPU machine (on an H200, 2026-11-28, one
+# seed, the check at 128 px only, the A/B and the paper's preset: 434 s in all; the check
+# 31 s, the scene 23 s, a seed 99 s, the three frame timings 50 s, the A/B 40 s, choices
+# and profile 22 s, the paper's preset 162 s):
 #   0. which Triton kernels render a frame right (gpu_kernel_check.py: off, all, today's
 #      default, the field heads at their old widths; each kernel alone and all but each
 #      where one fails; each render in a fresh process); the rest runs with the largest
@@ -18,10 +20,16 @@
 #   4. a profile of one 512 px frame (profile_render.py: where the GPU's time goes), in
 #      the log, and the nearest-vertex kernel's and the field heads' launch choices timed
 #      on that frame's calls (gpu_choices.py);
-#   5. with OLD_SRC set (a source tree of an earlier commit): the same run's frames at
-#      256 and 512 px with OLD_SRC and with this checkout's src, alternated in fresh
-#      processes (bench_render_ab.py), so that a change to the GPU's inference path is
-#      measured against what it replaced on one warm machine.
+#   5. with OLD_SRC set (source trees of earlier commits, oldest first): the same run's
+#      frames at 256 and 512 px with them and with this checkout's src, alternated in
+#      fresh processes (bench_render_ab.py), so that a change to the GPU's inference path
+#      is measured against what it replaced on one warm machine (run before 4);
+#   6. with PAPER_BUDGET set (seconds): `flame-in-nerf` under the same protocol as 2
+#      (PAPER_EVAL_EVERY, 10 s unless set), its curves beside fast-gpu's, within what is
+#      left before DEADLINE (seconds since the start; unset, no limit). On a CPU its fits
+#      of 2048 / 4096 rays need over 16 GB.
+# SEEDS (default "0 1"), CHECK_SIZES ("128 512") and CHECK_BUDGET (240 s) trim a call that
+# must fit a short lease.
 # Everything it prints is also in $OUT/log.txt; the figures (JSON and Markdown) in
 # $OUT/figures.tar, made again after every stage (a call brings back 8 files at most, and
 # what it holds when cut off). A stage that fails is logged and the next one runs.

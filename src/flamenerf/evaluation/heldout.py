@@ -3,6 +3,9 @@ its deformation code ω, starting from frame 0's, with frame 0's appearance code
 
 from __future__ import annotations
 
+import contextlib
+from collections.abc import Iterator
+
 import torch
 from tqdm import tqdm
 
@@ -19,18 +22,19 @@ def fit_deformation_codes(model: FlameNeRF, frames: FrameSet, steps: int = 200,
     never changed (they do not even receive gradients).
     """
     dev = next(model.parameters()).device
-    was_training = model.training
-    model.eval()
-    flags = [p.requires_grad for p in model.parameters()]
-    for p in model.parameters():
-        p.requires_grad_(False)
     zero = torch.zeros(1, dtype=torch.long, device=dev)
     omega0, phi0 = (c.detach() for c in model.codes(zero))
     omega = torch.nn.Parameter(omega0.expand(frames.n, -1).clone())
     phi = phi0.expand(frames.n, -1)
     if model.warp is None or steps <= 0:
-        _restore(model, flags, was_training)
         return omega.detach(), phi
+    with model.outside_training(), _frozen(model):
+        _fit(model, frames, omega, phi, steps, batch_rays, lr, seed, quiet)
+    return omega.detach(), phi
+
+
+def _fit(model, frames, omega, phi, steps, batch_rays, lr, seed, quiet) -> None:
+    dev = omega.device
     opt = torch.optim.Adam([omega], lr=lr)
     gen = torch.Generator().manual_seed(seed)
     for _ in tqdm(range(steps), desc="fit ω (held-out)", disable=quiet, leave=False):
@@ -42,11 +46,16 @@ def fit_deformation_codes(model: FlameNeRF, frames: FrameSet, steps: int = 200,
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
-    _restore(model, flags, was_training)
-    return omega.detach(), phi
 
 
-def _restore(model, flags, was_training) -> None:
-    for p, f in zip(model.parameters(), flags):
-        p.requires_grad_(f)
-    model.train(was_training)
+@contextlib.contextmanager
+def _frozen(model) -> Iterator[None]:
+    """No parameter of `model` takes gradients (they keep their flags after)."""
+    flags = [p.requires_grad for p in model.parameters()]
+    for p in model.parameters():
+        p.requires_grad_(False)
+    try:
+        yield
+    finally:
+        for p, f in zip(model.parameters(), flags):
+            p.requires_grad_(f)

@@ -10,7 +10,9 @@ without one, or for rays without a head transform, points are exactly as before.
 
 from __future__ import annotations
 
+import contextlib
 import math
+from collections.abc import Iterator
 
 import torch
 import torch.nn.functional as F
@@ -321,6 +323,18 @@ class FlameNeRF(nn.Module):
             w = self.cfg.warp
             n = max(w.anneal_fraction * total_steps, 1.0)
             self.warp.set_alpha(min(w.num_freqs * step / n, w.num_freqs))
+
+    @contextlib.contextmanager
+    def outside_training(self) -> Iterator[FlameNeRF]:
+        """The model as a render outside training sees it (eval mode: the second pass over
+        unfinished rays, the trained background's mean, the captured view directions; a
+        training model has none of them), its mode restored after."""
+        was_training = self.training
+        self.eval()
+        try:
+            yield self
+        finally:
+            self.train(was_training)
 
     def codes(self, frame_index: Tensor) -> tuple[Tensor, Tensor]:
         """frame_index (R,) long -> ω (R, code_dim), φ (R, appearance_dim)."""

@@ -470,10 +470,10 @@ class Trainer:
         frames = self.ds.splits.get("val") or self.ds.splits["train"]
         fr = self.ds.frames[frames[0]]
         fs = FrameSet(self.ds, [fr], self.intr)
-        self.model.eval()
         omega, phi = self.model.codes(fs.frame_index.to(self.device))
-        out = render_image(self.model, self.intr, fs.c2w[0], omega[0], phi[0],
-                           fs.expressions[0], fs.masks[0])
+        with self.model.outside_training():
+            out = render_image(self.model, self.intr, fs.c2w[0], omega[0], phi[0],
+                               fs.expressions[0], fs.masks[0])
         img = torch.cat([fs.images[0], out["rgb"]], 1).numpy()
         save_png(self.run_dir / "images" / f"step-{self.step:09d}.png", img)
         if writer is not None:
