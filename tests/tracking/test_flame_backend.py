@@ -94,7 +94,7 @@ def test_fit_recovers_expression_from_landmarks(tiny_flame, canonical_mesh):
                   -1)
     L = np.zeros((N, 478, 3))
     L[:, :468, :2] = uv
-    clip = SimpleNamespace(landmarks=L)
+    clip = SimpleNamespace(landmarks=L, shots=None)
     sol = SimpleNamespace(w2c=w2c, focal=f, cx=W / 2, cy=W / 2, face_size=100.0,
                           template=canonical_mesh.vertices)
     fit = fit_flame(m, clip, sol, num_expr=E, num_shape=6, iters=300, reg_expr=1e-6,

@@ -328,7 +328,7 @@ def _fit(m, clip, sol, num_expr, num_shape, iters, reg_shape, reg_expr, reg_pose
     c = 0.01
     fs = sol.face_size
     # consecutive frames of one shot: an expression may change at once across a cut
-    shots = getattr(clip, "shots", None)
+    shots = clip.shots
     pairs = (torch.ones(max(N - 1, 0), dtype=torch.bool) if shots is None
              else torch.as_tensor(shots[1:] == shots[:-1]))
 
