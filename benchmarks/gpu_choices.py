@@ -3,9 +3,9 @@ the nearest-vertex kernel's vertex tiles (0: every vertex in turn) and warps a b
 the field heads' points and warps a block, on the calls a trained run's frame makes (its
 most expressive β) at one size.
 
-`gpu_kernels.KNN_TILE` / `KNN_WARPS` and `HEADS_BLOCK` / `HEADS_WARPS` were chosen by
-registers a thread on sm_90 (gpu_build.py, benchmarks/gpu_kernels_build.py), not by time:
-this says which is fastest. The nearest vertices must be the same, index for index; the
+`gpu_kernels.KNN_TILE` / `KNN_WARPS` and `HEADS_BLOCK` / `HEADS_WARPS` were first chosen
+by registers a thread on sm_90 (gpu_build.py, benchmarks/gpu_kernels_build.py), then by
+this script's times on an H200 (2026-11-28: the nearest vertices' 8 warps became 4). The nearest vertices must be the same, index for index; the
 heads' σ and RGB within 1e-3 relative (another block shape may order a sum otherwise).
 
 Usage: python benchmarks/gpu_choices.py --run RUN [--dataset SCENE] [--size 512]
