@@ -27,7 +27,9 @@
 #   6. with PAPER_BUDGET set (seconds): `flame-in-nerf` under the same protocol as 2
 #      (PAPER_EVAL_EVERY, 10 s unless set), its curves beside fast-gpu's, within what is
 #      left before DEADLINE (seconds since the start; unset, no limit). On a CPU its fits
-#      of 2048 / 4096 rays need over 16 GB.
+#      of 2048 / 4096 rays need over 16 GB. Likewise FAST_BUDGET (FAST_EVAL_EVERY, 20 s):
+#      `fast`'s 1800 steps of 2048 rays beside fast-gpu (its driven face at 256 px was the
+#      better on a CPU: docs/presets.md).
 # SEEDS (default "0 1"), CHECK_SIZES ("128 512") and CHECK_BUDGET (240 s) trim a call that
 # must fit a short lease.
 # Everything it prints is also in $OUT/log.txt; the figures (JSON and Markdown) in
@@ -134,22 +136,24 @@ profile() {
     | { grep -v "^\(STAGE\|USDT\)" || true; }
 }
 stage "profile of a ${SIZES##* } px frame (seed $first's run)" profile
-if [[ -n "${PAPER_BUDGET:-}" ]]; then
-  # the paper's preset under the same protocol as fast-gpu, side by side, for as long as the
-  # call has left (DEADLINE: seconds since the start by which the script must be done; the
-  # curve's lines are in the log as they come, should it be cut off)
-  left=$(( ${DEADLINE:-100000} - SECONDS - 15 ))
+# another preset under the same protocol as fast-gpu, side by side, for as long as the call
+# has left (DEADLINE: seconds since the start by which the script must be done; the curve's
+# lines are in the log as they come, should it be cut off)
+beside() {
+  local name=$1 budget=$2 every=$3 left=$(( ${DEADLINE:-100000} - SECONDS - 15 ))
   if (( left > 60 )); then
-    stage "flame-in-nerf seed $first (at most $left s)" timeout "$left" "$PY" \
-      benchmarks/bench_train.py --scene "$SCENE" --size "$SIZE" --budget "$PAPER_BUDGET" \
-      --eval-every "${PAPER_EVAL_EVERY:-10}" --eval-frames 6 --eval-fit-steps "$EVAL_FIT" \
-      --final-fit-steps "$FINAL_FIT" --skip-throughput --targets 20,25,28,30 \
-      --quality-preset flame-in-nerf --seed "$first" --json "$FIG/train_paper_s$first.json" \
+    stage "$name seed $first (at most $left s)" timeout "$left" "$PY" \
+      benchmarks/bench_train.py --scene "$SCENE" --size "$SIZE" --budget "$budget" \
+      --eval-every "$every" --eval-frames 6 --eval-fit-steps "$EVAL_FIT" \
+      --final-fit-steps "$FINAL_FIT" --skip-throughput --targets 20,25,28,29,30 \
+      --quality-preset "$name" --seed "$first" --json "$FIG/train_${name}_s$first.json" \
       "${EXTRA_TRAIN[@]}"
   else
-    say "flame-in-nerf: skipped, $left s left"
+    say "$name: skipped, $left s left"
   fi
-fi
+}
+[[ -n "${PAPER_BUDGET:-}" ]] && beside flame-in-nerf "$PAPER_BUDGET" "${PAPER_EVAL_EVERY:-10}"
+[[ -n "${FAST_BUDGET:-}" ]] && beside fast "$FAST_BUDGET" "${FAST_EVAL_EVERY:-20}"
 SAN=$(command -v compute-sanitizer || ls /usr/local/cuda*/bin/compute-sanitizer 2>/dev/null \
   | head -1 || true)
 if [[ $KEEP != 1 && $DEVICE == cuda ]]; then
