@@ -33,6 +33,14 @@ def test_load_dataset_reads_every_split(dataset_dir):
     for f, tk in zip(ds.split("capture"), t):
         f.extra["time"] = round(float(tk), 6)
     assert frame_rate(ds.split("capture")) == round(11 / t[-1], 3)
+    # a gap (dropped frames) plays for its time at the rate of the steps around it
+    from flamenerf.data.dataset import playback
+
+    rate, shown = playback(np.array([0.0, 0.1, 0.2, 0.7, 0.8]))
+    assert rate == 10.0 and shown.tolist() == [1, 1, 5, 1, 1]
+    assert playback(t)[1].tolist() == [1] * len(t)  # unevenly spread, no gap: each once
+    assert playback(np.array([0.0, 0.1, 0.2, 0.6]), rate=20.0)[1].tolist() == [1, 1, 8, 1]
+    assert playback(np.array([1.0])) is None and playback(np.array([1.0, 1.0])) is None
     assert [f.frame_index for f in ds.split("val")] == [5]
     assert all(f.frame_index is None for f in ds.split("reanimate") + ds.split("leakage"))
     assert len(ds.split("leakage")) == 1 + len(CONTROLS)

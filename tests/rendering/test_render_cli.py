@@ -168,3 +168,40 @@ def test_the_capture_carries_the_clips_sound(toy_dataset, toy_run, tmp_path):
     clip_with_sound(tmp_path / "clip.mp4", 2.0, volume=0.0)  # a muted recording
     assert not has_sound(render_to("muted.mp4"))
     assert any("no sound: the clip's sound track is silent" in n for n in notes)
+
+
+def test_a_gap_in_the_clip_plays_for_its_time(toy_dataset, toy_run, tmp_path):
+    """--split capture of a clip with a gap (frames the camera dropped, or where no face was
+    found): the frame before it is shown for as long as the gap lasted, so that the video
+    keeps the clip's length (and its sound its step), with a note; without a gap every
+    frame once."""
+    import json
+    import shutil
+
+    from flamenerf.data.video import probe_video
+    from flamenerf.rendering.videos import render_videos
+
+    data = tmp_path / "data"
+    shutil.copytree(toy_dataset, data)
+    meta = json.loads((data / "transforms.json").read_text())
+    times = [0.5, 0.6, 0.7, 1.1, 1.2, 1.3]  # 10 fps, 0.3 s missing after the third frame
+    for f in meta["frames"]:
+        if f.get("frame_index") is not None:
+            f["time"] = times[f["frame_index"]]
+    (data / "transforms.json").write_text(json.dumps(meta))
+    notes = []
+    out = tmp_path / "v.mp4"
+    render_videos(RenderOptions(toy_run, out=out, split="capture", dataset=data,
+                                device="cpu", depth=True), log=notes.append)
+    frames = read_frames(out)
+    assert len(frames) == 9 == probe_video(out).num_frames  # 1 + 1 + 4 + 1 + 1 + 1
+    assert len(read_frames(tmp_path / "v_depth.mp4")) == 9
+    assert abs(probe_video(out).fps - 10) < 1e-3
+    assert np.abs(frames[2].astype(int) - frames[5].astype(int)).max() <= 8  # one frame held
+    assert any("1 gap in the clip" in n and "0.40 s" in n for n in notes)
+    notes.clear()
+    render_videos(RenderOptions(toy_run, out=tmp_path / "f.mp4", split="capture",
+                                dataset=data, device="cpu", fps=20), log=notes.append)
+    assert len(read_frames(tmp_path / "f.mp4")) == 6  # another pace: every frame once
+    assert not any("gap" in n for n in notes)
+

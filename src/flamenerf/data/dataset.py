@@ -92,20 +92,53 @@ class Frame:
         return self.frame_index is not None
 
 
-def frame_rate(frames: list[Frame]) -> float | None:
-    """Frames per second of frames in clip order, from their `time`s (`preprocess` stores
-    them): the rate at which they play in the time the clip took, first to last (frames
-    spread unevenly over a clip, or a dropped one, keep the clip's length, so that its
-    sound stays in step); None where a frame has none (the built-in scene's)."""
-    times = [f.extra.get("time") for f in frames]
-    if len(times) > 1 and all(isinstance(t, (int, float)) for t in times):
-        span = float(times[-1]) - float(times[0])
-        if span > 0:  # to a thousandth (times are stored to a microsecond), and within
-            # what a video can be written at (a few frames spread over a long clip)
-            from flamenerf.data.video import FPS_RANGE
+GAP = 1.75
+"""A step between consecutive frames longer than this many times the clip's median step
+is a gap (frames the camera dropped, or where no face was found): it plays for its time."""
 
-            return round(float(np.clip((len(times) - 1) / span, *FPS_RANGE)), 3)
+
+def playback(times: np.ndarray, rate: float | None = None
+             ) -> tuple[float, np.ndarray] | None:
+    """How frames at `times` (n,) seconds, increasing, play in the time they took: -> (rate
+    in frames per second, the number of times each frame is shown (n,) int >= 1), or None
+    (fewer than two frames, or no time between them). The rate (unless given) is that of
+    the steps that are no gap (frames spread a little unevenly play evenly, as they were
+    filmed); the frame before a gap is shown again for as long as the gap lasted, so that
+    the clip keeps its length and its sound stays in step throughout."""
+    t = np.asarray(times, np.float64)
+    if len(t) < 2 or t[-1] <= t[0]:
+        return None
+    from flamenerf.data.video import FPS_RANGE
+
+    dt = np.diff(t)
+    gap = dt > GAP * np.median(dt)
+    steady = dt[~gap]
+    if rate is None:
+        rate = (len(steady) / steady.sum() if len(steady) and steady.sum() > 0
+                else (len(t) - 1) / (t[-1] - t[0]))
+        # to a thousandth (times are stored to a microsecond), and within what a video can
+        # be written at (a few frames spread over a long clip)
+        rate = round(float(np.clip(rate, *FPS_RANGE)), 3)
+    shown = np.ones(len(t), np.int64)
+    shown[:-1][gap] = np.maximum(1, np.round(dt[gap] * rate)).astype(np.int64)
+    return rate, shown
+
+
+def frame_times(frames: list[Frame]) -> np.ndarray | None:
+    """(n,) the frames' `time`s in seconds (`preprocess` stores them), or None where a frame
+    has none (the built-in scene's)."""
+    times = [f.extra.get("time") for f in frames]
+    if times and all(isinstance(t, (int, float)) for t in times):
+        return np.asarray(times, np.float64)
     return None
+
+
+def frame_rate(frames: list[Frame]) -> float | None:
+    """Frames per second of frames in clip order (`playback`'s rate: that of the steps that
+    are no gap); None where a frame stores no time (the built-in scene's)."""
+    times = frame_times(frames)
+    plan = None if times is None else playback(times)
+    return None if plan is None else plan[0]
 
 
 @dataclass

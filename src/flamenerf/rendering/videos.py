@@ -223,6 +223,7 @@ class RenderPlan:
     codes: tuple[Any, Any] | None = None
     edited: np.ndarray | None = None  # (T,) bool: the frames --edit changed; None: no edit
     sound: Any = None  # data/video.Soundtrack: the clip's, for the video and side by side
+    shown: np.ndarray | None = None  # (T,) int: times each frame is shown (clip_pace); None: once
 
     def frames(self):
         """The frames, rendered one at a time (an iterator of
@@ -365,11 +366,37 @@ def own_codes(opts: RenderOptions, run, ds: Dataset, frames: list) -> bool:
     return opts.codes == "own" or filmed_codes_error(run, ds, frames, opts.dataset) is None
 
 
-def clip_sound(opts: RenderOptions, ds: Dataset, frames: list, fps: float, log=print):
+def clip_pace(opts: RenderOptions, ds: Dataset, frames: list, fps: float,
+              log=print) -> np.ndarray | None:
+    """How many times each of the capture's `frames` is shown when they play at the clip's
+    own pace (`dataset.playback`): the frame before a gap (frames the camera dropped, or
+    where no face was found) again for as long as the gap lasted, so that the video keeps
+    the clip's timing; None where every frame is shown once (no gap, another split, or
+    another pace)."""
+    from flamenerf.data.dataset import CAPTURE, frame_times, playback
+
+    times = frame_times(frames) if opts.split == CAPTURE else None
+    rate = ds.frame_rate()
+    if times is None or rate is None or abs(fps - rate) > 1e-3:
+        return None
+    plan = playback(times, fps)
+    if plan is None or (plan[1] == 1).all():
+        return None
+    shown = plan[1]
+    gaps = int((shown > 1).sum())
+    log(f"note: {gaps} gap{'s' if gaps > 1 else ''} in the clip (frames the camera dropped "
+        f"or without a face; the longest {(shown.max()) / fps:.2f} s): the frame before "
+        f"{'each' if gaps > 1 else 'it'} is shown for as long, so that the video keeps the "
+        "clip's timing")
+    return shown
+
+
+def clip_sound(opts: RenderOptions, ds: Dataset, frames: list, fps: float, log=print,
+               shown: np.ndarray | None = None):
     """The clip's sound (data/video.Soundtrack) for a render of its capture `frames` in
-    order at `fps`, or None: only the whole capture's frames (or its first ones, with
-    --max-frames) at the clip's own pace keep step with it; a note where the sound was
-    wanted but cannot come or is silence."""
+    order at `fps` (each shown `shown` times: `clip_pace`), or None: only the whole
+    capture's frames (or its first ones, with --max-frames) at the clip's own pace keep
+    step with it; a note where the sound was wanted but cannot come or is silence."""
     from flamenerf.data.dataset import CAPTURE
     from flamenerf.data.video import SILENT_DB, Soundtrack, has_sound, loudest
 
@@ -389,7 +416,7 @@ def clip_sound(opts: RenderOptions, ds: Dataset, frames: list, fps: float, log=p
     if not has_sound(src):
         return None
     sound = Soundtrack(Path(src), float(times[0]))
-    peak = loudest(sound, len(frames) / fps)
+    peak = loudest(sound, (len(frames) if shown is None else int(shown.sum())) / fps)
     if peak is not None and peak < SILENT_DB:  # a muted recording: nothing to carry
         log(f"note: no sound: the clip's sound track is silent (its loudest {peak:g} dB)")
         return None
@@ -477,13 +504,17 @@ def write_videos(plan: RenderPlan) -> None:
         lo = hi = None
         for i, fr in enumerate(tqdm(plan.frames(), total=len(values), desc="render",
                                     unit="frame")):
-            writers["rgb"].write(fr.rgb)
+            # a frame before a gap in the clip stays for the gap's time (clip_pace)
+            times = 1 if plan.shown is None else int(plan.shown[i])
+            for _ in range(times):
+                writers["rgb"].write(fr.rgb)
             if lo is None:
                 lo, hi = depth_range(fr, near, far)
             if "depth" in writers or "sbs" in writers:
                 dimg = depth_image(fr, lo, hi)
             if "depth" in writers:
-                writers["depth"].write(dimg)
+                for _ in range(times):
+                    writers["depth"].write(dimg)
             if "sbs" in writers:
                 if seq.driving is not None:
                     left = resize_to_height(seq.driving(i), intr.h)
@@ -492,9 +523,10 @@ def write_videos(plan: RenderPlan) -> None:
                     left = expression_panel(values[i], plan.run.expression_names, intr.h,
                                             intr.w, ref=values[0])
                 edited = plan.edited is not None and plan.edited[i]
-                writers["sbs"].write(titled_row(
-                    [left, fr.rgb, dimg], [left_title, "edited" if edited else "render",
-                                           "depth"], gap=2))
+                row = titled_row([left, fr.rgb, dimg],
+                                 [left_title, "edited" if edited else "render", "depth"], gap=2)
+                for _ in range(times):
+                    writers["sbs"].write(row)
 
 
 def render_videos(opts: RenderOptions, log=print) -> RenderSummary:
@@ -611,6 +643,7 @@ def plan_render(opts: RenderOptions, log=print) -> RenderPlan:
             + (f" ({between} held-out frame{'s' if between > 1 else ''} with "
                f"{'their' if between > 1 else 'its'} neighbours')" if between else "")
             + "; --codes first renders all with frame 0's")
-    sound = clip_sound(opts, ds, frames, fps, log)
+    shown = clip_pace(opts, ds, frames, fps, log)
+    sound = clip_sound(opts, ds, frames, fps, log, shown)
     return RenderPlan(run, ds, intr, poses, values, verts, heads, dil, settings, fps, paths,
-                      seq, label, cam_label, codes, changed, sound)
+                      seq, label, cam_label, codes, changed, sound, shown)
