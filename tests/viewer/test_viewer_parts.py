@@ -58,6 +58,22 @@ def test_tracks(tiny_scene, tmp_path):
     assert tour.name.startswith("tour") and tour.fps == 30 and tour.num_frames % 24 == 1
     assert np.allclose(tour.frames[0], base) and np.abs(tour.frames - base).max() > 0.1
     assert tour_track(ds, ds.expression_names[::-1], base) is None  # not the run's controls
+    # the capture plays each frame once, a frame before a gap in the clip for the gap's
+    # time (as `render --split capture` holds it)
+    assert cap.shown is None and cap.frame_at(2, 0.0, False) == (2, False)
+    capture = [f for f in ds.frames if f.frame_index is not None]
+    times = np.arange(len(capture)) / 10.0
+    times[3:] += 0.4  # 0.4 s more after the third frame: shown 5 ticks at 10 fps
+    for f, t in zip(sorted(capture, key=lambda f: f.frame_index), times):
+        f.extra["time"] = float(t)
+    gap = dataset_tracks(ds)[0]
+    assert gap.fps == 10.0 and gap.shown[:5].tolist() == [1, 1, 5, 1, 1]
+    assert gap.duration() == pytest.approx((len(capture) + 4) / 10)
+    assert [gap.frame_at(0, s / 10 + 0.01, False)[0] for s in range(9)] == [0, 1, 2, 2, 2, 2,
+                                                                           2, 3, 4]
+    assert gap.frame_at(4, 0.05, False) == (4, False)
+    assert gap.frame_at(0, 100.0, False) == (len(capture) - 1, True)
+    assert gap.frame_at(0, gap.duration() + 0.01, True) == (0, False)
 
     names = ds.expression_names
     p = tmp_path / "drive.json"

@@ -596,14 +596,11 @@ class Viewer:
             with self._play_lock:
                 if not self._play.is_set() or t is not self.current_track():
                     continue
-                k = self._play_frame0 + int((time.monotonic() - self._play_t0) * t.fps)
-                if k >= t.num_frames:
-                    if self.g_loop.value:
-                        k %= t.num_frames
-                    else:
-                        k, ended = t.num_frames - 1, True
-                        self._play.clear()
-                        self.g_play.label = "Play"
+                k, ended = t.frame_at(self._play_frame0, time.monotonic() - self._play_t0,
+                                      bool(self.g_loop.value))
+                if ended:
+                    self._play.clear()
+                    self.g_play.label = "Play"
                 v = self.show_track_frame(t, k, sync=False)
                 self._played = (k, v)
             now = time.monotonic()

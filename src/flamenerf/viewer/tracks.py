@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from flamenerf.data.dataset import Dataset, Frame
+from flamenerf.data.dataset import Dataset, Frame, frame_times, playback
 
 
 @dataclass
@@ -18,13 +18,28 @@ class Track:
     fps: float
     clip: list[Frame] | None = None  # the dataset's frames it plays, if it is theirs
     render_args: tuple[str, ...] = ()  # `flamenerf render`'s options for the same source
+    shown: np.ndarray | None = None
+    """(T,) int: ticks of 1 / fps each frame stays (a clip's gaps held, as `render` holds
+    them: dataset.playback); None: one each."""
 
     @property
     def num_frames(self) -> int:
         return int(self.frames.shape[0])
 
     def duration(self) -> float:
-        return self.num_frames / self.fps
+        return (self.num_frames if self.shown is None else int(self.shown.sum())) / self.fps
+
+    def frame_at(self, start: int, seconds: float, loop: bool) -> tuple[int, bool]:
+        """The frame shown `seconds` into playing from frame `start` -> (frame, whether the
+        track ran out: without `loop` its last frame, which stays)."""
+        ends = (np.arange(1, self.num_frames + 1) if self.shown is None
+                else np.cumsum(self.shown))  # the tick each frame gives way at
+        tick = (ends[start - 1] if start > 0 else 0) + int(seconds * self.fps)
+        if tick >= ends[-1]:
+            if not loop:
+                return self.num_frames - 1, True
+            tick %= int(ends[-1])
+        return int(np.searchsorted(ends, tick, side="right")), False
 
 
 def dataset_tracks(ds: Dataset) -> list[Track]:
@@ -33,8 +48,11 @@ def dataset_tracks(ds: Dataset) -> list[Track]:
     capture = ds.capture()
     fps = ds.frame_rate() or 30.0
     if capture:
+        times = frame_times(capture)
+        plan = None if times is None else playback(times, fps)
         out.append(Track(f"capture ({len(capture)} frames)", ds.expression_matrix(capture), fps,
-                         capture, ("--split", "capture")))
+                         capture, ("--split", "capture"),
+                         None if plan is None or (plan[1] == 1).all() else plan[1]))
     from flamenerf.rendering.expressions import split_fps
 
     for name in sorted(ds.splits, key=lambda s: (s not in ("train", "val"), s)):
