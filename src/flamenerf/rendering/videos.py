@@ -385,7 +385,7 @@ def clip_pace(opts: RenderOptions, ds: Dataset, frames: list, fps: float,
     shown = plan[1]
     gaps = int((shown > 1).sum())
     log(f"note: {gaps} gap{'s' if gaps > 1 else ''} in the clip (frames the camera dropped "
-        f"or without a face; the longest {(shown.max()) / fps:.2f} s): the frame before "
+        f"or without a face; the longest {shown.max() / fps:.2f} s): the frame before "
         f"{'each' if gaps > 1 else 'it'} is shown for as long, so that the video keeps the "
         "clip's timing")
     return shown
