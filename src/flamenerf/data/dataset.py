@@ -133,6 +133,15 @@ def frame_times(frames: list[Frame]) -> np.ndarray | None:
     return None
 
 
+def frames_shown(frames: list[Frame], fps: float) -> np.ndarray | None:
+    """(n,) how many ticks of 1 / `fps` each of a clip's `frames` (in order) stays on screen
+    as they play in the time they took (`playback`: the frame before a gap held for the
+    gap's time); None where each is shown once (no gap, or no times stored)."""
+    times = frame_times(frames)
+    plan = None if times is None else playback(times, fps)
+    return None if plan is None or (plan[1] == 1).all() else plan[1]
+
+
 def frame_rate(frames: list[Frame]) -> float | None:
     """Frames per second of frames in clip order (`playback`'s rate: that of the steps that
     are no gap); None where a frame stores no time (the built-in scene's)."""

@@ -373,16 +373,14 @@ def clip_pace(opts: RenderOptions, ds: Dataset, frames: list, fps: float,
     where no face was found) again for as long as the gap lasted, so that the video keeps
     the clip's timing; None where every frame is shown once (no gap, another split, or
     another pace)."""
-    from flamenerf.data.dataset import CAPTURE, frame_times, playback
+    from flamenerf.data.dataset import CAPTURE, frames_shown
 
-    times = frame_times(frames) if opts.split == CAPTURE else None
     rate = ds.frame_rate()
-    if times is None or rate is None or abs(fps - rate) > 1e-3:
+    if opts.split != CAPTURE or rate is None or abs(fps - rate) > 1e-3:
         return None
-    plan = playback(times, fps)
-    if plan is None or (plan[1] == 1).all():
+    shown = frames_shown(frames, fps)
+    if shown is None:
         return None
-    shown = plan[1]
     gaps = int((shown > 1).sum())
     log(f"note: {gaps} gap{'s' if gaps > 1 else ''} in the clip (frames the camera dropped "
         f"or without a face; the longest {shown.max() / fps:.2f} s): the frame before "
@@ -397,12 +395,11 @@ def clip_sound(opts: RenderOptions, ds: Dataset, frames: list, fps: float, log=p
     order at `fps` (each shown `shown` times: `clip_pace`), or None: only the whole
     capture's frames (or its first ones, with --max-frames) at the clip's own pace keep
     step with it; a note where the sound was wanted but cannot come or is silence."""
-    from flamenerf.data.dataset import CAPTURE
+    from flamenerf.data.dataset import CAPTURE, frame_times
     from flamenerf.data.video import SILENT_DB, Soundtrack, has_sound, loudest
 
-    times = [f.extra.get("time") for f in frames]
-    if (not opts.sound or opts.split != CAPTURE or not times
-            or not all(isinstance(t, (int, float)) for t in times)):
+    times = frame_times(frames)
+    if not opts.sound or opts.split != CAPTURE or times is None:
         return None  # the built-in scene's frames store no times: it has no sound
     src = ds.source.get("video") if isinstance(ds.source, dict) else None
     rate = ds.frame_rate()

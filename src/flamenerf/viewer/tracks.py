@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from flamenerf.data.dataset import Dataset, Frame, frame_times, playback
+from flamenerf.data.dataset import Dataset, Frame, frames_shown
 
 
 @dataclass
@@ -48,11 +48,8 @@ def dataset_tracks(ds: Dataset) -> list[Track]:
     capture = ds.capture()
     fps = ds.frame_rate() or 30.0
     if capture:
-        times = frame_times(capture)
-        plan = None if times is None else playback(times, fps)
         out.append(Track(f"capture ({len(capture)} frames)", ds.expression_matrix(capture), fps,
-                         capture, ("--split", "capture"),
-                         None if plan is None or (plan[1] == 1).all() else plan[1]))
+                         capture, ("--split", "capture"), frames_shown(capture, fps)))
     from flamenerf.rendering.expressions import split_fps
 
     for name in sorted(ds.splits, key=lambda s: (s not in ("train", "val"), s)):
