@@ -1,4 +1,4 @@
-"""Expression-control benchmark (issue 11): does the expression input control the face?
+"""Expression-control benchmark: does the expression input control the face?
 
 Trains `fast` and its Nerfies variant (`--expression-mode none`, no β) on the built-in scene,
 then runs `flamenerf eval` on each (the paper's held-out protocol, driven held-out,
@@ -27,7 +27,7 @@ from pathlib import Path
 
 import torch
 
-TARGETS = """targets (issue 11, fast, this CPU, <= 10 min at 128 px): re-animation face PSNR >= 28
+TARGETS = """targets (fast, this CPU, <= 10 min at 128 px): re-animation face PSNR >= 28
 and >= 3 dB above the Nerfies variant; driven held-out face PSNR >= 2 dB above the Nerfies
 variant; the paper protocol's held-out PSNR within 0.5 dB of 29.2 dB."""
 

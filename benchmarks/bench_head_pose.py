@@ -1,4 +1,4 @@
-"""Head-pose benchmark (issue 12): does following the head register a moving head?
+"""Head-pose benchmark: does following the head register a moving head?
 
 Makes the built-in scene with head motion (`flamenerf synth --head-motion`: the head turns
 +-25 deg yaw / +-10 deg pitch and shifts a few cm, independently of the camera, against a
@@ -28,7 +28,7 @@ from pathlib import Path
 
 import torch
 
-TARGETS = """targets (issue 12, fast on the built-in scene with head motion): driven held-out
+TARGETS = """targets (fast on the built-in scene with head motion): driven held-out
 background PSNR within 1 dB of the refitted (held-out) protocol's; novel-pose re-animation
 face PSNR >= 26 dB vs ground truth."""
 

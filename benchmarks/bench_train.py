@@ -1,4 +1,4 @@
-"""Training benchmark (issue 3): quality-vs-time of one preset (`fast` unless
+"""Training benchmark: quality-vs-time of one preset (`fast` unless
 `--quality-preset` says otherwise), and the throughput and render time of every preset, on
 the machine at hand. Prints figures and writes JSON.
 

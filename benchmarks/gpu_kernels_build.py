@@ -2,7 +2,7 @@
 what each needs: registers per thread, spilled bytes (registers that did not fit, kept in
 slow local memory), shared memory, build time.
 
-A GPU session is short and rare; a kernel that does not compile for the GPU (Triton's
+Time on a GPU is short and rare; a kernel that does not compile for the GPU (Triton's
 interpreter, which the tests run, is not its compiler) or that spills would cost it. The
 launches are recorded from a real frame: a trained run's view with its most expressive β
 (so that every kernel runs; frame 0's codes), rendered small down the GPU's inference

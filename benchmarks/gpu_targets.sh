@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Issue 15's GPU targets in one call of a lent GPU machine (on an H200, 2026-11-28, one
+# The GPU targets (docs/results.md) in one call of a lent GPU machine (on an H200, 2026-11-28, one
 # seed, the check at 128 px only, the A/B and the paper's preset: 434 s in all; the check
 # 31 s, the scene 23 s, a seed 99 s, the three frame timings 50 s, the A/B 40 s, choices
 # and profile 22 s, the paper's preset 162 s):

@@ -148,7 +148,7 @@ class SamplerConfig:
     built-in scene's four `fast` seeds (re-animation face +0.04 to +0.25 dB, the Nerfies
     variant's within 0.03; the margin between them over +3 dB on every seed), reported on
     a second scene (+0.36); a 256 px frame at the re-animation's cameras a few per cent
-    longer on a CPU (docs/bench/control_exploration.md, fourteenth session). The reference
+    longer on a CPU (docs/decisions/second-pass-unfinished-rays.md). The reference
     forward draws the second pass's proposal samples afresh: the same weights without
     jitter (eval, render), new ones in the held-out fit's jittered batches."""
     refine_below: float = 0.05

@@ -494,7 +494,7 @@ DOT_MIN = 64
 """The least size of any dimension of `field_heads`' matrix products (its block of points,
 the padded features, hidden, geometry and output widths). `tl.dot` takes 16, but a kernel
 of several dots with dimensions of 16 or 32 reads shared memory out of bounds on sm_90
-(Triton issues 10486 and 11366; helion's pull request 1905 found 8 and 64 and up safe on an
+(triton-lang/triton#10486 and #11366; pytorch/helion#1905 found 8 and 64 and up safe on an
 H100): this kernel, with geometry and output widths of 16, ended an H200's first frame
 with an illegal memory access (2026-11-28, Triton 3.6). Not yet run on a GPU padded so."""
 

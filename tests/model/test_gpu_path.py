@@ -140,7 +140,7 @@ def test_the_gpu_paths_kernels_build_for_an_h100_without_one(tmp_path):
     """The launches of a half-precision frame down the GPU's path (recorded under the
     interpreter) compile for sm_90 with Triton's compiler and ptxas, which ship with Triton:
     a kernel that only the interpreter takes, or one that spills registers, is found here
-    rather than in a scarce GPU session."""
+    rather than in scarce time on a GPU."""
     env = {**os.environ, "TRITON_INTERPRET": "1", "FLAMENERF_GPU_KERNELS": "1",
            "FLAMENERF_CPU_KERNELS": "0",
            "PYTHONPATH": os.pathsep.join([str(TESTS / "model"), str(TESTS),

@@ -23,7 +23,7 @@ driven, re-tracked the driven held-out renders re-tracked against their frames' 
 drive correlation  for a driving sequence, the correlation over time of driving and
                    re-tracked controls.
 A control *responds* when its gain is at least 0.5 and its correlation at least 0.9
-(`RESPONDS`, issue 11's bar); each reading counts those (`responding`).
+(`RESPONDS`, the bar the evaluation sets); each reading counts those (`responding`).
 """
 
 from __future__ import annotations
@@ -130,7 +130,7 @@ def fit_line(commanded: np.ndarray, measured: np.ndarray) -> tuple[float, float]
 
 
 RESPONDS = (0.5, 0.9)
-"""Issue 11's bar for a control that responds: re-tracked gain at least 0.5 and correlation
+"""The bar for a control that responds: re-tracked gain at least 0.5 and correlation
 at least 0.9."""
 
 

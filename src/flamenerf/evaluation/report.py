@@ -88,7 +88,7 @@ COLUMNS = [
 ]
 """Table columns: the paper's two first (held-out MSE and PSNR), then ours. Leakage is
 the mean absolute background change on the 0-255 scale. Controls following: of the controls
-the driven held-out renders are re-tracked for, how many meet issue 11's bar (`driven` →
+the driven held-out renders are re-tracked for, how many meet the bar of `control.RESPONDS` (`driven` →
 `retracked`), where the frames themselves show any."""
 
 
