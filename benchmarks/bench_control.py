@@ -3,7 +3,7 @@
 Trains `fast` and its Nerfies variant (`--expression-mode none`, no β) on the built-in scene,
 then runs `flamenerf eval` on each (the paper's held-out protocol, driven held-out,
 re-animation against ground truth, the re-tracked control response on the leakage sweep),
-prints the issue's targets next to the figures and writes JSON + Markdown.
+prints the targets next to the figures and writes JSON + Markdown.
 
     python benchmarks/bench_control.py --scene scenes/s128_120 --size 128 --frames 120 \
         --json docs/bench/control.json

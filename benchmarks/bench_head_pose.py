@@ -6,7 +6,7 @@ static room), trains `fast` with and without the head transform (`model.head.fol
 on the same schedule, and runs `flamenerf eval` on each: the paper's held-out protocol
 (ω refitted), driven held-out (own camera, β and head pose, frame 0's codes) whole / face /
 background, and novel-pose re-animation (novel head poses x cameras x expressions) against
-ground truth. Prints the issue's targets next to the figures and writes JSON.
+ground truth. Prints the targets next to the figures and writes JSON.
 
     python benchmarks/bench_head_pose.py --size 80 --frames 60 --steps 300 \
         --json docs/bench/head_pose.json
@@ -104,7 +104,7 @@ def main() -> None:
 
 
 def figures(res: dict) -> dict[str, float]:
-    """The issue's figures from one eval result."""
+    """The targets' figures from one eval result."""
     h, d, n = res["heldout"], res["driven"], res.get("novel_pose") or {}
     r = res.get("reanimate") or {}
     nan = float("nan")

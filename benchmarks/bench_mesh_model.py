@@ -217,7 +217,7 @@ def image_sweeps(render, ds, base, train, companions) -> dict:
 
 
 def summary(res: dict) -> dict:
-    """A sweep's per-control gains and how many pass the issue's bar (gain >= 0.5,
+    """A sweep's per-control gains and how many pass the bar (gain >= 0.5,
     correlation >= 0.9), alone and with companions."""
     def ok(r, suffix=""):
         g = r.get("gain" + suffix, r["gain"])

@@ -194,7 +194,7 @@ def main() -> int:
     ap.add_argument("--paper-steps", type=int, default=2)
     ap.add_argument("--render-fraction", type=float, default=0.25)
     ap.add_argument("--quality-preset", default="fast",
-                    help="preset of the quality run (the issue's CPU target is `fast`)")
+                    help="preset of the quality run (the CPU target is `fast`'s)")
     ap.add_argument("--steps", type=int, default=0,
                     help="override the quality run's schedule length (0: the preset's)")
     ap.add_argument("--targets", type=lambda s: [float(v) for v in s.split(",")],

@@ -12,7 +12,7 @@
 #   2. `fast-gpu` under bench_train.py's 70 s budget on seeds 0 and 1: the held-out curve
 #      (6 val frames every 10 s) and the final held-out PSNR on all 30 val frames: the
 #      target is >= 30 dB within 60 s; beside it the driven re-animation's face PSNR
-#      (6 reanimate frames every 10 s, all of them at the end: the second curve);
+#      (6 reanimate frames every 10 s, all of them at the end: the second curve);
 #   3. the seed-0 run's frames per second at 128 / 256 / 512 px (bench_render.py), with
 #      the second pass over unfinished rays and without it: the targets are 60 fps at
 #      256 px and 20 fps at 512 px, within 0.2 dB of the reference renderer; where every
