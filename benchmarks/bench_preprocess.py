@@ -4,8 +4,8 @@ frames per second (with the machine's load average, since CPU time is shared), a
 pictures for docs/preprocessing.md.
 
     python benchmarks/bench_preprocess.py \\
-        --video orbit=../shared/media/orbit_still_head.mp4 \\
-        --video expressions=../shared/media/expressions_static_camera.mp4 \\
+        --video orbit=clips/orbit_still_head.mp4 \\
+        --video expressions=clips/expressions_static_camera.mp4 \\
         --out-dir /tmp/bench_preprocess --json benchmarks/results/preprocess.json \\
         --docs docs --trace expressions
 
