@@ -183,7 +183,7 @@ class MeshGuideConfig:
     (2026-11-26), it made the jaw follow (sweep gain 0.17-0.24 -> 0.27-0.32, ground truth
     0.30; a real person driving it: jawOpen correlation 0.26 -> 0.75-0.91) at 0.4-0.8 dB of
     re-animation face PSNR and ~15 % more training time (three seeds;
-    docs/bench/control_exploration.md)."""
+    docs/decisions/mesh-guide.md)."""
     falloff: float = 0.15
     """Distance (fraction of the neutral mesh's bounding-box diagonal) over which the motion
     fades out away from the mesh."""
@@ -198,7 +198,7 @@ class MeshGuideConfig:
     (jawOpen correlation 0.83-0.89). On the expressions clip it leaves out 29 outline and
     forehead vertices that the tracker places unsteadily (1.5-2.3 mm; controls passing
     11 / 12 -> 12 / 13 of 27, PSNR within noise, seeds 0 / 1), on the orbit clip none
-    (docs/bench/control_exploration.md)."""
+    (docs/decisions/mesh-guide.md)."""
     ridge: float = 1e-3
     """Ridge of the β -> mesh least-squares fit (relative to the mean squared control)."""
     face_parts: bool = True
@@ -241,7 +241,7 @@ class ExpressionRegionsConfig:
     part-limited regions need the wider fade), else `RADIUS_FREE`; a run's config.json holds
     the value it trained with. Each was measured on one dataset only: 0.1 on the shared
     expressions clip, 0.05 on the built-in scene, where 0.1 lowered the control gain
-    (docs/bench/control_exploration.md)."""
+    (docs/decisions/expression-fields.md)."""
 
     def resolved_radius(self, face_parts: bool) -> float:
         if self.radius is not None:
@@ -402,13 +402,13 @@ def _fast() -> Config:
                                   hash_log2_size=19, hash_max_res=512, detail_levels=4)
     # β acts through local feature fields only, each control near the part of the face mesh
     # it moves: through the density head's input β became a face-wide code of the few
-    # frames that show a control (docs/bench/control_exploration.md)
+    # frames that show a control (docs/decisions/expression-fields.md)
     cfg.model.field.expr_rank, cfg.model.field.expr_direct = 8, False
     cfg.model.expression_regions.enabled = True
     cfg.model.expression_centre = True
     # the mesh-guided deformation wherever the face parts are known (tracked clips, the
     # built-in scene): the jaw follows β, not only the face's colours
-    # (docs/bench/control_exploration.md)
+    # (docs/decisions/mesh-guide.md)
     cfg.model.mesh_guide.enabled = None
     # ... less the vertices the linear β -> mesh model cannot follow (the built-in lips)
     cfg.model.mesh_guide.max_residual = 0.0015

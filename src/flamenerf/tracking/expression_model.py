@@ -7,7 +7,7 @@ on the shared expressions clip with gain 0.65-1.26), but the controls co-vary in
 frames, so each control's own column is only its share of a joint motion: a control
 commanded alone from frame 0's expression, as `render --expressions` keyframes and the
 viewer's sliders do, moves the mesh in a way the tracker scores as that control for only 13
-of the 27 (19 with the companions that move along; docs/bench/control_exploration.md).
+of the 27 (19 with the companions that move along; docs/results.md, "Controls").
 A renderer that follows the mesh exactly could do no better.
 
 This fit adds that reading to the least-squares one: for each control that varies, its

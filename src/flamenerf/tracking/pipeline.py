@@ -72,7 +72,7 @@ class PreprocessOptions:
             alone reads back through the tracker as that control, and store it with the
             dataset (expression_model.npz, which training then uses; MediaPipe meshes
             only; 1-3 min on 2 CPU cores). It raises what the mesh itself can show, not yet what
-            a trained model shows (docs/bench/control_exploration.md), so it is off.
+            a trained model shows (docs/results.md, "Controls"), so it is off.
         overwrite: Replace OUT if it exists.
         progress: Show progress bars (not a flag: the command always does).
     """
