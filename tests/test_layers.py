@@ -9,7 +9,7 @@ import flamenerf
 
 # Lowest first; a module may import its own layer and the layers below it.
 LAYERS = [
-    {"__init__", "errors", "io", "outdir", "images", "geometry", "meshes", "runtime",
+    {"__init__", "errors", "io", "outdir", "lock", "images", "geometry", "meshes", "runtime",
      "cpu_kernels", "gpu_kernels", "gpu_build", "config", "keyvalues"},
     {"data"},
     {"tracking"},

@@ -566,6 +566,9 @@ def from_dict(d: dict[str, Any], source: str | os.PathLike = "config") -> Config
         _check_ranges(cfg)
     except _BadValue as e:
         raise UserError(f"{source}: {e}") from None
+    if cfg.preset not in PRESETS:  # the label reports and resumes carry
+        raise UserError(f"{source}: preset {_shown(cfg.preset)} is not one of this "
+                        f"flamenerf's ({', '.join(PRESETS)})")
     return cfg
 
 

@@ -10,6 +10,7 @@ and removed (flamenerf.outdir.clean_stale_temps).
 
 from __future__ import annotations
 
+import errno
 import json
 import math
 import os
@@ -32,8 +33,16 @@ def temp_prefix(name: str) -> str:
 TEMP_NAME = re.compile(r"^\.(?P<name>.+)\.flamenerf-(?P<pid>\d+)-[a-z0-9_]{8}$")
 
 
-def atomic_write_bytes(path: str | os.PathLike, write: Callable[[BinaryIO], object]) -> None:
-    """Call `write(f)` on a temporary file in `path`'s directory, then rename it over `path`."""
+class NotWritten(OSError):
+    """An output whose file, read back before it got its final name, is not what was
+    written (a full disk or a file-size limit that cut it short): nothing was renamed."""
+
+
+def atomic_write_bytes(path: str | os.PathLike, write: Callable[[BinaryIO], object],
+                       verify: Callable[[Path], str | None] | None = None) -> None:
+    """Call `write(f)` on a temporary file in `path`'s directory, check it (its size is what
+    was written; `verify(temporary)`: None, or why the file is not right), then rename it
+    over `path`. Any failure leaves `path` as it was and raises an OSError naming `path`."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     try:
@@ -41,10 +50,19 @@ def atomic_write_bytes(path: str | os.PathLike, write: Callable[[BinaryIO], obje
     except OSError as e:  # name the file asked for, not our temporary's name
         raise OSError(e.errno, e.strerror, str(path)) from None
     try:
-        with os.fdopen(fd, "wb") as f:
-            write(f)
-            f.flush()
-            os.fsync(f.fileno())
+        try:
+            with os.fdopen(fd, "wb") as f:
+                write(f)
+                f.flush()
+                os.fsync(f.fileno())
+                size = f.tell()
+        except OSError as e:  # a full disk says "No space left" of no file: name ours
+            raise OSError(e.errno, e.strerror, str(path)) from None
+        why = (f"{os.path.getsize(tmp)} bytes on disk of {size} written"
+               if os.path.getsize(tmp) != size else verify(Path(tmp)) if verify else None)
+        if why is not None:
+            raise NotWritten(errno.EIO, f"not written: the file read back is not whole "
+                             f"({why}; is the disk full?)", str(path))
         os.chmod(tmp, 0o644)  # mkstemp makes 0600; outputs are ordinary files
         os.replace(tmp, path)
     except BaseException:
@@ -53,7 +71,13 @@ def atomic_write_bytes(path: str | os.PathLike, write: Callable[[BinaryIO], obje
 
 
 def atomic_write_text(path: str | os.PathLike, text: str) -> None:
-    atomic_write_bytes(path, lambda f: f.write(text.encode()))
+    """Write `text` atomically; the file is read back and compared before it is renamed."""
+    data = text.encode()
+
+    def same(tmp: Path) -> str | None:
+        return None if tmp.read_bytes() == data else "its bytes differ from those written"
+
+    atomic_write_bytes(path, lambda f: f.write(data), same)
 
 
 def jsonable(x: Any) -> Any:
@@ -94,13 +118,25 @@ def read_json(path: str | os.PathLike, what: str | None = None) -> Any:
         raise UserError(f"{path}: not valid JSON (line {e.lineno}: {e.msg})") from None
     except UnicodeDecodeError:
         raise UserError(f"{path}: not valid JSON (not UTF-8 text)") from None
+    except RecursionError:
+        raise UserError(f"{path}: not valid JSON here (nested too deeply to read)") from None
 
 
 def save_png(path: str | os.PathLike, img: np.ndarray) -> None:
-    """Atomically write an (H, W[, 3]) float-in-[0, 1] or uint8 image as PNG."""
+    """Atomically write an (H, W[, 3]) float-in-[0, 1] or uint8 image as PNG, decoded again
+    before it gets its name."""
     import imageio.v3 as iio
 
     from flamenerf.images import to_uint8
 
-    data = iio.imwrite("<bytes>", to_uint8(np.asarray(img)), extension=".png")
-    atomic_write_bytes(path, lambda f: f.write(data))
+    pixels = to_uint8(np.asarray(img))
+    data = iio.imwrite("<bytes>", pixels, extension=".png")
+
+    def decodes(tmp: Path) -> str | None:
+        try:
+            back = iio.imread(tmp, extension=".png")
+        except Exception as e:  # noqa: BLE001 - a cut PNG fails in the decoder's own ways
+            return f"it does not decode: {type(e).__name__}"
+        return None if np.array_equal(back, pixels) else "its pixels differ from those written"
+
+    atomic_write_bytes(path, lambda f: f.write(data), decodes)

@@ -24,8 +24,9 @@ from flamenerf.io import TEMP_NAME, temp_prefix
 # eval/render/bench, which write inside it) in a run folder.
 DATASET_LAYOUT = {"transforms.json", "images", "masks", "depth", "face_mesh.npz", "qa",
                   "expression_model.npz"}
+LOCK_NAME = ".flamenerf.lock"  # the lock of the process writing a folder (flamenerf.lock)
 RUN_LAYOUT = {"config.json", "checkpoints", "tb", "images", "eval", "renders",
-              "bench_timing.json"}
+              "bench_timing.json", LOCK_NAME}
 
 
 def _alive(pid: int) -> bool:
@@ -106,14 +107,19 @@ def remove_if_empty(folders: list[Path]) -> None:
 @contextlib.contextmanager
 def folders_kept_only_on_success(path: Path, remove: bool = True):
     """Within the block, a command makes `path` (a folder) and writes into it; where the
-    block raises, the folders up to `path` that did not exist before it and are still
-    empty go again (`remove`: False on the processes of a distributed run that do not
-    write), so a failed command leaves no empty folder behind."""
+    block raises, the folders in and up to `path` that did not exist before it and are
+    still empty go again (`remove`: False on the processes of a distributed run that do
+    not write), so a failed command leaves no empty folder behind."""
     made = missing_folders(path)
+    before = {Path(d) for d, _, _ in os.walk(path)}
     try:
         yield
     except BaseException:
         if remove:
+            for d, _, _ in list(os.walk(path, topdown=False)):
+                if Path(d) not in before and Path(d) != Path(path):
+                    with contextlib.suppress(OSError):  # not empty: it stays
+                        Path(d).rmdir()
             remove_if_empty(made)
         raise
 
@@ -121,7 +127,7 @@ def folders_kept_only_on_success(path: Path, remove: bool = True):
 def _is_dataset(path: Path) -> bool:
     try:
         meta = json.loads((path / "transforms.json").read_text())
-    except (OSError, ValueError):
+    except (OSError, ValueError, RecursionError):
         return False
     return isinstance(meta, dict) and "format_version" in meta and "frames" in meta
 
@@ -129,7 +135,7 @@ def _is_dataset(path: Path) -> bool:
 def _is_run(path: Path) -> bool:
     try:
         meta = json.loads((path / "config.json").read_text())
-    except (OSError, ValueError):
+    except (OSError, ValueError, RecursionError):
         return False
     return isinstance(meta, dict) and "flamenerf_version" in meta
 

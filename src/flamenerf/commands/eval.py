@@ -98,7 +98,8 @@ def eval(  # noqa: A001 - the subcommand's name
                     ("--leakage-dilate-px", leakage_dilate_px)):
         if v is not None and v < 0:
             raise UserError(f"{name} {v}: must be >= 0")
-    from flamenerf.outdir import folders_kept_only_on_success, writable_dir
+    from flamenerf.lock import folder_lock
+    from flamenerf.outdir import folders_kept_only_on_success
 
     out_dir = out if out is not None else Path(run) / "eval"
     r = load_run(run, device)  # first: a folder that is no run gets no eval/ folder
@@ -117,9 +118,9 @@ def eval(  # noqa: A001 - the subcommand's name
                        num_images=images, control=control, control_steps=control_steps,
                        drive=None if drive is None else str(drive), drive_frames=drive_frames,
                        captured_directions=captured_directions)
-    # a failed or interrupted eval leaves no empty folder behind
-    with folders_kept_only_on_success(out_dir):
-        writable_dir(out_dir, "evaluation")  # before minutes of fitting, not after
+    # one eval writes a folder at a time (its lock, taken before minutes of fitting), and
+    # a failed or interrupted one leaves no empty folder behind
+    with folders_kept_only_on_success(out_dir), folder_lock(out_dir, "evaluation"):
         res = evaluate_run(r, ds, opts, out_dir)
     print()
     print(compare_markdown([res]), end="")

@@ -33,6 +33,7 @@ def train(
     bf16: bool | None = None,
     seed: int | None = None,
     resume: bool = False,
+    other_dataset: bool = False,
     device: str = "auto",
     threads: int = 0,
     nproc: int = 1,
@@ -87,7 +88,11 @@ def train(
             everywhere. Default: the preset's.
         seed: Seed of the initial weights and the ray sampling (repeat a training over
             seeds to see how much of a difference is noise). Default: the preset's (0).
-        resume: Continue the run in OUT from its latest checkpoint.
+        resume: Continue the run in OUT from its latest checkpoint (a run stopped before
+            its first checkpoint starts again with its saved settings).
+        other_dataset: With --resume: go on although DATASET's content differs from the
+            dataset the run was trained on (refused otherwise; a moved or copied dataset is
+            the same one).
         device: `auto` (CUDA when present), `cpu` or `cuda`.
         threads: CPU threads for torch (0 = default).
         nproc: Train on this many processes on this machine, one per GPU, through
@@ -161,7 +166,8 @@ def train(
             "--head-region-scale": head_region_scale, "--head-band": head_band,
             "--detail-levels": detail_levels, "--random-background": random_background,
             "--view-dependent": view_dependent, "--bf16": bf16, "--seed": seed})
-    res = run_train(dataset, out, cfg, resume=resume, device=device, steps=steps)
+    res = run_train(dataset, out, cfg, resume=resume, device=device, steps=steps,
+                    other_dataset=other_dataset)
     if not ranks.main:  # rank 0 speaks for the job
         if res.interrupted:
             raise SystemExit(130)
@@ -215,7 +221,7 @@ def _note_ignored(out: Path, preset: str, flags: dict[str, Any]) -> None:
     from flamenerf.io import read_json
     from flamenerf.training.checkpoint import latest_checkpoint
 
-    if latest_checkpoint(out) is None:
+    if latest_checkpoint(out) is None and not (out / "config.json").is_file():
         return  # nothing to resume: the flags make the run
     try:
         meta = read_json(out / "config.json")

@@ -26,6 +26,7 @@ selects its deformation and appearance codes. Frames of synthetic-only splits
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import re
@@ -448,6 +449,8 @@ def load_dataset(root: str | os.PathLike, check_files: bool = True) -> Dataset:
         meta = json.loads(tj.read_text())
     except json.JSONDecodeError as e:
         raise DatasetError(f"{tj}: invalid JSON at line {e.lineno} ({e.msg})") from None
+    except RecursionError:
+        raise DatasetError(f"{tj}: not valid JSON here (nested too deeply to read)") from None
     if not isinstance(meta, dict):
         raise DatasetError(f"{tj}: top level must be a JSON object")
     where = str(tj)
@@ -616,6 +619,20 @@ def load_dataset(root: str | os.PathLike, check_files: bool = True) -> Dataset:
             if check_files and rel is not None and not (root / rel).exists():
                 raise DatasetError(f"{root / rel}: file is missing")
     return ds
+
+
+def fingerprint(ds: Dataset) -> str:
+    """A hash of what a dataset holds, wherever it lies: transforms.json's bytes and each
+    frame's image, mask and depth files by name and size (not their pixels: hashing every
+    image would cost a resume seconds on a long clip, and a dataset made again changes
+    transforms.json). What a run records to tell on --resume that it is its dataset."""
+    h = hashlib.sha256((ds.root / "transforms.json").read_bytes())
+    for fr in ds.frames:
+        for rel in (fr.file_path, fr.mask_path, fr.depth_path):
+            if rel is not None:
+                p = ds.root / rel
+                h.update(f"\0{rel}\0{p.stat().st_size if p.exists() else -1}".encode())
+    return "sha256:" + h.hexdigest()
 
 
 # ----------------------------------------------------------------------------- writing

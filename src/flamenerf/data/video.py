@@ -19,6 +19,7 @@ import logging
 import os
 import re
 import subprocess
+import tempfile
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from flamenerf.errors import UserError, warn
+from flamenerf.io import temp_prefix
 
 
 FPS_RANGE = (0.1, 1000.0)  # a frame every ten seconds to far above any player's rate:
@@ -139,20 +141,33 @@ def probe_video(path: str | os.PathLike) -> VideoInfo:
         raise UserError(f"{path}: video has no frames")
     if fps <= 0:
         fps = nframes / secs if secs > 0 else 30.0
-    times = _frame_times(path, int(nframes), fps)
+    packets = _packets(path)
+    if "partial file" in packets.stderr:  # its index lists frames whose data is not there
+        said = re.search(r"Duration: (\d+):(\d+):([\d.]+)", text)
+        listed = (f" of the {int(said[1]) * 3600 + int(said[2]) * 60 + float(said[3]):.1f} s "
+                  "its header gives" if said else "")
+        warn(f"{path}: the file is cut short (a copy or download that did not finish?): only "
+             f"its first {int(nframes)} frames ({secs:.1f} s{listed}) can be read; using those")
+    times = _frame_times(packets.stdout, int(nframes), fps)
     return VideoInfo(path, w, h, fps, int(nframes), float(secs), rot, codec, hdr, times)
 
 
-def _frame_times(path: Path, nframes: int, fps: float) -> np.ndarray | None:
-    """Each frame's presentation time, seconds from the first, from the stream's packets
-    (no decoding), where they are not evenly spaced at `fps` (more than half a frame off
-    i / fps somewhere); None where they are, or where they cannot be read as one per frame."""
-    r = subprocess.run([_ffmpeg(), "-hide_banner", "-nostdin", "-loglevel", "error", "-i",
-                        str(path), "-map", "0:v:0", "-c", "copy", "-f", "framecrc", "-"],
-                       capture_output=True, text=True, errors="replace")
-    m = re.search(r"^#tb 0: (\d+)/(\d+)", r.stdout, re.M)
+def _packets(path: Path) -> subprocess.CompletedProcess:
+    """ffmpeg's list of the first video stream's packets (framecrc, no decoding) on stdout,
+    its complaints (a file cut short: "partial file") on stderr."""
+    return subprocess.run([_ffmpeg(), "-hide_banner", "-nostdin", "-loglevel", "error", "-i",
+                           str(path), "-map", "0:v:0", "-c", "copy", "-f", "framecrc", "-"],
+                          capture_output=True, text=True, errors="replace")
+
+
+def _frame_times(packets: str, nframes: int, fps: float) -> np.ndarray | None:
+    """Each frame's presentation time, seconds from the first, from the stream's `packets`
+    (`_packets`' list), where they are not evenly spaced at `fps` (more than half a frame
+    off i / fps somewhere); None where they are, or where they cannot be read as one per
+    frame."""
+    m = re.search(r"^#tb 0: (\d+)/(\d+)", packets, re.M)
     try:
-        pts = [int(ln.split(",")[2]) for ln in r.stdout.splitlines()
+        pts = [int(ln.split(",")[2]) for ln in packets.splitlines()
                if ln and not ln.startswith("#")]
     except (IndexError, ValueError):
         return None
@@ -283,13 +298,39 @@ def loudest(sound: Soundtrack, duration: float) -> float | None:
     return None if r.returncode or found is None else float(found.group(1))
 
 
+def video_packets(path: Path) -> int | None:
+    """How many frames of video `path`'s first video stream holds, counted from its packets
+    (no decoding: one packet per H.264 frame); None where ffmpeg finds no such stream or
+    fails part way (a file cut short)."""
+    r = _packets(path)
+    if r.returncode != 0 or r.stderr.strip():
+        return None
+    return sum(1 for ln in r.stdout.splitlines() if ln and not ln.startswith("#"))
+
+
+def check_video(path: Path, frames: int, sound: bool = False) -> str | None:
+    """Why the mp4 at `path` is not a whole video of `frames` frames (with a sound track
+    where `sound`), or None: what a writer reads back before the file gets its name. ffmpeg
+    stopped by a full disk or a file-size limit leaves a file without its index, which this
+    catches (its exit status does not reach us through imageio-ffmpeg)."""
+    n = video_packets(path)
+    if n is None:
+        return "ffmpeg cannot read back its video stream"
+    if n != frames:
+        return f"it holds {n} of the {frames} frames written"
+    if sound and not has_sound(path):
+        return "its sound track is missing"
+    return None
+
+
 def add_sound(video: Path, sound: Soundtrack, duration: float, out: Path) -> str | None:
     """Write `video` with `sound` cut to `duration` seconds to `out` (the picture copied,
     not encoded again); None on success, else ffmpeg's reason."""
     r = subprocess.run(
         [_ffmpeg(), "-hide_banner", "-nostdin", "-y", "-loglevel", "error", "-i", str(video),
          "-ss", f"{sound.start:.6f}", "-i", str(sound.source), "-map", "0:v:0", "-map",
-         "1:a:0", "-c:v", "copy", "-c:a", "aac", "-t", f"{duration:.6f}", str(out)],
+         "1:a:0", "-c:v", "copy", "-c:a", "aac", "-t", f"{duration:.6f}", "-f", "mp4",
+         str(out)],
         capture_output=True, text=True, errors="replace")
     if r.returncode == 0 and out.is_file():
         return None
@@ -315,12 +356,21 @@ class VideoWriter:
         self.sound = sound
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        # the extension stays .mp4 so that ffmpeg picks the container from it
-        self.tmp = self.path.with_name(f".{self.path.stem}.{os.getpid()}.tmp.mp4")
+        # named as every temporary (flamenerf.io.temp_prefix), so that one a kill -9 left is
+        # recognised; the container is named to ffmpeg, not read from the extension
+        self.tmp = self._temporary()
         self.fps, self.quality, self.preset = float(fps), quality, preset
         self._gen = None
         self._size: tuple[int, int] | None = None
         self.frames = 0
+
+    def _temporary(self) -> Path:
+        try:
+            fd, tmp = tempfile.mkstemp(prefix=temp_prefix(self.path.name), dir=self.path.parent)
+        except OSError as e:
+            raise OSError(e.errno, e.strerror, str(self.path)) from None
+        os.close(fd)
+        return Path(tmp)
 
     def write(self, frame: np.ndarray) -> None:
         import imageio_ffmpeg
@@ -334,7 +384,7 @@ class VideoWriter:
             self._size = (w, h)
             self._gen = imageio_ffmpeg.write_frames(
                 str(self.tmp), (w, h), fps=self.fps, quality=self.quality, macro_block_size=2,
-                ffmpeg_log_level="error", output_params=["-preset", self.preset])
+                ffmpeg_log_level="error", output_params=["-preset", self.preset, "-f", "mp4"])
             with self._ffmpeg():
                 self._gen.send(None)
         elif (w, h) != self._size:
@@ -344,28 +394,43 @@ class VideoWriter:
         self.frames += 1
 
     def close(self) -> Path:
+        """Finish the video, read it back (`check_video`) and give it its name. -> the path."""
         if self._gen is None:
             raise UserError(f"{self.path}: no frames to write")
-        with self._ffmpeg():
-            self._gen.close()
-            self._gen = None
-            if not self.tmp.is_file():
-                raise RuntimeError("it wrote no file")
-        if self.sound is not None:
-            mixed = self.tmp.with_name(self.tmp.name.replace(".tmp.mp4", ".sound.tmp.mp4"))
-            try:
-                why = add_sound(self.tmp, self.sound, self.frames / self.fps, mixed)
-                if why is None:
-                    os.replace(mixed, self.tmp)
-                else:
-                    warn(f"{self.path}: written without the sound of {self.sound.source} "
-                         f"(ffmpeg: {why})")
-            except BaseException:  # Ctrl-C while mixing: neither temporary file stays
-                mixed.unlink(missing_ok=True)
-                self.tmp.unlink(missing_ok=True)
-                raise
-        os.replace(self.tmp, self.path)
+        try:
+            with self._ffmpeg():
+                self._gen.close()
+                self._gen = None
+            self._check(self.tmp, sound=False)
+            if self.sound is not None:
+                self._add_sound()
+            os.chmod(self.tmp, 0o644)  # mkstemp makes 0600; outputs are ordinary files
+            os.replace(self.tmp, self.path)
+        except BaseException:  # nothing half written stays, under any name
+            self.tmp.unlink(missing_ok=True)
+            raise
         return self.path
+
+    def _check(self, path: Path, sound: bool) -> None:
+        why = check_video(path, self.frames, sound)
+        if why is not None:
+            raise UserError(f"{self.path}: not written: the video read back is not whole "
+                            f"({why}; is the disk full?)")
+
+    def _add_sound(self) -> None:
+        mixed = self._temporary()
+        try:
+            why = add_sound(self.tmp, self.sound, self.frames / self.fps, mixed)
+            if why is None:
+                self._check(mixed, sound=True)
+                os.replace(mixed, self.tmp)
+            elif not os.path.getsize(self.tmp) or check_video(self.tmp, self.frames):
+                raise UserError(f"{self.path}: not written ({why})")
+            else:
+                warn(f"{self.path}: written without the sound of {self.sound.source} "
+                     f"(ffmpeg: {why})")
+        finally:
+            mixed.unlink(missing_ok=True)
 
     @contextlib.contextmanager
     def _ffmpeg(self):

@@ -26,7 +26,6 @@ Accepted `--expressions` values:
 
 from __future__ import annotations
 
-import json
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -36,6 +35,7 @@ import numpy as np
 
 from flamenerf.data.companions import Companions
 from flamenerf.errors import UserError
+from flamenerf.io import read_json
 from flamenerf.keyvalues import parse_assignments, suggest
 
 FILE_SUFFIXES = (".json", ".npy", ".csv")
@@ -254,6 +254,8 @@ def _vectors(arr, where: str, names: list[str]) -> np.ndarray:
 
 def load_file(path: Path, names: list[str]) -> ExpressionSequence:
     """One expression file (see the module doc) -> a sequence in the run's control order."""
+    if path.is_dir():
+        raise UserError(f"{path}: is a folder; give the expression file itself")
     if not path.is_file():
         raise UserError(f"{path}: expression file does not exist")
     suffix = path.suffix.lower()
@@ -268,10 +270,7 @@ def load_file(path: Path, names: list[str]) -> ExpressionSequence:
     elif suffix == ".csv":
         values, notes = _load_csv(path, names)
     else:
-        try:
-            d = json.loads(path.read_text())
-        except (json.JSONDecodeError, UnicodeDecodeError) as e:
-            raise UserError(f"{path}: not valid JSON ({e})") from None
+        d = read_json(path, "expression file")
         if isinstance(d, dict) and "frames" in d and "names" in d:
             from flamenerf.tracking.expressions import load_expressions
 

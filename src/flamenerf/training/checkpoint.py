@@ -27,6 +27,9 @@ _PAT = re.compile(r"step-(\d{9})\.ckpt$")
 # what an older flamenerf left after a kill -9 (no PID in the name): `.step-...ckpt.XXXXXXXX`
 LEGACY_TEMP = re.compile(r"\.step-\d{9}\.ckpt\.[a-z0-9_]{8}")
 FORMAT = 2  # 1: flamenerf 0.1, RNG states pickled
+# the globals flamenerf 0.1's pickled RNG states name (NumPy's arrays and dtypes, and the
+# tuple of Python's state): only a file that needs these may be offered `convert --trust`
+LEGACY_GLOBALS = ("numpy.", "_codecs.encode", "builtins.tuple", "collections.OrderedDict")
 REQUIRED = ("step", "model", "model_args", "optimizer", "generator", "torch_rng",
             "numpy_rng", "python_rng")
 
@@ -135,26 +138,52 @@ def latest_checkpoint(run_dir: Path) -> Path | None:
 
 
 def save_checkpoint(run_dir: Path, step: int, state: dict[str, Any], keep: int = 2) -> Path:
-    """Write step-STEP.ckpt atomically, then drop all but the `keep` newest. A failed write
-    (full disk, Ctrl-C) leaves the earlier checkpoints as they were."""
+    """Write step-STEP.ckpt atomically (read back whole before it gets its name), then keep
+    the `keep` newest checkpoints that are whole, this one among them. A failed write (full
+    disk, Ctrl-C) leaves the earlier checkpoints as they were."""
     ckdir = Path(run_dir) / "checkpoints"
     path = ckdir / f"step-{step:09d}.ckpt"
     try:
         state = {"format": FORMAT, **state, "optimizer": pack_moments(state["optimizer"])}
-        atomic_write_bytes(path, lambda f: torch.save(state, f))
-    except OSError as e:
+        atomic_write_bytes(path, lambda f: torch.save(state, f), _not_whole)
+    except (OSError, RuntimeError) as e:  # torch's zip writer says "unexpected pos"
         prev = latest_checkpoint(run_dir)
         kept = f"the last good one is {prev}" if prev else "there is no earlier checkpoint"
-        raise UserError(f"{path}: could not save the checkpoint ({e.strerror or e}); "
-                        f"{kept}") from None
+        why = e.strerror if isinstance(e, OSError) and e.strerror else _first_sentence(e)
+        raise UserError(f"{path}: could not save the checkpoint ({why}); {kept}") from None
+    prune_checkpoints(run_dir, step, keep)
+    return path
+
+
+def prune_checkpoints(run_dir: Path, step: int, keep: int) -> list[Path]:
+    """After step STEP's checkpoint was saved: remove those of steps after it (a history
+    abandoned on resuming from an earlier one, whose newer files would shadow this one),
+    those that are not whole (`_not_whole`) and all but the `keep` newest of the rest,
+    counted by whole ones only, so that a damaged file never takes a good one's place.
+    -> what was removed."""
     cks = checkpoints(run_dir)
-    # newer steps than this one belong to a history abandoned on resuming from an earlier
-    # checkpoint (the newest was unreadable): they would otherwise shadow this one
     stale = [p for p in cks if checkpoint_step(p) > step]
     older = [p for p in cks if checkpoint_step(p) <= step]
-    for p in stale + (older[:-keep] if keep > 0 else []):
+    damaged = [p for p in older if _not_whole(p) is not None]
+    whole = [p for p in older if p not in damaged]
+    gone = stale + damaged + (whole[:-keep] if keep > 0 else [])
+    for p in gone:
         p.unlink(missing_ok=True)
-    return path
+    if damaged:
+        warn(f"removed {len(damaged)} damaged checkpoint(s) ({', '.join(p.name for p in damaged)})"
+             f" of {run_dir}")
+    return gone
+
+
+def _not_whole(path: Path) -> str | None:
+    """Why the file at `path` is no whole checkpoint archive (torch saves a zip archive:
+    its directory must be there and every part match its CRC-32), or None."""
+    try:
+        with zipfile.ZipFile(path) as z:
+            bad = z.testzip()
+    except Exception as e:  # noqa: BLE001 - zipfile fails in many ways on a cut file
+        return f"not a whole archive: {_first_sentence(e)}"
+    return None if bad is None else f"{bad} fails its checksum"
 
 
 class LegacyCheckpoint(UserError):
@@ -182,6 +211,12 @@ def load_checkpoint(path: Path) -> dict[str, Any]:
         m = re.search(r"GLOBAL ([\w.]+)", str(e))
         if m is None:
             raise UserError(f"{path}: not a readable checkpoint (UnpicklingError)") from None
+        if not m.group(1).startswith(LEGACY_GLOBALS):
+            # flamenerf 0.1 pickled NumPy's and Python's RNG states, nothing else: a file
+            # that names os.system or builtins.eval is no run of ours to convert
+            raise UserError(f"{path}: not loaded: it needs pickle for {m.group(1)}, which no "
+                            "flamenerf checkpoint holds (not a flamenerf checkpoint; it may "
+                            "run code when loaded: do not convert or open it)") from None
         run = path.parent.parent
         raise LegacyCheckpoint(
             f"{path}: not loaded: it needs pickle (for {m.group(1)}), which can run any code; "

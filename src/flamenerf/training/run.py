@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from flamenerf.config import Config, from_dict
+from flamenerf.config import PRESETS, Config, from_dict
 from flamenerf.data.dataset import Dataset, Frame, Intrinsics, load_dataset
 from flamenerf.errors import UserError
 from flamenerf.model.flame_nerf import FlameNeRF
@@ -106,6 +106,9 @@ def run_config(meta: Any, where: Path) -> Config:
     if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
         raise UserError(f"{where}: damaged ('expression_names' missing or not a list of "
                         "strings)")
+    if "preset" in meta and meta["preset"] not in PRESETS:  # a label reports carry
+        raise UserError(f"{where}: damaged (preset {str(meta['preset'])[:40]!r} is not one of "
+                        f"this flamenerf's: {', '.join(PRESETS)})")
     return from_dict(meta["config"], where)  # checks each value's type and range
 
 

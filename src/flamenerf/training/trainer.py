@@ -14,16 +14,18 @@ import torch
 
 from flamenerf import __version__
 from flamenerf.config import Config
-from flamenerf.data.dataset import Dataset, load_dataset
+from flamenerf.data.dataset import Dataset, fingerprint, load_dataset
 from flamenerf.data.scene import (FrameSet, expression_model_residual, face_pixel_resolution,
                                   fit_dataset_expression_model,
                                   model_detail_region, model_head_region,
                                   model_warp_region, scene_box)
 from flamenerf.errors import Interrupted, UserError, warn
-from flamenerf.io import atomic_write_text, read_json
+from flamenerf.io import TEMP_NAME, atomic_write_text, read_json
+from flamenerf.lock import folder_lock
 from flamenerf.model.flame_nerf import FlameNeRF
 from flamenerf.model.mlp import bf16_pays, bf16_training
-from flamenerf.outdir import clean_stale_temps, folders_kept_only_on_success, writable_dir
+from flamenerf.outdir import (LOCK_NAME, RUN_LAYOUT, clean_stale_temps,
+                              folders_kept_only_on_success, writable_dir)
 from flamenerf.runtime import set_threads
 from flamenerf.training.run import run_config
 from flamenerf.training.checkpoint import (LEGACY_TEMP, latest_checkpoint, load_latest,
@@ -175,6 +177,20 @@ def _weighted_sum(terms: list[tuple[torch.Tensor, float]], factor: float) -> tor
     return out
 
 
+def _refuse_foreign_folder(run_dir: Path) -> None:
+    """A run goes into a new folder, an empty one, or one that holds a run (or what a
+    run that stopped early left): not into a folder of other things (a dataset's images,
+    someone's notes), whose files would then sit in the run and block --overwrite."""
+    if not run_dir.is_dir():
+        return
+    entries = [p.name for p in run_dir.iterdir()
+               if p.name != LOCK_NAME and not TEMP_NAME.match(p.name)]
+    if entries and not any(e in RUN_LAYOUT for e in entries):
+        shown = ", ".join(sorted(entries)[:3]) + (", ..." if len(entries) > 3 else "")
+        raise UserError(f"{run_dir}: holds files that are not a run ({shown}); give train a "
+                        "new or empty --out folder")
+
+
 @dataclass
 class TrainResult:
     run_dir: Path
@@ -187,10 +203,13 @@ class TrainResult:
 class Trainer:
     def __init__(self, cfg: Config, dataset: str | Path, run_dir: str | Path,
                  resume: bool = False, device: str = "auto", quiet: bool = False,
-                 steps: int | None = None, ranks: Ranks | None = None):
+                 steps: int | None = None, ranks: Ranks | None = None,
+                 other_dataset: bool = False):
         """`ranks`: this process's place in a distributed job (its process group joined,
-        `training.distributed.process_group`); None for a single process."""
+        `training.distributed.process_group`); None for a single process. `other_dataset`:
+        resume on a dataset whose content differs from the one the run was trained on."""
         self.run_dir = Path(run_dir)
+        self.other_dataset = other_dataset
         self.ranks = ranks = ranks or Ranks()
         self.device = process_device(device, ranks)
         self.quiet = quiet or not ranks.main
@@ -199,22 +218,23 @@ class Trainer:
             if (self.run_dir / "transforms.json").exists():
                 raise UserError(f"{self.run_dir}: is a dataset (it holds transforms.json); "
                                 "give the run its own --out folder")
+            _refuse_foreign_folder(self.run_dir)
             ck = latest_checkpoint(self.run_dir)
-            if resume and ck is None and not self.quiet:
-                print(f"note: --resume: {self.run_dir} holds no checkpoint yet; starting a "
-                      "new run there")
             if ck is not None and not resume:
                 raise UserError(f"{self.run_dir}: already holds a run (pass --resume to "
                                 "continue it, or choose another --out)")
-            if resume and ck is not None:
-                where = self.run_dir / "config.json"
+            where = self.run_dir / "config.json"
+            if resume and (ck is not None or where.is_file()):
                 saved = read_json(where)
                 cfg_saved = run_config(saved, where)  # a resumed run keeps its own config
-                before, given = Path(saved["dataset"]), Path(dataset).resolve()
-                if before.exists() and before.resolve() != given:  # (a moved one is fine)
-                    raise UserError(f"{self.run_dir}: was trained on {before}, not {given}; "
-                                    "resume it with that dataset (or train a new run)")
-                return cfg_saved, True
+                self._check_same_dataset(saved, dataset)
+                if ck is None and not self.quiet:
+                    print(f"note: --resume: {self.run_dir} holds no checkpoint yet; starting "
+                          "it again from step 0 with its saved settings")
+                return cfg_saved, ck is not None
+            if resume and not self.quiet:
+                print(f"note: --resume: {self.run_dir} holds no run yet; starting a new one "
+                      "there")
             # decided once, here, and stored: a measurement must not change a run's numbers
             cfg.train.bf16 = cfg.train.bf16 and self.device.type == "cpu" and bf16_pays()
             return cfg, False
@@ -280,6 +300,31 @@ class Trainer:
                       points[s]) for s in ids]
 
     # --------------------------------------------------------------- persistence
+    def _check_same_dataset(self, saved: dict, dataset: str | Path) -> None:
+        """Refuse to resume on another dataset than the run's: by content where the run
+        recorded it (a moved or copied dataset is the same one; one made again at the same
+        place is not), else by place."""
+        before, given = Path(saved["dataset"]), Path(dataset).resolve()
+        recorded = saved.get("dataset_fingerprint")
+        if isinstance(recorded, str):
+            if recorded == fingerprint(load_dataset(given, check_files=False)):
+                return
+            if self.other_dataset:
+                warn(f"{given}: not the dataset {self.run_dir} was trained on (its "
+                     "transforms.json or files differ); resuming on it as asked")
+                return
+            raise UserError(f"{given}: not the dataset {self.run_dir} was trained on (its "
+                            f"transforms.json or files differ from those of {before}); "
+                            "resume on that one, train a new run, or pass "
+                            "--other-dataset to go on with this one")
+        if before.exists() and before.resolve() != given and not self.other_dataset:
+            raise UserError(f"{self.run_dir}: was trained on {before}, not {given}; "
+                            "resume it with that dataset (or train a new run; "
+                            "--other-dataset goes on with this one)")
+        if not before.exists() and not self.quiet:
+            warn(f"{self.run_dir}: records no content of its dataset (trained by an older "
+                 f"flamenerf) and {before} is gone: {given} is taken on trust")
+
     def _prepare_dir(self) -> None:
         writable_dir(self.run_dir, "run")  # before the slow part, not at the first save
         self._clean_temps()
@@ -298,6 +343,7 @@ class Trainer:
             "flamenerf_version": __version__,
             "preset": self.cfg.preset,
             "dataset": str(Path(self.ds.root).resolve()),
+            "dataset_fingerprint": fingerprint(self.ds),
             "expression_names": self.ds.expression_names,
             "expression_kind": self.ds.expression_kind,
             "train_size": [self.intr.w, self.intr.h],
@@ -545,10 +591,13 @@ class Trainer:
 
 
 def train(dataset: str | Path, out: str | Path, cfg: Config, resume: bool = False,
-          device: str = "auto", quiet: bool = False, steps: int | None = None) -> TrainResult:
-    """Train on this process, or as one rank of the job torchrun started it in."""
+          device: str = "auto", quiet: bool = False, steps: int | None = None,
+          other_dataset: bool = False) -> TrainResult:
+    """Train on this process, or as one rank of the job torchrun started it in
+    (`other_dataset`: see Trainer)."""
     ranks = launched_ranks()
-    with process_group(ranks, process_device(device, ranks)):
+    # one writer per run folder: the process that writes it (rank 0) holds its lock
+    with process_group(ranks, process_device(device, ranks)), folder_lock(out, "run", ranks.main):
         trainer = Trainer(cfg, dataset, out, resume=resume, device=device, quiet=quiet,
-                          steps=steps, ranks=ranks)
+                          steps=steps, ranks=ranks, other_dataset=other_dataset)
         return trainer.fit()

@@ -167,7 +167,7 @@ def _prepare_scene(o: BenchOptions, log) -> tuple[Path, float, bool]:
 
 
 def _train(name: str, cfg: Config, scene: Path, o: BenchOptions, log) -> dict[str, Any]:
-    from flamenerf.io import atomic_write_text
+    from flamenerf.io import atomic_write_text, read_json
     from flamenerf.training.checkpoint import latest_checkpoint
     from flamenerf.training.trainer import train
 
@@ -179,7 +179,7 @@ def _train(name: str, cfg: Config, scene: Path, o: BenchOptions, log) -> dict[st
         from flamenerf.training.trainer import settle_dataset_defaults
 
         settle_dataset_defaults(cfg, load_dataset(scene))  # as the saved run has them
-        saved = json.loads((run_dir / "config.json").read_text())
+        saved = read_json(run_dir / "config.json")
         same = (_comparable(saved.get("config", {})) == _comparable(cfg.to_dict())
                 and Path(saved.get("dataset", "")) == scene.resolve())
         if not same:
@@ -191,7 +191,7 @@ def _train(name: str, cfg: Config, scene: Path, o: BenchOptions, log) -> dict[st
             check_replaceable(run_dir, "run")  # --overwrite removes only what we wrote
             shutil.rmtree(run_dir)
         elif timing_file.exists():
-            prev = float(json.loads(timing_file.read_text()).get("train_seconds", 0.0))
+            prev = float(read_json(timing_file).get("train_seconds", 0.0))
     ck = latest_checkpoint(run_dir)
     resume = ck is not None
     start = int(re.search(r"step-(\d+)", ck.name).group(1)) if ck is not None else 0
