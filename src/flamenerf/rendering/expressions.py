@@ -62,6 +62,9 @@ class ExpressionSequence:
     resizable: bool = False  # keyframes: the sequence adapts to any number of frames
     head_pose: np.ndarray | None = None  # (T, 6) a driving video's head turns (--head-pose drive)
     notes: tuple[str, ...] = ()
+    times: np.ndarray | None = None
+    """(T,) each frame's time in its source, seconds (a driving video's tracked frames): what
+    keeps the picture in step with the source's sound (rendering/soundtrack.py)."""
 
     def __len__(self) -> int:
         return len(self.values)
@@ -446,5 +449,6 @@ def from_video(video: Path, ds, names: list[str], relative: bool = True,
     def driving(i: int) -> np.ndarray:
         return images.get(want[i], blank)
 
+    times = None if tr.times is None else np.asarray(tr.times, np.float64)
     return ExpressionSequence(values, label=Path(video).stem, fps=tr.fps, driving=driving,
-                              notes=tuple(notes), head_pose=tr.head_pose)
+                              notes=tuple(notes), head_pose=tr.head_pose, times=times)
