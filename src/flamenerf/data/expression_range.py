@@ -47,6 +47,32 @@ class ExpressionRange:
                            f"(the clip: {self.lo[k]:.2f}-{self.hi[k]:.2f})")
         return out
 
+    def uncovered(self, values: np.ndarray | None = None, controls: list[int] | None = None,
+                  reach: float = 0.2) -> list[str]:
+        """The controls the training frames never move (their range narrower than
+        MIN_SPAN) that are asked for: in `values` (..., E) beyond their range by more than
+        `reach`, or the columns `controls` (an edit's). A model has learnt nothing of
+        such a control, so whatever is asked of it renders near the clip's range."""
+        flat = None if values is None else np.asarray(values, np.float64).reshape(
+            -1, len(self.names))
+        out = []
+        for k, name in enumerate(self.names):
+            if self.hi[k] - self.lo[k] >= MIN_SPAN:
+                continue
+            asked = (controls is not None and k in controls) or (
+                flat is not None and (flat[:, k].max() > self.hi[k] + reach
+                                      or flat[:, k].min() < self.lo[k] - reach))
+            if asked:
+                out.append(name)
+        return out
+
+    @staticmethod
+    def not_covered_note(names: list[str], what: str) -> str:
+        """The line that says which of `what`'s controls the clip never shows."""
+        shown = ", ".join(names[:6]) + (", ..." if len(names) > 6 else "")
+        return (f"the training frames never move {shown}: {what} stays near the clip's "
+                "range there (film them to have them)")
+
     @staticmethod
     def note(over: list[str], how: str = "--extrapolate renders them as given") -> str:
         """The one line that says what was clamped (`beyond`'s lines); `how`: what a user

@@ -323,20 +323,58 @@ def check_video(path: Path, frames: int, sound: bool = False) -> str | None:
     return None
 
 
+def sound_duration(path: str | os.PathLike) -> float | None:
+    """Seconds of sound in a file (a video's or a sound file's, by its header); None where
+    it has no audio stream or states no duration."""
+    text = _header(Path(path))
+    if not any(ln.lstrip().startswith("Stream") and " Audio: " in ln
+               for ln in text.splitlines()):
+        return None
+    m = re.search(r"Duration: (\d+):(\d+):([\d.]+)", text)
+    return None if m is None else int(m[1]) * 3600 + int(m[2]) * 60 + float(m[3])
+
+
 def add_sound(video: Path, sound: Soundtrack, duration: float, out: Path) -> str | None:
-    """Write `video` with `sound` cut to `duration` seconds to `out` (the picture copied,
-    not encoded again); None on success, else ffmpeg's reason."""
+    """Write `video` with `sound` cut, or padded with silence, to `duration` seconds to `out`
+    (the picture copied, not encoded again); None on success, else ffmpeg's reason."""
     r = subprocess.run(
         [_ffmpeg(), "-hide_banner", "-nostdin", "-y", "-loglevel", "error", "-i", str(video),
          "-ss", f"{sound.start:.6f}", "-i", str(sound.source), "-map", "0:v:0", "-map",
-         "1:a:0", "-c:v", "copy", "-c:a", "aac", "-t", f"{duration:.6f}", "-f", "mp4",
-         str(out)],
+         "1:a:0", "-c:v", "copy", "-c:a", "aac", "-af", "apad", "-t", f"{duration:.6f}",
+         "-f", "mp4", str(out)],
         capture_output=True, text=True, errors="replace")
     if r.returncode == 0 and out.is_file():
         return None
     out.unlink(missing_ok=True)
     lines = [ln.strip() for ln in r.stderr.splitlines() if ln.strip()]
     return lines[-1] if lines else f"ffmpeg exit status {r.returncode}"
+
+
+def write_wav(path: str | os.PathLike, sound: Soundtrack, duration: float) -> Path:
+    """`sound`'s first `duration` seconds (padded with silence where it is shorter) as a
+    16-bit PCM wav at `path`, written to a temporary, read back and renamed. -> path."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=temp_prefix(path.name), dir=path.parent)
+    os.close(fd)
+    try:
+        r = subprocess.run(
+            [_ffmpeg(), "-hide_banner", "-nostdin", "-y", "-loglevel", "error", "-ss",
+             f"{sound.start:.6f}", "-i", str(sound.source), "-map", "0:a:0", "-vn", "-af",
+             "apad", "-t", f"{duration:.6f}", "-c:a", "pcm_s16le", "-f", "wav", tmp],
+            capture_output=True, text=True, errors="replace")
+        got = sound_duration(tmp) if r.returncode == 0 else None
+        if got is None or abs(got - duration) > 0.05:
+            lines = [ln.strip() for ln in r.stderr.splitlines() if ln.strip()]
+            why = lines[-1] if lines else f"{got} s read back of {duration:.3f} s"
+            raise UserError(f"{path}: not written: the sound ({sound.source}) could not be "
+                            f"written ({why})")
+        os.chmod(tmp, 0o644)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
 
 
 class VideoWriter:

@@ -21,6 +21,7 @@ from flamenerf.errors import UserError
 from flamenerf.model.inference import FAST, REFERENCE, RenderSettings
 from flamenerf.rendering import cameras as C
 from flamenerf.rendering import expressions as X
+from flamenerf.rendering import soundtrack as S
 from flamenerf.data.video import check_fps
 from flamenerf.runtime import set_threads
 
@@ -106,9 +107,18 @@ class RenderOptions:
             to 2 degrees; data/captured_views.py): outside the captured range the view
             direction's encoding extrapolates (pale faces, lips without their red). Off:
             at the direction asked.
-        sound: With --split capture of a clip played at its own pace, carry the clip's
-            sound (from its first frame's time) in the video and the side by side, where
-            the source video `preprocess` read is still there and has sound.
+        sound: Carry the source's sound in the video and the side by side: with --split
+            capture of a clip played at its own pace, the clip's (from its first frame's
+            time, where the video `preprocess` read is still there); with --drive, the
+            driving video's, in step with its frames (the frame before a gap without a
+            face held for the gap's time).
+        audio: Lay this sound file (wav, mp3, m4a, or a video's sound) under the render,
+            from its start, cut or padded with silence to the video's length (a note says
+            which); it replaces the source's sound.
+        frames_dir: Also write the result as numbered PNG frames in this folder (one per
+            frame of the video, at its rate), with frames.json (rate, count, size) and the
+            sound as sound.wav where the video has one: for editing further without the
+            video codec's loss.
         exact: Render with the training forward pass (what `flamenerf eval`'s PSNR uses)
             instead of the inference path, which is several times faster on a CPU and
             within 0.05 dB of it on the built-in scene (docs/bench/render.md).
@@ -144,6 +154,8 @@ class RenderOptions:
     chunk: int = 0
     captured_directions: bool = True
     sound: bool = True
+    audio: Path | None = None
+    frames_dir: Path | None = None
     exact: bool = False
     device: str = "auto"
     threads: int = 0
@@ -176,6 +188,11 @@ class RenderOptions:
             if not self.edit:
                 raise UserError("--edit-during: limits an --edit in time; give one")
             EditWindow.parse(self.edit_during)  # its one-line error, before anything loads
+        if self.audio is not None:
+            if not self.sound:
+                raise UserError("--audio: lays a sound under the video; --no-sound leaves "
+                                "sound out: give one of them")
+            S.check_audio(self.audio)  # its one-line error, before anything is loaded
         if self.codes == "own" and not self.split:
             raise UserError("--codes own: takes each frame's codes from a split of the run's "
                             "dataset; give --split (e.g. --split capture)")
@@ -222,8 +239,9 @@ class RenderPlan:
     camera: str
     codes: tuple[Any, Any] | None = None
     edited: np.ndarray | None = None  # (T,) bool: the frames --edit changed; None: no edit
-    sound: Any = None  # data/video.Soundtrack: the clip's, for the video and side by side
+    sound: Any = None  # data/video.Soundtrack: for the video and side by side (soundtrack.py)
     shown: np.ndarray | None = None  # (T,) int: times each frame is shown (clip_pace); None: once
+    frames_dir: Path | None = None  # --frames-dir: the result as PNG frames too
 
     def frames(self):
         """The frames, rendered one at a time (an iterator of
@@ -366,62 +384,6 @@ def own_codes(opts: RenderOptions, run, ds: Dataset, frames: list) -> bool:
     return opts.codes == "own" or filmed_codes_error(run, ds, frames, opts.dataset) is None
 
 
-def clip_pace(opts: RenderOptions, ds: Dataset, frames: list, fps: float,
-              log=print) -> np.ndarray | None:
-    """How many times each of the capture's `frames` is shown when they play at the clip's
-    own pace (`dataset.playback`): the frame before a gap (frames the camera dropped, or
-    where no face was found) again for as long as the gap lasted, so that the video keeps
-    the clip's timing; None where every frame is shown once (no gap, another split, or
-    another pace)."""
-    from flamenerf.data.dataset import CAPTURE, frames_shown
-
-    rate = ds.frame_rate()
-    if opts.split != CAPTURE or rate is None or abs(fps - rate) > 1e-3:
-        return None
-    shown = frames_shown(frames, fps)
-    if shown is None:
-        return None
-    gaps = int((shown > 1).sum())
-    log(f"note: {gaps} gap{'s' if gaps > 1 else ''} in the clip (frames the camera dropped "
-        f"or without a face; the longest {shown.max() / fps:.2f} s): the frame before "
-        f"{'each' if gaps > 1 else 'it'} is shown for as long, so that the video keeps the "
-        "clip's timing")
-    return shown
-
-
-def clip_sound(opts: RenderOptions, ds: Dataset, frames: list, fps: float, log=print,
-               shown: np.ndarray | None = None):
-    """The clip's sound (data/video.Soundtrack) for a render of its capture `frames` in
-    order at `fps` (each shown `shown` times: `clip_pace`), or None: only the whole
-    capture's frames (or its first ones, with --max-frames) at the clip's own pace keep
-    step with it; a note where the sound was wanted but cannot come or is silence."""
-    from flamenerf.data.dataset import CAPTURE, frame_times
-    from flamenerf.data.video import SILENT_DB, Soundtrack, has_sound, loudest
-
-    times = frame_times(frames)
-    if not opts.sound or opts.split != CAPTURE or times is None:
-        return None  # the built-in scene's frames store no times: it has no sound
-    src = ds.source.get("video") if isinstance(ds.source, dict) else None
-    rate = ds.frame_rate()
-    if rate is not None and abs(fps - rate) > 1e-3:
-        log(f"note: no sound: --fps {fps:g} plays the clip at another pace than its own "
-            f"({rate:g} fps)")
-        return None
-    if not isinstance(src, str) or not Path(src).is_file():
-        log(f"note: no sound: the clip {src} is no longer there (--no-sound hides this)")
-        return None
-    if not has_sound(src):
-        return None
-    sound = Soundtrack(Path(src), float(times[0]))
-    peak = loudest(sound, (len(frames) if shown is None else int(shown.sum())) / fps)
-    if peak is not None and peak < SILENT_DB:  # a muted recording: nothing to carry
-        log(f"note: no sound: the clip's sound track is silent (its loudest {peak:g} dB)")
-        return None
-    log(f"note: with the clip's sound ({src}, from {times[0]:.2f} s; --no-sound leaves it "
-        "out)")
-    return sound
-
-
 def output_paths(opts: RenderOptions, source: str, camera: str, tag: str = ""
                  ) -> dict[str, Path]:
     """The videos to write (by default RUN/renders/SOURCE_CAMERA{tag}.mp4), refusing to
@@ -446,9 +408,9 @@ def output_paths(opts: RenderOptions, source: str, camera: str, tag: str = ""
 
 def head_transforms(opts: RenderOptions, run, ds: Dataset, n: int, log=print,
                     seq: X.ExpressionSequence | None = None) -> np.ndarray | None:
-    """Each frame's canonical-from-world head transform (n, 4, 4): --head-pose (`drive`:
-    the driving video's head turns, from `seq`), else a split's own head poses; None: the
-    head at frame 0's pose."""
+    """Each frame's canonical-from-world head transform (n, 4, 4): --head-pose (`drive` /
+    `take`: the driving video's / the ARKit take's head turns, from `seq`), else a split's
+    own head poses; None: the head at frame 0's pose."""
     from flamenerf.data import head_pose as H
 
     if opts.head_pose:
@@ -495,6 +457,11 @@ def write_videos(plan: RenderPlan) -> None:
     left_title = (("filmed" if seq.cameras is not None else "driving")
                   if seq.driving is not None else "expression")
     with contextlib.ExitStack() as stack:
+        if plan.frames_dir is not None:  # entered first: named after the videos are
+            from flamenerf.rendering.frame_folder import FrameFolder
+
+            frames_out = stack.enter_context(FrameFolder(plan.frames_dir, plan.fps,
+                                                         plan.sound))
         writers = {k: stack.enter_context(VideoWriter(
             p, plan.fps, sound=plan.sound if k in ("rgb", "sbs") else None))
             for k, p in plan.paths.items()}
@@ -505,6 +472,8 @@ def write_videos(plan: RenderPlan) -> None:
             times = 1 if plan.shown is None else int(plan.shown[i])
             for _ in range(times):
                 writers["rgb"].write(fr.rgb)
+                if plan.frames_dir is not None:
+                    frames_out.write(fr.rgb)
             if lo is None:
                 lo, hi = depth_range(fr, near, far)
             if "depth" in writers or "sbs" in writers:
@@ -539,7 +508,8 @@ def render_videos(opts: RenderOptions, log=print) -> RenderSummary:
 def _render_videos(opts: RenderOptions, log) -> RenderSummary:
     p = plan_render(opts, log)
     write_videos(p)
-    return RenderSummary(p.paths, len(p.values), p.intr.w, p.intr.h, p.fps, p.label, p.camera,
+    paths = p.paths if p.frames_dir is None else {**p.paths, "frames": p.frames_dir}
+    return RenderSummary(paths, len(p.values), p.intr.w, p.intr.h, p.fps, p.label, p.camera,
                          p.dilate_px)
 
 
@@ -579,6 +549,7 @@ def plan_render(opts: RenderOptions, log=print) -> RenderPlan:
             f"its first controls (--frames sets the tour's whole length)")
     values, poses, label = seq.values[:n], poses[:n], seq.label
     fps = opts.fps or seq.fps or 30.0
+    not_covered(opts, ds, names, values, edits, log)
     # the source as the model has learnt it, then the edit of it (clamped on its own), so
     # that `jawOpen-=0.3` lowers a drive's jaw from where the render shows it
     values = within_training_range(opts, ds, names, values, log)
@@ -626,6 +597,11 @@ def plan_render(opts: RenderOptions, log=print) -> RenderPlan:
     paths = output_paths(opts, label, cam_label,
                          "_first" if opts.split and opts.codes == "first" else "")
     writable_dir(paths["rgb"].parent, "video")
+    if opts.frames_dir is not None:
+        from flamenerf.rendering.frame_folder import check_frames_dir
+
+        check_frames_dir(opts.frames_dir, opts.overwrite)
+        writable_dir(opts.frames_dir.absolute().parent, "frames")
     settings = dataclasses.replace(REFERENCE if opts.exact else FAST,
                                    chunk=opts.chunk or (REFERENCE.chunk if opts.exact else 0))
     codes, frames = None, ds.split(opts.split)[:n] if opts.split else []
@@ -640,7 +616,42 @@ def plan_render(opts: RenderOptions, log=print) -> RenderPlan:
             + (f" ({between} held-out frame{'s' if between > 1 else ''} with "
                f"{'their' if between > 1 else 'its'} neighbours')" if between else "")
             + "; --codes first renders all with frame 0's")
-    shown = clip_pace(opts, ds, frames, fps, log)
-    sound = clip_sound(opts, ds, frames, fps, log, shown)
+    shown, sound = plan_sound(opts, ds, frames, seq, n, fps, log)
     return RenderPlan(run, ds, intr, poses, values, verts, heads, dil, settings, fps, paths,
-                      seq, label, cam_label, codes, changed, sound, shown)
+                      seq, label, cam_label, codes, changed, sound, shown, opts.frames_dir)
+
+
+def plan_sound(opts: RenderOptions, ds: Dataset, frames: list, seq: X.ExpressionSequence,
+               n: int, fps: float, log=print):
+    """How many times each of the `n` frames is shown, and the sound under them
+    (rendering/soundtrack.py): the clip's for --split capture at its pace, the driving
+    video's for --drive, or --audio's file for any source. -> (shown (n,) or None, a
+    data/video.Soundtrack or None)."""
+    if opts.drive:
+        times = None if seq.times is None else seq.times[:n]
+        shown = S.drive_pace(times, fps)
+        sound = S.drive_sound(opts, times, shown, fps, log) if opts.audio is None else None
+    else:
+        shown = S.clip_pace(opts, ds, frames, fps, log)
+        sound = S.clip_sound(opts, ds, frames, fps, log, shown) if opts.audio is None else None
+    if opts.audio is not None:
+        sound = S.audio_sound(opts.audio, S.shown_duration(n, shown, fps), log)
+    return shown, sound
+
+
+def not_covered(opts: RenderOptions, ds: Dataset, names: list[str], values: np.ndarray,
+                edits: list, log=print) -> list[str]:
+    """Say which of the controls a drive, a file, keyframes or an edit ask for the
+    training frames never move (a clip without a blink has no blink to give). -> them."""
+    from flamenerf.data.expression_range import ExpressionRange, training_range
+
+    if ds.expression_names != names or not (opts.drive or opts.expressions or edits):
+        return []
+    rng = training_range(ds)
+    asked = None if opts.split and not (opts.drive or opts.expressions) else values
+    missing = rng.uncovered(asked, [e.index for e in edits])
+    if missing:
+        what = ("the drive" if opts.drive else "the edit" if edits and asked is None
+                else "the render")
+        log(f"note: {ExpressionRange.not_covered_note(missing, what)}")
+    return missing
