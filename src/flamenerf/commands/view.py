@@ -21,8 +21,8 @@ def view(
     Serves a viewer at http://localhost:PORT (open it in a browser): drag to orbit, scroll
     to zoom, right-drag to pan; the camera starts at the capture's first frame. One
     slider per expression control, `Reset to neutral`, playback of an expression track
-    (a tour of the controls, the dataset's own sequences, or a `flamenerf track` file
-    given with --track; its Edit box changes every frame of a track as `render --edit`
+    (a tour of the controls, the dataset's own sequences, or a `flamenerf track` file or
+    an ARKit take (Live Link Face CSV) given with --track; its Edit box changes every frame of a track as `render --edit`
     does), head-pose sliders for runs trained with head poses, RGB or
     depth, and a resolution control: while the camera moves it renders at 1/4 of the
     chosen resolution (1/2 after other changes) and refines when still. Images use frame

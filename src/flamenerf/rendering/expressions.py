@@ -11,7 +11,9 @@ Accepted `--expressions` values:
               list of vectors; an object {name: value} (one expression); a list of such
               objects (one per frame).
   FILE.npy    an array (T, E) or (E,) in the run's control order.
-  FILE.csv    one vector per row; an optional header row of control names.
+  FILE.csv    one vector per row; an optional header row of control names. Or an ARKit
+              take as the Live Link Face app exports it (a header starting with
+              Timecode): its timecodes give the frames' times (rendering/takes.py).
   KEYFRAMES   one or more items `name=value[,name=value...]`: the video eases from the base
               expression (frame 0's by default) to each keyframe in turn and back; controls
               a keyframe does not name keep the base's value, except, by default, their
@@ -37,6 +39,7 @@ from flamenerf.data.companions import Companions
 from flamenerf.errors import UserError
 from flamenerf.io import read_json
 from flamenerf.keyvalues import parse_assignments, suggest
+from flamenerf.rendering.takes import is_take, load_take
 
 FILE_SUFFIXES = (".json", ".npy", ".csv")
 KEYFRAME_FRAMES = 60  # a keyframe sequence's length unless --frames says
@@ -60,7 +63,8 @@ class ExpressionSequence:
     vertices: np.ndarray | None = None  # (T, V, 3) per-frame face mesh (a split)
     driving: Callable[[int], np.ndarray] | None = None  # frame i's driving image, uint8
     resizable: bool = False  # keyframes: the sequence adapts to any number of frames
-    head_pose: np.ndarray | None = None  # (T, 6) a driving video's head turns (--head-pose drive)
+    head_pose: np.ndarray | None = None  # (T, 6) a driving video's or a take's head turns
+    take: Path | None = None  # the Live Link Face take it came from (--head-pose take)
     notes: tuple[str, ...] = ()
     times: np.ndarray | None = None
     """(T,) each frame's time in its source, seconds (a driving video's tracked frames): what
@@ -68,6 +72,28 @@ class ExpressionSequence:
 
     def __len__(self) -> int:
         return len(self.values)
+
+
+def source_head_pose(word: str, seq: ExpressionSequence | None, log=print) -> np.ndarray:
+    """`--head-pose drive` / `--head-pose take`: the head's turns (T, 6) of the driving
+    video / the Live Link Face take `seq` came from; each word only its own source, so that
+    a command says where the head's motion comes from."""
+    if word == "drive":
+        if seq is None or seq.take is not None or seq.head_pose is None:
+            raise UserError("--head-pose drive: takes the head's turns from a driving video; "
+                            "give one with --drive"
+                            + (" (a take's: --head-pose take)" if seq and seq.take else ""))
+        return np.asarray(seq.head_pose, np.float64)
+    if seq is None or seq.take is None:
+        raise UserError("--head-pose take: takes the head's turns from a Live Link Face take; "
+                        "give one with --expressions take.csv")
+    if seq.head_pose is None:
+        raise UserError(f"--head-pose take: {seq.take} has no HeadYaw, HeadPitch, HeadRoll "
+                        "columns")
+    if not np.any(seq.head_pose):
+        log(f"note: {seq.take}: its head columns are 0 in every row (recorded without head "
+            "rotation): the head stays at frame 0's pose")
+    return np.asarray(seq.head_pose, np.float64)
 
 
 def map_by_name(values: np.ndarray, src_names: list[str], names: list[str], where: str,
@@ -199,12 +225,13 @@ def tour_keyframes(training: np.ndarray, names: list[str], base: np.ndarray,
 
 
 def from_items(items: list[str], names: list[str], base: np.ndarray, num: int | None,
-               companions: Companions | None = None, training: np.ndarray | None = None
-               ) -> ExpressionSequence:
+               companions: Companions | None = None, training: np.ndarray | None = None,
+               fps: float | None = None) -> ExpressionSequence:
     """`--expressions` values: one file, `tour` (needs the `training` expressions (N, E)),
     or keyframes (with `companions`: the controls the tracker reads with the named ones
     move too; files are taken as they are). `num` frames (None: KEYFRAME_FRAMES, a tour
-    TOUR_FRAMES a control)."""
+    TOUR_FRAMES a control); `fps`: the rate a timed file (an ARKit take) is resampled to
+    (None: its own)."""
     if not items:
         raise UserError("--expressions: give a file, `tour` or name=value keyframes")
     if "tour" in items and len(items) > 1:
@@ -223,7 +250,7 @@ def from_items(items: list[str], names: list[str], base: np.ndarray, num: int | 
         return ExpressionSequence(keyframe_sequence(keys, base, num), label="tour",
                                   resizable=True, notes=tuple(notes))
     if is_file_arg(items):
-        return load_file(Path(items[0]), names)
+        return load_file(Path(items[0]), names, rate=fps)
     num = num or KEYFRAME_FRAMES
     keys = np.stack([parse_keyframe(it, names, base, companions) for it in items])
     notes = ()
@@ -255,8 +282,9 @@ def _vectors(arr, where: str, names: list[str]) -> np.ndarray:
     return a
 
 
-def load_file(path: Path, names: list[str]) -> ExpressionSequence:
-    """One expression file (see the module doc) -> a sequence in the run's control order."""
+def load_file(path: Path, names: list[str], rate: float | None = None) -> ExpressionSequence:
+    """One expression file (see the module doc) -> a sequence in the run's control order;
+    an ARKit take at its own rate or resampled to `rate`."""
     if path.is_dir():
         raise UserError(f"{path}: is a folder; give the expression file itself")
     if not path.is_file():
@@ -270,6 +298,10 @@ def load_file(path: Path, names: list[str]) -> ExpressionSequence:
         except Exception as e:  # noqa: BLE001 - any parse failure is the file's fault
             raise UserError(f"{path}: not a readable .npy array ({type(e).__name__})") from None
         values = _vectors(arr, str(path), names)
+    elif suffix == ".csv" and is_take(path):
+        seq = load_take(path, names, rate)
+        bounded(seq.values, str(path))
+        return seq
     elif suffix == ".csv":
         values, notes = _load_csv(path, names)
     else:

@@ -64,9 +64,10 @@ class RenderOptions:
         camera: static, orbit, spiral, dolly, split (a --split's own cameras), a JSON
             file of poses, or auto (split with --split, else static).
         head_pose: Head pose relative to frame 0's, independent of --camera: `drive` (the
-            driving video's head turns, with --drive), keyframes like `yaw=20,pitch=-5`
-            in degrees (roll too; x/y/z in metres), eased through like expression
-            keyframes, or a .json list of such objects (one per frame). Needs
+            driving video's head turns, with --drive), `take` (a Live Link Face take's
+            HeadYaw/HeadPitch/HeadRoll, with --expressions take.csv), keyframes like
+            `yaw=20,pitch=-5` in degrees (roll too; x/y/z in metres), eased through like
+            expression keyframes, or a .json list of such objects (one per frame). Needs
             a run trained with head poses. Default: a split's own head poses, else
             frame 0's.
         frames: Number of frames when the source does not fix it (keyframes, a tour, the
@@ -418,11 +419,8 @@ def head_transforms(opts: RenderOptions, run, ds: Dataset, n: int, log=print,
             raise UserError(f"--head-pose: {opts.run} was not trained on a dataset with head "
                             "poses, so its head cannot be turned apart from the scene")
         region = H.HeadRegion.from_dict(run.model.init_args["head_region"])
-        if opts.head_pose == ["drive"]:
-            if seq is None or seq.head_pose is None:
-                raise UserError("--head-pose drive: takes the head's turns from a driving "
-                                "video; give one with --drive")
-            rows, keyframes = np.asarray(seq.head_pose[:n], np.float64), False
+        if opts.head_pose in (["drive"], ["take"]):
+            rows, keyframes = X.source_head_pose(opts.head_pose[0], seq, log)[:n], False
         else:
             rows, keyframes = H.head_pose_items(opts.head_pose)
         if keyframes:

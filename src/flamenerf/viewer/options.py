@@ -18,7 +18,8 @@ class ViewerOptions:
     Attributes:
         port: TCP port to serve on.
         host: Address to listen on (default: this machine only).
-        track: Expression track JSON from `flamenerf track` (repeat for several).
+        track: Expression track JSON from `flamenerf track`, or an ARKit take (Live Link
+            Face CSV), played at its rate (repeat for several).
         resolution: Height in pixels of the refined image (0: the run's training height).
         max_resolution: Upper end of the resolution slider.
         progressive: Render coarse first while the view changes, refine when still.

@@ -1,5 +1,6 @@
-"""Expression tracks the viewer can play: the dataset's own sequences, a tour of its controls
-and `flamenerf track` output files, each mapped onto the run's expression controls."""
+"""Expression tracks the viewer can play: the dataset's own sequences, a tour of its controls,
+`flamenerf track` output files and ARKit takes (Live Link Face CSV), each mapped onto the
+run's expression controls."""
 
 from __future__ import annotations
 
@@ -81,11 +82,17 @@ def tour_track(ds: Dataset, names: list[str], base: np.ndarray, companions=None
 
 
 def load_track_file(path: str | Path, names: list[str]) -> Track:
-    """A `flamenerf track` JSON file, with its channels matched to `names` by name
-    (channels the run lacks are dropped, controls the file lacks stay 0)."""
+    """A `flamenerf track` JSON file or a Live Link Face take (at the take's rate), with its
+    channels matched to `names` by name (channels the run lacks are dropped, controls the
+    file lacks stay 0)."""
     from flamenerf.rendering.expressions import map_by_name
+    from flamenerf.rendering.takes import is_take, load_take
     from flamenerf.tracking.expressions import load_expressions
 
+    if Path(path).suffix.lower() == ".csv" and is_take(Path(path)):
+        seq = load_take(Path(path), names)
+        return Track(f"take {Path(path).name} ({len(seq)} frames)", seq.values,
+                     float(seq.fps), render_args=("--expressions", str(path)))
     tr = load_expressions(path)
     mat, _ = map_by_name(tr.frames, tr.names, names, str(path), strict=False,
                          what=f"{len(tr.names)} expression channels",
