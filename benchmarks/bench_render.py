@@ -93,7 +93,7 @@ def untrained(name: str, dev: torch.device, expr_dim: int = 8, n: int = 16) -> F
     m = FlameNeRF(cfg, num_codes=4, expr_dim=expr_dim, near=0.5, far=1.5,
                   box_min=[-0.5] * 3, box_max=[0.5] * 3, mesh_vertices=n * n,
                   mesh_faces=len(faces), detail_region=region)
-    if m.uses_mesh_model:
+    if m.expression.uses_mesh_model:
         u = torch.linspace(-0.15, 0.15, n)
         verts = torch.stack([u[None].expand(n, n), u[:, None].expand(n, n),
                              torch.full((n, n), 0.1)], -1).reshape(-1, 3)

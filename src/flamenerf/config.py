@@ -325,7 +325,7 @@ class TrainConfig:
     half-transparent room cannot pass for an opaque one in the captured views (it then
     renders as fog from new ones; instant-ngp trains its synthetic scenes so)."""
     face_depth_weight: float = 0.0
-    """Weight of the face-depth prior (training/losses.py `face_depth_loss`): on rays
+    """Weight of the face-depth prior (model/losses.py `face_depth_loss`): on rays
     through the tracked face mesh, rendering weight further than `face_depth_margin` from
     the mesh's surface is penalised (0: off, as in the paper)."""
     face_depth_margin: float = 0.01

@@ -104,18 +104,18 @@ def test_the_prior_radius_follows_whether_the_parts_apply(dataset_dir):
     m = build_for_dataset(cfg, ds)  # the built-in scene: face parts, not a tracked clip
     # β enters `fast` centred on the training frames' mean; the paper's preset takes it as is
     train = ds.expression_matrix(ds.split("train"))
-    assert torch.allclose(m.expression_mean, torch.from_numpy(train.mean(0)))
-    assert m.expression_mean.abs().amax() > 0.01
-    assert float(build_for_dataset(preset("flame-in-nerf"), ds).expression_mean.abs().amax()) == 0
+    assert torch.allclose(m.expression.mean, torch.from_numpy(train.mean(0)))
+    assert m.expression.mean.abs().amax() > 0.01
+    assert float(build_for_dataset(preset("flame-in-nerf"), ds).expression.mean.abs().amax()) == 0
     assert cfg.model.expression_regions.radius == RADIUS_FREE == m.cfg.expression_regions.radius
     # the mesh guide: on wherever the face parts are known (tracked clips, the built-in
     # scene), off where they are not (here: the built-in scene without its landmarks)
     assert preset("fast").model.mesh_guide.enabled is None
     assert preset("fast").model.mesh_guide.resolved_enabled(True) is True
-    assert cfg.model.mesh_guide.enabled is True and m.mesh_guided
+    assert cfg.model.mesh_guide.enabled is True and m.expression.mesh_guided
     ds.face_landmarks = None
     bare = build_for_dataset(preset("fast"), ds)
-    assert not bare.mesh_guided and bare.cfg.expression_regions.radius == RADIUS_FREE
+    assert not bare.expression.mesh_guided and bare.cfg.expression_regions.radius == RADIUS_FREE
     off = preset("fast")
     off.model.mesh_guide.enabled = False
     assert off.model.mesh_guide.resolved_enabled(True) is False

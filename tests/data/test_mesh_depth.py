@@ -5,7 +5,7 @@ from flamenerf.data.dataset import Intrinsics
 from flamenerf.data.mesh_depth import mesh_depth
 from flamenerf.data.rays import pixel_directions
 from flamenerf.geometry import look_at
-from flamenerf.training.losses import face_depth_loss
+from flamenerf.model.losses import face_depth_loss
 
 INTR = Intrinsics(32, 32, 40.0, 40.0, 16.0, 16.0)
 

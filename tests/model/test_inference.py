@@ -34,7 +34,7 @@ def toy_model(sampler: str = "proposal", mode: str = "masked", guided: bool = Fa
     torch.manual_seed(0)
     m = FlameNeRF(cfg, num_codes=2, expr_dim=E, near=0.5, far=1.6, box_min=[-0.5] * 3,
                   box_max=[0.5] * 3, mesh_vertices=6, mesh_faces=2).eval()
-    if m.uses_mesh_model:  # `fast`'s per-control prior: two triangles in front of the camera
+    if m.expression.uses_mesh_model:  # `fast`'s per-control prior: two triangles in front of the camera
         verts = torch.tensor([[-.1, -.1, .1], [.1, -.1, .1], [0, .1, .1], [-.1, 0, .2],
                               [.1, 0, .2], [0, .15, .2]])
         basis = torch.zeros(E, 6, 3)
@@ -167,7 +167,7 @@ def test_mesh_guided_inference_equals_reference():
     # tracked clips train mesh-guided (fast's default there): the inference path's guide
     # (nearest vertices by k-d tree) is the training forward's
     m = toy_model(guided=True)
-    assert m.mesh_guided
+    assert m.expression.mesh_guided
     ref, fast = render(m, REFERENCE), render(m, EXACT)
     assert torch.allclose(fast["rgb"], ref["rgb"], atol=2e-4)
     assert (ref["rgb"] - render(toy_model(), REFERENCE)["rgb"]).abs().max() > 1e-3  # it acts
@@ -475,7 +475,7 @@ def test_map_single_threaded_keeps_order_and_gives_each_worker_one_thread():
 
 
 def test_distinct_rows_matches_unique():
-    from flamenerf.model.flame_nerf import distinct_rows
+    from flamenerf.model.expression import distinct_rows
 
     same = torch.tensor([[0.5, -1.0, 2.0]]).repeat(7, 1)
     u, inv = distinct_rows(same)

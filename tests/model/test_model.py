@@ -3,7 +3,7 @@ import torch
 
 from flamenerf.config import override, preset
 from flamenerf.model.flame_nerf import FlameNeRF, RayBatch
-from flamenerf.training.losses import face_region_loss
+from flamenerf.model.losses import face_region_loss
 
 E = 5
 
@@ -144,12 +144,12 @@ def test_expression_regions_gate_each_control_near_what_it_moves():
     m = regions_model()
     # at the β = 1 mesh's vertices 0 and 3 (moved by their controls), and far away
     pts = torch.tensor([[[0.0, 0.05, 0.0], [0.32, 0.3, 0.0], [0.9, -0.9, 0.5]]])  # (1, 3, 3)
-    gates = m._region_gates(pts, torch.ones(1, E))[0]  # (3, E)
+    gates = m.expression._region_gates(pts, torch.ones(1, E))[0]  # (3, E)
     assert gates[0, 0] > 0.5 and gates[0, 1] == 0, "control 0 acts near its triangle only"
     assert gates[1, 1] > 0.5 and gates[1, 0] == 0, "control 1 acts near its triangle only"
     assert gates[2].max() < 1e-6, "far from the face no control acts"
     assert torch.all(gates[:, 2:] == 0), "controls that move nothing reach nothing"
-    assert torch.all(m._region_gates(pts, torch.zeros(1, E)) == 0)
+    assert torch.all(m.expression._region_gates(pts, torch.zeros(1, E)) == 0)
 
 
 def test_expression_region_gates_of_many_rays_are_each_rays_own():
@@ -161,11 +161,11 @@ def test_expression_region_gates_of_many_rays_are_each_rays_own():
     betas = torch.rand(3, E, generator=g)
     expr = betas[torch.tensor([0, 1, 0, 2, 2, 0, 1])]
     expr[4] = 0  # a ray outside the silhouette
-    one = [m._region_gates(pts[i:i + 1], expr[i:i + 1]) for i in range(7)]
-    assert torch.allclose(m._region_gates(pts, expr), torch.cat(one), atol=1e-6)
+    one = [m.expression._region_gates(pts[i:i + 1], expr[i:i + 1]) for i in range(7)]
+    assert torch.allclose(m.expression._region_gates(pts, expr), torch.cat(one), atol=1e-6)
     same = betas[:1].expand(7, E)
-    assert torch.allclose(m._region_gates(pts, same),
-                          torch.cat([m._region_gates(pts[i:i + 1], same[:1]) for i in range(7)]),
+    assert torch.allclose(m.expression._region_gates(pts, same),
+                          torch.cat([m.expression._region_gates(pts[i:i + 1], same[:1]) for i in range(7)]),
                           atol=1e-6)
 
 
@@ -177,28 +177,28 @@ def test_a_centred_expression_reaches_the_networks_as_its_difference_from_the_me
     m.set_expression_mean(mean)
     beta = torch.stack([mean, mean + torch.tensor([0.3, -0.2, 0.0, 0.5, 0.0]), mean])
     face = torch.tensor([True, True, False])
-    e = m.masked_expression(beta, face)
+    e = m.expression.masked(beta, face)
     assert torch.equal(e[0], torch.zeros(E)), "the mean face inside is what outside is"
     assert torch.allclose(e[1], beta[1] - mean) and torch.equal(e[2], torch.zeros(E))
-    inside = m.expression_inside(face)
-    raw, _ = m.raw_expression(e, inside)
+    inside = m.expression.inside(face)
+    raw, _ = m.expression.raw(e, inside)
     assert torch.allclose(raw[:2], beta[:2]) and torch.equal(raw[2], torch.zeros(E))
     pts = torch.tensor([[0.0, 0.05, 0.0], [0.32, 0.3, 0.0], [0.05, 0.03, 0.0]]).expand(3, 3, 3)
     # the gates of β's own mesh (as without centring), not of β − β̄'s
-    gates = plain._region_gates(pts, beta * face[:, None])
-    assert torch.allclose(m.region_expression(pts, e, inside), gates * e[:, None], atol=1e-6)
-    assert not torch.allclose(m._region_gates(pts[:1], beta[:1] - mean), gates[:1], atol=1e-4)
+    gates = plain.expression._region_gates(pts, beta * face[:, None])
+    assert torch.allclose(m.expression.region_expression(pts, e, inside), gates * e[:, None], atol=1e-6)
+    assert not torch.allclose(m.expression._region_gates(pts[:1], beta[:1] - mean), gates[:1], atol=1e-4)
     assert gates[0].amax() > 0.5, "the mean face's rays keep their gates (input 0)"
     again = FlameNeRF(m.cfg, **m.init_args)
-    assert torch.allclose(again.expression_mean, mean)
-    assert torch.equal(regions_model().expression_mean, torch.zeros(E))
+    assert torch.allclose(again.expression.mean, mean)
+    assert torch.equal(regions_model().expression.mean, torch.zeros(E))
 
 
 def test_expression_regions_keep_the_silhouette_prior():
     m = regions_model()
     r = rays(m)
     # aim the rays through the two triangles, so that samples come within the gates' reach
-    target = m.mesh_neutral[torch.arange(8) % 6] + 0.02
+    target = m.expression.mesh_neutral[torch.arange(8) % 6] + 0.02
     r.dirs = target - r.origins
     out = m(r)
     (out["rgb"].sum() + out["depth"].sum()).backward()

@@ -241,27 +241,27 @@ def test_mesh_guided_training_carries_the_expression_model(synth_scene, tmp_path
     Trainer(cfg, synth_scene, tmp_path / "run", quiet=True).fit()
     run = load_run(tmp_path / "run")
     m, ds = run.model, load_dataset(synth_scene)
-    assert m.mesh_guided
+    assert m.expression.mesh_guided
     # the run holds the β -> mesh model: a frame's β gives (about) its tracked mesh
     fr = ds.split("val")[0]
-    mesh = m.face_mesh(torch.from_numpy(fr.expression.astype(np.float32)))
+    mesh = m.expression.face_mesh(torch.from_numpy(fr.expression.astype(np.float32)))
     err = (mesh - torch.from_numpy(ds.face_vertices[fr.position])).norm(dim=-1).mean()
     assert err < 2e-3  # metres
     # points near the mouth move with jawOpen, the rest of the scene does not
     jaw = torch.zeros(ds.expression_dim)
     jaw[ds.expression_names.index("jawOpen")] = 1.0
-    chin = m.normalize(m.face_mesh(jaw))  # (V, 3): where the open jaw's vertices are
+    chin = m.normalize(m.expression.face_mesh(jaw))  # (V, 3): where the open jaw's vertices are
     far = torch.tensor([[0.9, 0.9, -0.9]])
     x = torch.cat([chin, far])[:, None]  # (V + 1, 1, 3) as rays of one sample
     # the guide takes what the networks see (`masked_expression`: β centred in `fast`) and
     # which rays the prior lets β reach
     inside, outside = torch.ones(len(x), dtype=torch.bool), torch.zeros(len(x), dtype=torch.bool)
-    e = m.masked_expression(jaw.expand(len(x), -1), inside)
-    moved = (m.guide_points(x, e, inside) - x).norm(dim=-1)[:, 0]
+    e = m.expression.masked(jaw.expand(len(x), -1), inside)
+    moved = (m.expression.guide_points(x, e, inside) - x).norm(dim=-1)[:, 0]
     assert moved[:-1].max() > 0.01 and moved[-1] == 0
     # and with β masked to zero (a ray outside the prior's silhouette) nothing moves
-    e = m.masked_expression(jaw.expand(len(x), -1), outside)
-    assert torch.equal(m.guide_points(x, e, m.expression_inside(outside)), x)
+    e = m.expression.masked(jaw.expand(len(x), -1), outside)
+    assert torch.equal(m.expression.guide_points(x, e, m.expression.inside(outside)), x)
 
 
 def test_vertices_the_mesh_model_misses_do_not_guide(synth_scene, tmp_path):
@@ -273,22 +273,22 @@ def test_vertices_the_mesh_model_misses_do_not_guide(synth_scene, tmp_path):
     assert cfg.model.mesh_guide.max_residual == 0.0015  # `fast`'s
     cfg.model.mesh_guide.max_residual = None
     m0 = build_for_dataset(cfg, ds)
-    assert not m0.guide_skip.any()
-    miss = expression_model_residual(ds, m0.mesh_neutral, m0.mesh_basis)
+    assert not m0.expression.guide_skip.any()
+    miss = expression_model_residual(ds, m0.expression.mesh_neutral, m0.expression.mesh_basis)
     limit = float(miss.quantile(0.9))
     cfg.model.mesh_guide.max_residual = limit
     Trainer(cfg, synth_scene, tmp_path / "run", quiet=True).fit()
     m = load_run(tmp_path / "run").model
-    assert torch.equal(m.guide_skip, miss > limit) and 0 < int(m.guide_skip.sum()) < len(miss)
+    assert torch.equal(m.expression.guide_skip, miss > limit) and 0 < int(m.expression.guide_skip.sum()) < len(miss)
     jaw = torch.zeros(ds.expression_dim)
     jaw[ds.expression_names.index("jawOpen")] = 1.0
-    x = m.normalize(m.face_mesh(jaw))[:, None]  # (V, 1, 3)
+    x = m.normalize(m.expression.face_mesh(jaw))[:, None]  # (V, 1, 3)
     inside = torch.ones(len(x), dtype=torch.bool)
-    e = m.masked_expression(jaw.expand(len(x), -1), inside)
-    moved = (m.guide_points(x, e, inside) - x).norm(dim=-1)[:, 0]
+    e = m.expression.masked(jaw.expand(len(x), -1), inside)
+    moved = (m.expression.guide_points(x, e, inside) - x).norm(dim=-1)[:, 0]
     assert moved.max() > 0.01
     m.set_guide_skip(torch.arange(len(miss)))  # none guides: nothing moves
-    assert torch.equal(m.guide_points(x, e, inside), x)
+    assert torch.equal(m.expression.guide_points(x, e, inside), x)
 
 
 def test_face_ray_fraction_draws_that_share_from_the_silhouettes(tiny_scene):

@@ -96,8 +96,9 @@ def mesh_function(model, ds: Dataset) -> Callable[[np.ndarray], np.ndarray]:
     reference frame's chin still gets β."""
     from flamenerf.data.scene import fit_dataset_expression_model
 
-    if getattr(model, "uses_mesh_model", False):
-        neutral, basis = model.mesh_neutral.cpu(), model.mesh_basis.cpu()
+    prior = getattr(model, "expression", None)
+    if prior is not None and prior.uses_mesh_model:
+        neutral, basis = prior.mesh_neutral.cpu(), prior.mesh_basis.cpu()
     else:
         neutral, basis = fit_dataset_expression_model(ds)
 

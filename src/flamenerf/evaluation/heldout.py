@@ -11,6 +11,7 @@ from tqdm import tqdm
 
 from flamenerf.data.scene import FrameSet
 from flamenerf.model.flame_nerf import FlameNeRF
+from flamenerf.model.losses import LossBatch
 
 
 def fit_deformation_codes(model: FlameNeRF, frames: FrameSet, steps: int = 200,
@@ -42,7 +43,7 @@ def _fit(model, frames, omega, phi, steps, batch_rays, lr, seed, quiet) -> None:
         fi_d = fi.to(dev)
         rays, target = frames.ray_batch(fi, ys, xs, omega[fi_d], phi[fi_d], dev)
         out = model(rays, jitter=True, generator=gen if dev.type == "cpu" else None)
-        loss = model.loss_dict(out, target)["photo"]
+        loss = model.get_loss_dict(out, LossBatch(target)).raw["photo"]
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()

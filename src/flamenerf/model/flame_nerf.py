@@ -1,18 +1,24 @@
 """FLAME-in-NeRF: a deformable NeRF conditioned on masked expression parameters.
 
-One class for every preset; the config picks the field (`mlp`/`hash`), the sampler
-(`hierarchical`/`proposal`) and the expression mode (`masked`/`none`/`everywhere`).
+One class for every preset, composed of the paper's parts, each in a module of its own:
+the per-frame codes ω_i, φ_i (embeddings here), the SE(3) warp with its coarse-to-fine
+window (model/warp.py, model/se3.py), the canonical field (model/field.py: the paper's
+MLP or a hash grid), the expression pathway with the spatial prior
+(model/expression.py), the samplers and compositing (model/render.py), and the losses
+(model/losses.py, composed by `get_loss_dict`). The config picks the field (`mlp`/`hash`),
+the sampler (`hierarchical`/`proposal`) and the expression mode (`masked`/`none`/
+`everywhere`). `forward` is the training renderer; model/inference.py renders the same
+model faster outside training.
 
 A model built with a `head_region` (datasets with head poses, `model.head.follow`) takes
 points into the head's canonical frame before anything else sees them (`head_points`);
 without one, or for rays without a head transform, points are exactly as before.
 """
-
 from __future__ import annotations
 
 import contextlib
 import math
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 
 import torch
 import torch.nn.functional as F
@@ -21,27 +27,14 @@ from torch import Tensor, nn
 from flamenerf.config import ModelConfig
 from flamenerf.geometry import ellipsoid_weight
 from flamenerf.data.rays import RayBatch  # noqa: F401 - the model's input, re-exported
-from flamenerf.meshes import (GUIDE_CUTOFF, displacement_of_neighbours, expression_mesh,
-                              nearest_vertices, surface_points)
+from flamenerf.model.expression import ExpressionConditioner
 from flamenerf.model.field import ProposalField, make_field
+from flamenerf.model.losses import (LossBatch, LossTerms, LossWeights, face_depth_loss,
+                                    face_region_loss)
 from flamenerf.model.render import (composite, interlevel_loss, render_weights, sample_pdf,
                                     stratified_samples)
 from flamenerf.model.se3 import apply_se3, exp_se3
 from flamenerf.model.warp import SE3Field
-
-
-GATE_CUTOFF = 3.0
-"""Per-control prior: gates are exp(-(d/r)²), cut to 0 beyond d = 3r (exp(-9) ≈ 1e-4)."""
-
-
-def distinct_rows(x: Tensor) -> tuple[Tensor, Tensor]:
-    """torch.unique(x, dim=0, return_inverse=True) for x (N, E), with the common case (an
-    image or a viewer update: every row the same) answered without unique's row-by-row
-    comparisons (~4 % of a 128 px viewer update's CPU time under torch's profiler).
-    -> (U, E), (N,) long."""
-    if len(x) and bool((x == x[:1]).all()):
-        return x[:1], torch.zeros(len(x), dtype=torch.long, device=x.device)
-    return torch.unique(x, dim=0, return_inverse=True)
 
 
 def _plain_region(region: dict) -> dict:
@@ -70,26 +63,6 @@ class FlameNeRF(nn.Module):
         self.init_args = dict(num_codes=num_codes, expr_dim=expr_dim, near=near, far=far,
                               box_min=list(map(float, box_min)),
                               box_max=list(map(float, box_max)))
-        self.mesh_guided = bool(cfg.mesh_guide.enabled) and cfg.expression_mode != "none"
-        self.expression_regions = (cfg.expression_regions.enabled
-                                   and cfg.expression_mode != "none")
-        self.uses_mesh_model = self.mesh_guided or self.expression_regions
-        if self.uses_mesh_model:
-            if mesh_vertices <= 0 or mesh_faces <= 0:
-                raise ValueError("the per-subject face-mesh model needs the mesh's vertex and face counts")
-            self.init_args.update(mesh_vertices=int(mesh_vertices), mesh_faces=int(mesh_faces))
-            # the per-subject expression model (world units), filled by set_expression_model
-            self.register_buffer("mesh_neutral", torch.zeros(mesh_vertices, 3))
-            self.register_buffer("mesh_basis", torch.zeros(expr_dim, mesh_vertices, 3))
-            self.register_buffer("mesh_faces", torch.zeros(mesh_faces, 3, dtype=torch.long))
-            # (V, E): how much of control k's β each vertex's neighbourhood receives
-            self.register_buffer("mesh_regions", torch.zeros(mesh_vertices, expr_dim))
-            # (V,): vertices that do not guide (`set_guide_skip`; kept in init_args)
-            self.register_buffer("guide_skip", torch.zeros(mesh_vertices, dtype=torch.bool),
-                                 persistent=False)
-            self._any_guide_skip = False  # on the host: no device sync per guided batch
-            if guide_skip:
-                self.set_guide_skip(torch.tensor(guide_skip, dtype=torch.long))
         # the head's ellipsoid (data/head_pose.HeadRegion.to_dict, world units), kept in
         # init_args so that a loaded run rebuilds it; buffers for the device only. The model
         # follows the head in it (`head_region`), or a still head's deformation stays in it
@@ -108,8 +81,14 @@ class FlameNeRF(nn.Module):
         # isotropic scale, so that rigid warps in normalised space are rigid in the world
         self.register_buffer("half_extent", ((bmax - bmin) / 2).max())
         field_expr = 0 if cfg.expression_mode == "none" else expr_dim
-        # β̄ of `cfg.expression_centre` (set_expression_mean; zeros: β enters as it is)
-        self.register_buffer("expression_mean", torch.zeros(expr_dim), persistent=False)
+        # how β reaches the field (model/expression.py): the spatial prior and its
+        # refinements, with the per-subject face-mesh model they use
+        self.expression = ExpressionConditioner(cfg, expr_dim, self.center, self.half_extent,
+                                                mesh_vertices, mesh_faces)
+        if self.expression.uses_mesh_model:
+            self.init_args.update(mesh_vertices=int(mesh_vertices), mesh_faces=int(mesh_faces))
+            if guide_skip:
+                self.set_guide_skip(torch.tensor(guide_skip, dtype=torch.long))
         if expression_mean is not None:
             self.set_expression_mean(torch.tensor(expression_mean))
         self.deform_codes = nn.Embedding(num_codes, cfg.warp.code_dim)
@@ -138,182 +117,30 @@ class FlameNeRF(nn.Module):
         else:
             raise ValueError(f"unknown sampler {s.kind!r}")
 
-    # ---------------------------------------------------------------- expression mesh
+    # ---------------------------------------------------------------- expression
     def set_expression_model(self, neutral: Tensor, basis: Tensor, faces: Tensor) -> None:
-        """neutral (V, 3), basis (E, V, 3) world units (`meshes.fit_expression_model`),
-        faces (F, 3)."""
-        self.mesh_neutral.copy_(neutral)
-        self.mesh_basis.copy_(basis)
-        self.mesh_faces.copy_(faces)
-        motion = basis.norm(dim=-1)  # (E, V)
-        top = motion.amax(-1, keepdim=True)
-        thr = self.cfg.expression_regions.threshold
-        # soft membership: 1 where the control moves a vertex by thr of its largest motion
-        # or more, fading to 0 with the motion, so that gates vary smoothly across the face
-        soft = (motion / (thr * top).clamp_min(1e-12)).clamp(max=1.0) * (top > 0)
-        self.mesh_regions.copy_(soft.T)
+        """The per-subject β -> mesh model (`ExpressionConditioner.set_mesh_model`)."""
+        self.expression.set_mesh_model(neutral, basis, faces)
 
     def set_guide_skip(self, vertices: Tensor) -> None:
         """Vertex indices (K,) that the mesh guide ignores (`mesh_guide.max_residual`); kept
         in init_args so that a loaded run rebuilds them."""
-        self.guide_skip.zero_()
-        self.guide_skip[vertices.to(self.guide_skip.device)] = True
-        self._any_guide_skip = len(vertices) > 0
+        self.expression.set_guide_skip(vertices)
         self.init_args["guide_skip"] = [int(v) for v in vertices]
 
     def set_expression_mean(self, mean: Tensor) -> None:
-        """β̄ (E,): the networks see 𝕀·(β − β̄) (`masked_expression`); kept in init_args so
-        that a loaded run rebuilds it."""
-        self.expression_mean.copy_(mean.to(self.expression_mean))
+        """β̄ (E,) (`ExpressionConditioner.set_mean`); kept in init_args so that a loaded
+        run rebuilds it."""
+        self.expression.set_mean(mean)
         self.init_args["expression_mean"] = [float(v) for v in mean]
 
-    def raw_expression(self, expr: Tensor, inside: Tensor | None) -> tuple[Tensor, Tensor]:
-        """The β behind network inputs `expr` (R, E) (`masked_expression`'s output) of rays
-        whose prior lets β in (`inside` (R,) bool; None: the rays whose input is not 0,
-        right when β is not centred) -> β (R, E), inside (R,). The meshes, the per-control
-        prior and the mesh guide work with β itself."""
-        if inside is None:
-            inside = expr.abs().amax(-1) > 0
-        beta = expr / self.cfg.expression_scale + inside[:, None].to(expr) * self.expression_mean
-        return beta, inside
-
-    def face_mesh(self, expression: Tensor) -> Tensor:
-        """The face mesh of β in world units: (..., E) -> (..., V, 3)."""
-        return expression_mesh(self.mesh_neutral, self.mesh_basis, expression)
-
-    def neutral_face_points(self, n: int, generator: torch.Generator | None = None) -> Tensor:
-        """n uniformly random points on the neutral mesh, normalised. -> (n, 3)."""
-        dev = self.mesh_neutral.device
-        tri = torch.randint(len(self.mesh_faces), (n,), generator=generator).to(dev)
-        uv = torch.rand(n, 2, generator=generator).to(dev)
-        return self.normalize(surface_points(self.mesh_neutral, self.mesh_faces, tri, uv))
-
-    def _neutral_diagonal(self) -> float:
-        # kept while the mesh and the box are the same tensors, unchanged in place (writes
-        # through `.data` excepted, as for the bakes): reading it from a GPU waits for the
-        # device, three times per guided batch
-        ts = [t for t in (self.mesh_neutral, self.center, self.half_extent)
-              if isinstance(t, Tensor)]
-        kept = getattr(self, "_neutral_diagonal_kept", None)
-        if kept is None or len(kept[0]) != len(ts) or not all(
-                a is t and v == t._version for (a, v), t in zip(kept[0], ts)):
-            neutral = self.normalize(self.mesh_neutral)
-            kept = (tuple((t, t._version) for t in ts),
-                    float((neutral.amax(0) - neutral.amin(0)).norm()))
-            self._neutral_diagonal_kept = kept
-        return kept[1]
-
-    def _guide_falloff(self) -> float:
-        return self.cfg.mesh_guide.falloff * self._neutral_diagonal()
-
-    def _gate_radius(self) -> float:
-        # settled per dataset when a run is built (trainer.settle_dataset_defaults); a model
-        # made without a dataset (tests, untrained benchmarks) has no face parts
-        return self.cfg.expression_regions.resolved_radius(False) * self._neutral_diagonal()
-
-    def _ray_neighbours(self, xn: Tensor, beta: Tensor, rows: Tensor, k: int, bound: float
-                        ) -> dict:
-        """The k nearest vertices (within `bound`) of the points xn[rows] (n, S, 3) on the
-        mesh of their ray's own β (R, E), one mesh per distinct β (a training batch has
-        ~100, an image one) -> {"rows", "beta" (n, E), "meshes" (U, V, 3), "d2k" (n·S, k),
-        "idx" (n·S, k) into the U·V stacked vertices}."""
-        uniq, inv = distinct_rows(beta[rows])
-        meshes = self.normalize(self.face_mesh(uniq))  # (U, V, 3)
-        d2k, idx = nearest_vertices(xn[rows], meshes, min(k, meshes.shape[1]), bound, inv)
-        return {"rows": rows, "beta": beta[rows], "meshes": meshes, "d2k": d2k, "idx": idx}
-
-    @torch.no_grad()
-    def shared_neighbours(self, xn: Tensor, expr: Tensor | None,
-                          inside: Tensor | None = None) -> dict | None:
-        """With both the per-control prior and the mesh guide: `_ray_neighbours` of the rays
-        `inside`, one query that serves both (`_region_gates` takes the nearest, the guide
-        all k; two queries were a sixth of a guided 256 px frame on a CPU). None where not
-        both."""
-        if expr is None or not (self.mesh_guided and self.expression_regions):
-            return None
-        beta, inside = self.raw_expression(expr.detach(), inside)
-        rows = inside.nonzero()[:, 0]
-        if len(rows) == 0:
-            return None
-        bound = max(GUIDE_CUTOFF * self._guide_falloff(), GATE_CUTOFF * self._gate_radius())
-        return self._ray_neighbours(xn, beta, rows, self.cfg.mesh_guide.neighbours, bound)
-
-    @torch.no_grad()
-    def guide_points(self, xn: Tensor, expr: Tensor | None, inside: Tensor | None = None,
-                     shared: dict | None = None) -> Tensor:
-        """Carry normalised points (R, S, 3) of rays with masked expressions (R, E)
-        (`masked_expression`; `inside` as in `raw_expression`) from their expression's
-        mesh to the neutral mesh. Rays outside the silhouette under the prior, and rays
-        with β = 0, get mesh(0) = neutral, i.e. stay put. `shared`: `shared_neighbours`."""
-        if not self.mesh_guided or expr is None:
-            return xn
-        falloff, S = self._guide_falloff(), xn.shape[1]
-        if shared is None:
-            beta, inside = self.raw_expression(expr, inside)
-            rows = (inside & (beta.abs().amax(-1) > 0)).nonzero()[:, 0]
-            if len(rows) == 0:
-                return xn
-            nb = self._ray_neighbours(xn, beta, rows, self.cfg.mesh_guide.neighbours,
-                                      GUIDE_CUTOFF * falloff)
-            d2k, idx = nb["d2k"], nb["idx"]
-        else:  # the rays with β = 0 among the shared ones stay put
-            nb = shared
-            moving = nb["beta"].abs().amax(-1) > 0
-            if not bool(moving.any()):
-                return xn
-            rows, k = nb["rows"][moving], nb["d2k"].shape[-1]
-            d2k = nb["d2k"].view(-1, S, k)[moving].reshape(-1, k)
-            idx = nb["idx"].view(-1, S, k)[moving].reshape(-1, k)
-        if self._any_guide_skip:  # those vertices neither move points nor fade them
-            d2k = d2k.masked_fill(self.guide_skip[idx % self.guide_skip.shape[0]], float("inf"))
-            d2k, order = d2k.sort(1)
-            idx = idx.gather(1, order)
-        move = displacement_of_neighbours(d2k, idx, nb["meshes"],
-                                          self.normalize(self.mesh_neutral), falloff)
-        out = xn.clone()
-        out[rows] = xn[rows] + move.view(len(rows), S, 3)
-        return out
-
-    def region_expression(self, xn: Tensor, expr: Tensor | None,
-                          inside: Tensor | None = None, shared: dict | None = None
-                          ) -> Tensor | None:
-        """Per-point masked expressions under the per-control prior: input k fades with
-        the distance from the vertices (of the ray's own expression mesh) that control k
-        moves. xn (R, S, 3) normalised, expr (R, E) (`masked_expression`; `inside` as in
-        `raw_expression`; `shared`: `shared_neighbours`) -> (R, S, E); per-ray `expr` as
-        (R, 1, E) when the prior is off."""
-        if expr is None:
-            return None
-        if not self.expression_regions:
-            return expr[:, None]
-        beta, inside = self.raw_expression(expr.detach(), inside)
-        return self._region_gates(xn, beta, inside, shared=shared) * expr[:, None]
-
-    @torch.no_grad()
-    def _region_gates(self, xn: Tensor, beta: Tensor, inside: Tensor | None = None,
-                      shared: dict | None = None) -> Tensor:
-        """(R, S, 3), β (R, E), inside (R,) bool -> (R, S, E) in [0, 1]: each point's share
-        of each control, the membership of its nearest vertex (on the mesh of the ray's
-        own β) in the control's region times exp(-d²/r²) of the distance d to that vertex,
-        cut to 0 beyond d = GATE_CUTOFF·r (where it is below 1e-4: the expression fields
-        then skip the point). Rays not `inside` (None: rays with β = 0) get 0."""
-        out = xn.new_zeros(*xn.shape[:2], beta.shape[-1])
-        if inside is None:
-            inside = beta.abs().amax(-1) > 0
-        rows = inside.nonzero()[:, 0]
-        if len(rows) == 0:
-            return out
-        r = self._gate_radius()
-        S, cut = xn.shape[1], GATE_CUTOFF * r
-        if shared is None:
-            shared = self._ray_neighbours(xn, beta, rows, 1, cut)
-        # the nearest vertex (of the guide's k, when shared)
-        d = shared["d2k"][:, 0].sqrt()
-        d = d.masked_fill(d > cut, float("inf"))
-        nn_ = shared["idx"][:, 0] % self.mesh_regions.shape[0]
-        out[shared["rows"]] = (self.mesh_regions[nn_] * torch.exp(-(d / r).square())[:, None]
-                               ).view(len(shared["rows"]), S, -1)
-        return out
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
+        # runs saved before the expression pathway was a part of its own stored the face
+        # mesh model's buffers at the top: the same tensors under their new names
+        for name in ("mesh_neutral", "mesh_basis", "mesh_faces", "mesh_regions"):
+            if prefix + name in state_dict:
+                state_dict[f"{prefix}expression.{name}"] = state_dict.pop(prefix + name)
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     # ---------------------------------------------------------------- conditioning
     def update_to_step(self, step: int, total_steps: int) -> None:
@@ -339,33 +166,6 @@ class FlameNeRF(nn.Module):
     def codes(self, frame_index: Tensor) -> tuple[Tensor, Tensor]:
         """frame_index (R,) long -> ω (R, code_dim), φ (R, appearance_dim)."""
         return self.deform_codes(frame_index), self.appearance_codes(frame_index)
-
-    def masked_expression(self, expression: Tensor, face_ray: Tensor) -> Tensor | None:
-        """𝕀(x)·β, what the networks see: the spatial prior. (R, E), (R,) -> (R, E), or
-        None for `nerfies`; 𝕀·(β − β̄) with `expression_centre`."""
-        mode = self.cfg.expression_mode
-        if mode == "none":
-            return None
-        e = (expression - self.expression_mean) * self.cfg.expression_scale
-        if mode == "masked":
-            e = e * face_ray[:, None].to(e)
-        return e
-
-    @property
-    def expression_confined(self) -> bool:
-        """Whether β changes only rays through the prior's silhouette (the spatial prior,
-        or no β at all): where only β changes, a renderer may keep every other pixel
-        (the viewer's slider, a re-animation from a still camera). Not so for the no-prior
-        ablation, whose β reaches every ray."""
-        return self.cfg.expression_mode in ("masked", "none")
-
-    def expression_inside(self, face_ray: Tensor) -> Tensor | None:
-        """Which rays' β passes the prior: (R,) bool -> (R,) bool (every ray for the
-        no-prior ablation), None for `nerfies`."""
-        mode = self.cfg.expression_mode
-        if mode == "none":
-            return None
-        return face_ray.bool() if mode == "masked" else torch.ones_like(face_ray, dtype=torch.bool)
 
     def head_weight(self, x: Tensor, band: float | None = None) -> Tensor:
         """How much of the head's motion canonical points x (*bs, 3) (world units) take:
@@ -453,17 +253,15 @@ class FlameNeRF(nn.Module):
         view directions (R, 3), and the expression each point gets (R, S, E), or (R, 1, E)
         per ray without the per-control prior. The one place both renderers (training and
         model/inference.py) prepare samples. `inside` (R,) bool: the rays whose β passes the
-        prior (`expression_inside`; None: those whose `expr` is not 0). Outside training, with captured views set,
+        prior (`expression.inside`; None: those whose `expr` is not 0). Outside training, with captured views set,
         the directions are kept near the capture (`captured_direction`)."""
         x, d, share = self._head_points(origins[:, None] + t[..., None] * dirs[:, None], dirs,
                                         head)
-        xn = self.normalize(x)
-        shared = self.shared_neighbours(xn, expr, inside)
-        expr_pts = self.region_expression(xn, expr, inside, shared)
+        xn, expr_pts = self.expression.point_inputs(self.normalize(x), expr, inside)
         d = F.normalize(d, dim=-1)
         if self.captured is not None and not self.training:
             d = self.captured_direction(origins, d, head, share)
-        return self.guide_points(xn, expr, inside, shared), d, expr_pts
+        return xn, d, expr_pts
 
     def proposal_points(self, origins: Tensor, dirs: Tensor, t: Tensor,
                         head: Tensor | None) -> Tensor:
@@ -475,7 +273,7 @@ class FlameNeRF(nn.Module):
         """Samples at depths t (R, S) along each ray -> σ (R, S), rgb (R, S, 3). The ray's
         codes go in once per ray, shaped (R, 1, ·), and broadcast over samples."""
         xn, dn, expr_pts = self.sample_points(rays.origins, rays.dirs, t, expr, rays.head,
-                                              self.expression_inside(rays.face_ray))
+                                              self.expression.inside(rays.face_ray))
         return self._query(field, xn, dn[:, None], rays.deform_code[:, None],
                            rays.appearance_code[:, None], expr_pts)
 
@@ -554,28 +352,49 @@ class FlameNeRF(nn.Module):
         return 0.0 if self.training else self.background
 
     # ---------------------------------------------------------------- loss
-    def loss_dict(self, out: dict[str, Tensor], target: Tensor, interlevel_weight: float = 1.0
-                  ) -> dict[str, Tensor]:
-        """The photometric terms of a forward pass against target rgb (R, 3): `photo`, and
-        `photo_coarse` / `interlevel` where the sampler produces them; `total` is their
-        weighted sum (what the trainer adds its regularisers to)."""
-        losses = {"photo": torch.mean((out["rgb"] - target) ** 2)}
-        total = losses["photo"]
+    def face_reg_points(self, n: int, generator: torch.Generator | None,
+                        tracked: Callable[[], Tensor]) -> Tensor:
+        """The n points (normalised, (n, 3)) the face-region regulariser holds still: on
+        the neutral mesh where mesh-guided (the guide carries the face there before the
+        warp), else on the frames' tracked face meshes (`tracked()`: world points)."""
+        if self.expression.mesh_guided:
+            return self.expression.neutral_points(n, generator)
+        return self.normalize(tracked())
+
+    def get_loss_dict(self, out: dict[str, Tensor], batch: LossBatch,
+                      weights: LossWeights | None = None) -> LossTerms:
+        """The whole loss of a forward pass `out` against `batch` (model/losses.py): the
+        photometric terms (`photo`, and `photo_coarse` / `interlevel` where the sampler
+        produces them), the face-depth prior where `batch` has mesh depths, the face-region
+        regulariser ‖D(x_mesh; ω) − x_mesh‖ where it has points (and the model a warp)."""
+        weights = weights or LossWeights()  # the photometric terms alone
+        terms = LossTerms()
+        raw, target = terms.raw, batch.rgb
+        raw["photo"] = torch.mean((out["rgb"] - target) ** 2)
+        photometric = raw["photo"]
         if "rgb_coarse" in out:
-            losses["photo_coarse"] = torch.mean((out["rgb_coarse"] - target) ** 2)
-            total = total + losses["photo_coarse"]
+            raw["photo_coarse"] = torch.mean((out["rgb_coarse"] - target) ** 2)
+            photometric = photometric + raw["photo_coarse"]
         if "interlevel" in out:
-            losses["interlevel"] = out["interlevel"]
-            total = total + interlevel_weight * out["interlevel"]
-        losses["total"] = total
-        return losses
+            raw["interlevel"] = out["interlevel"]
+            photometric = photometric + weights.interlevel * out["interlevel"]
+        terms.weighted["photometric"] = photometric
+        if batch.mesh_depth is not None and weights.face_depth > 0:
+            raw["face_depth"] = face_depth_loss(out["weights"], out["t"], batch.mesh_depth,
+                                                weights.face_depth_margin)
+            terms.weighted["face_depth"] = weights.face_depth * raw["face_depth"]
+        if batch.reg_points is not None and weights.face_reg > 0 and self.warp is not None:
+            pts = batch.reg_points
+            raw["face_reg"] = face_region_loss(self.warp_points(pts, batch.reg_codes), pts)
+            terms.weighted["face_reg"] = weights.face_reg * raw["face_reg"]
+        return terms
 
     # ---------------------------------------------------------------- rendering
     def forward(self, rays: RayBatch, jitter: bool = False,
                 generator: torch.Generator | None = None) -> dict[str, Tensor]:
         """-> rgb (R, 3), depth (R,), acc (R,), plus `rgb_coarse` for the hierarchical
         sampler and `num_samples` (network evaluations, for throughput figures)."""
-        expr = self.masked_expression(rays.expression, rays.face_ray)
+        expr = self.expression.masked(rays.expression, rays.face_ray)
         kind = self.cfg.sampler.kind
         if kind == "hierarchical":
             return self._forward_hierarchical(rays, expr, jitter, generator)

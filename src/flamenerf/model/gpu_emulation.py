@@ -16,7 +16,7 @@ from collections.abc import Iterator
 import torch
 
 from flamenerf import meshes, runtime
-from flamenerf.model import flame_nerf, inference, mlp
+from flamenerf.model import expression, inference, mlp
 
 
 @contextlib.contextmanager
@@ -38,7 +38,7 @@ def gpu_path_on_cpu(half: bool = True) -> Iterator[None]:
 
     swaps = [(runtime, "gpu_inference", lambda device: True),
              (mlp, "_oneDNN_linear", lambda: None),  # the lean layers, not oneDNN's fused
-             (flame_nerf, "nearest_vertices", meshes.nearest_vertices_off_cpu),
+             (expression, "nearest_vertices", meshes.nearest_vertices_off_cpu),
              (inference, "_autocast", autocast),
              # the GPU's passes: one chunk of a frame's rays, the proposal's termination
              # checked once per ray, and one render thread (which the interpreter needs too:

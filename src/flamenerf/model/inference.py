@@ -216,8 +216,8 @@ def render_rays(model, rays: RayBatch, settings: RenderSettings = FAST
 
 
 def _render_rays(model, rays: RayBatch, settings: RenderSettings) -> dict[str, Tensor]:
-    expr = model.masked_expression(rays.expression, rays.face_ray)
-    inside = model.expression_inside(rays.face_ray)
+    expr = model.expression.masked(rays.expression, rays.face_ray)
+    inside = model.expression.inside(rays.face_ray)
     dev = rays.origins.device
     warp = _warp_fn(model, rays, settings)
     scale = rays.dirs.norm(dim=-1, keepdim=True) / model.half_extent

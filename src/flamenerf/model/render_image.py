@@ -86,7 +86,7 @@ class StillCamera:
     """One camera and one set of codes under a changing expression: after the first image,
     only the pixels inside the prior's silhouette of the new or the last expression are
     rendered again, the others kept (β reaches no other ray where the model confines it,
-    `FlameNeRF.expression_confined`; otherwise every image is rendered whole). What a
+    `ExpressionConditioner.confined`; otherwise every image is rendered whole). What a
     re-animation from a still camera, eval's sweeps and drives and the viewer's sliders
     render: the same pixels, ~3x faster per frame on a CPU where the face is a small part
     of the view, ~10 % where it fills a third of it (docs/results.md)."""
@@ -119,10 +119,11 @@ class StillCamera:
 
     def pixels(self, expression: torch.Tensor, face_mask: np.ndarray) -> np.ndarray | None:
         """The flat pixels the next image must render; None: all of them."""
-        if self.last is None or not self.args[0].expression_confined:
+        prior = self.args[0].expression  # what β reaches is the conditioner's to say
+        if self.last is None or not prior.confined:
             return None
         last_expr, last_mask, _ = self.last
-        if self.args[0].cfg.expression_mode == "none" or (
+        if prior.reaches_nothing or (
                 torch.equal(last_expr, expression) and np.array_equal(last_mask, face_mask)):
             return np.zeros(0, np.int64)  # nothing β reaches changed (the Nerfies variant:
             # β reaches nothing); the same β under another mesh's silhouette (another frame

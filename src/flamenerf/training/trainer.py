@@ -34,7 +34,7 @@ from flamenerf.training.checkpoint import (LEGACY_TEMP, latest_checkpoint, load_
 from flamenerf.training.distributed import (Ranks, launched_ranks, process_device,
                                             process_group, shard_seed, split)
 from flamenerf.training.interrupt import StopRequest
-from flamenerf.training.losses import face_depth_loss, face_region_loss, psnr_from_mse
+from flamenerf.model.losses import LossBatch, LossWeights, PER_POINT, psnr_from_mse
 
 
 def learning_rate(step: int, cfg) -> float:
@@ -131,12 +131,12 @@ def build_for_dataset(cfg: Config, ds: Dataset) -> FlameNeRF:
         from flamenerf.data.expression_range import training_expressions
 
         model.set_expression_mean(torch.from_numpy(training_expressions(ds).mean(0)))
-    if model.uses_mesh_model:
+    if model.expression.uses_mesh_model:
         mg = cfg.model.mesh_guide
         neutral, basis = fit_dataset_expression_model(ds, mg.ridge, mg.face_parts, mg.stored)
         model.set_expression_model(neutral, basis, torch.from_numpy(ds.faces).long())
         limit = cfg.model.mesh_guide.max_residual
-        if model.mesh_guided and limit is not None:
+        if model.expression.mesh_guided and limit is not None:
             miss = expression_model_residual(ds, neutral, basis)
             model.set_guide_skip((miss > limit).nonzero()[:, 0])
     return model
@@ -469,28 +469,28 @@ class Trainer:
         if cfg.random_background:
             out = over_random_background(out, torch.rand(len(target), 3, generator=gen)
                                          .to(self.device))
-        losses = model.loss_dict(out, target, cfg.interlevel_weight)
-        terms = [(losses["total"], share)]
-        logs = {f"loss/{k}": v.item() * share for k, v in losses.items() if k != "total"}
+        batch = LossBatch(target)
         if cfg.face_depth_weight > 0 and self.step >= cfg.face_depth_start * cfg.steps:
             depth = ts.mesh_depths()[fi, ys, xs].to(self.device)
-            depth = torch.where(rays.face_ray, depth, torch.full_like(depth, float("inf")))
-            fd = face_depth_loss(out["weights"], out["t"], depth, cfg.face_depth_margin)
-            terms.append((cfg.face_depth_weight * fd, share))
-            logs["loss/face_depth"] = fd.item() * share
-        if cfg.face_reg_weight > 0 and model.warp is not None:
-            reg, p_share = torch.zeros((), device=self.device), 0.0
-            if sh.points > 0:
-                pfi = torch.randint(ts.n, (sh.points,), generator=gen)
-                if model.mesh_guided:  # the face is carried to the neutral mesh before the warp
-                    pts = model.neutral_face_points(sh.points, gen)
-                else:
-                    pts = model.normalize(ts.face_points(pfi, gen).to(self.device))
-                omega_p, _ = model.codes(ts.frame_index[pfi].to(self.device))
-                reg = face_region_loss(model.warp_points(pts, omega_p), pts)
-                p_share = sh.points / cfg.face_reg_points
-                terms.append((cfg.face_reg_weight * reg, p_share))
-            logs["loss/face_reg"] = reg.item() * p_share
+            batch.mesh_depth = torch.where(rays.face_ray, depth,
+                                           torch.full_like(depth, float("inf")))
+        regularised = cfg.face_reg_weight > 0 and model.warp is not None
+        p_share = 0.0
+        if regularised and sh.points > 0:
+            pfi = torch.randint(ts.n, (sh.points,), generator=gen)
+            batch.reg_points = model.face_reg_points(
+                sh.points, gen, lambda: ts.face_points(pfi, gen).to(self.device))
+            batch.reg_codes, _ = model.codes(ts.frame_index[pfi].to(self.device))
+            p_share = sh.points / cfg.face_reg_points
+        losses = model.get_loss_dict(out, batch, LossWeights(
+            cfg.interlevel_weight, cfg.face_depth_weight, cfg.face_depth_margin,
+            cfg.face_reg_weight))
+        # rays' terms by this shard's share of the rays, the regulariser's by its points'
+        terms = [(t, p_share if k in PER_POINT else share) for k, t in losses.weighted.items()]
+        logs = {f"loss/{k}": v.item() * (p_share if k in PER_POINT else share)
+                for k, v in losses.raw.items()}
+        if regularised and "loss/face_reg" not in logs:
+            logs["loss/face_reg"] = 0.0  # a shard without points: logged as the others
         loss = _weighted_sum(terms, self.ranks.world)
         logs["loss/total"] = loss.item() / self.ranks.world
         logs["perf/samples"] = float(out["num_samples"])

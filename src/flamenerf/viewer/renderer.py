@@ -304,7 +304,7 @@ class RenderWorker:
     def _reusable(self, v: View, snap) -> bool:
         """Whether the view's last full image holds every pixel of `snap` that its
         expression does not reach."""
-        return (v.cache is not None and self.model.expression_confined
+        return (v.cache is not None and self.model.expression.confined
                 and v.cache.same_view(*self._view(snap))
                 and v.cache.same_codes(*self._codes(snap)))
 
