@@ -166,6 +166,11 @@ def test_render_plays_a_take_at_its_rate(toy_run, tmp_path, capsys):
     assert len(read_frames(out)) == 30 and probe_video(out).fps == pytest.approx(60)
     said = capsys.readouterr().out
     assert "ignored blendshapes this run lacks" in said and "within one second" not in said
+    # at another rate: resampled, as long
+    out = tmp_path / "take25.mp4"
+    assert main(["render", str(toy_run), "--expressions", str(take), "--out", str(out),
+                 "--fps", "25", "--device", "cpu"]) == 0
+    assert len(read_frames(out)) == 12 and probe_video(out).fps == pytest.approx(25)
 
 
 def test_head_pose_take_turns_a_head_run(head_run, tmp_path):

@@ -280,7 +280,8 @@ def expression_source(opts: RenderOptions, ds: Dataset, names: list[str], intr: 
                 f"plays at their rate ({seq.fps:.3g} fps) unless --fps is given")
         return seq
     if opts.expressions:
-        return X.from_items(opts.expressions, names, base, opts.frames, companions, training)
+        return X.from_items(opts.expressions, names, base, opts.frames, companions, training,
+                            fps=opts.fps)
     return held_expression(base, opts.frames or X.KEYFRAME_FRAMES, "reference")
 
 
