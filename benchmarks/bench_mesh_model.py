@@ -49,7 +49,7 @@ def main() -> None:
 
     from flamenerf.data.companions import dataset_companions
     from flamenerf.data.dataset import load_dataset, reference_position
-    from flamenerf.data.scene import expression_model_residual, fit_dataset_expression_model
+    from flamenerf.data.mesh_model import expression_model_residual, fit_dataset_expression_model
     from flamenerf.evaluation.control import control_response
     from flamenerf.meshes import expression_mesh
     from flamenerf.tracking.blendshapes import BlendshapeStage

@@ -28,6 +28,7 @@ fails to build (it alone goes off). `TRITON_INTERPRET=1` runs the kernels on a C
 from __future__ import annotations
 
 import contextlib
+import inspect
 import os
 import warnings
 
@@ -126,8 +127,6 @@ def _launch(name: str, grid: tuple, *args, **meta) -> bool:
     if kernels is None or name not in kernels:
         return False
     if _recorded is not None:
-        from flamenerf.gpu_build import launch_signature
-
         _recorded.append(launch_signature(name, kernels[name], args, meta))
     try:
         kernels[name][grid](*args, enable_fp_fusion=FP_FUSION, **meta)
@@ -161,13 +160,53 @@ def gpu_faulted(e: BaseException) -> bool:
 @contextlib.contextmanager
 def recording():
     """Yields a list that collects each kernel launch's signature while the block runs
-    (`gpu_build.launch_signature`): what `gpu_build.build` compiles for a GPU, offline."""
+    (`launch_signature`): what `gpu_build.build` compiles for a GPU, offline."""
     global _recorded
     kept, _recorded = _recorded, []
     try:
         yield _recorded
     finally:
         _recorded = kept
+
+
+_DTYPES = {torch.float32: "fp32", torch.float16: "fp16", torch.bfloat16: "bf16",
+           torch.int64: "i64", torch.int32: "i32", torch.int16: "i16", torch.int8: "i8",
+           torch.uint8: "u8", torch.bool: "i1"}
+
+
+def launch_signature(name: str, kernel, args: tuple, meta: dict) -> dict:
+    """A launch as Triton's compiler takes it: {"kernel", "signature" (argument -> type,
+    "*fp16" for a pointer), "constexprs", "divisible" (arguments Triton's launcher would
+    specialise as multiples of 16: aligned pointers, integers), "num_warps"}. An integer
+    argument equal to 1 is a constant, as Triton's launcher specialises it."""
+    params = inspect.signature(kernel.fn).parameters  # the same under the interpreter
+    names = list(params)
+    sig, const, div = {}, {k: v for k, v in meta.items() if k in names}, []
+    for arg, a in zip(names, args):
+        if "constexpr" in str(params[arg].annotation):  # a constant passed by position
+            const[arg] = a
+        elif isinstance(a, Tensor):
+            if a.dtype not in _DTYPES:
+                raise TypeError(f"{name}: argument {arg} of dtype {a.dtype}")
+            sig[arg] = "*" + _DTYPES[a.dtype]
+            if a.data_ptr() % 16 == 0:
+                div.append(arg)
+        elif isinstance(a, bool):
+            sig[arg] = "i1"
+        elif isinstance(a, int):
+            if a == 1:
+                const[arg] = 1
+                continue
+            sig[arg] = ("i32" if -2**31 <= a < 2**31 else "i64" if -2**63 <= a < 2**63
+                        else "u64")
+            if a % 16 == 0:
+                div.append(arg)
+        elif isinstance(a, float):
+            sig[arg] = "fp32"
+        else:
+            raise TypeError(f"{name}: argument {arg} of type {type(a).__name__}")
+    return {"kernel": name, "signature": sig, "constexprs": const, "divisible": div,
+            "num_warps": meta.get("num_warps", 4)}
 
 
 def _define() -> dict:

@@ -1,4 +1,5 @@
-"""`name=value[,name=value...]` as users type them (expression keyframes, head poses)."""
+"""`name=value[,name=value...]` as users type them (expression keyframes, head poses), and
+the controls a typed name means (`resolve_control`)."""
 
 from __future__ import annotations
 
@@ -43,3 +44,18 @@ def parse_assignments(item: str, names: list[str], where: str, kind: str = "name
             raise UserError(f"{where} {shown!r}: {name} is given twice")
         out[name] = v
     return out
+
+
+def resolve_control(name: str, names: list[str]) -> list[str] | None:
+    """The controls `name` means where people type one (an edit, a keyframe): itself, the
+    one of that name in another case, or both sides of a pair's stem (`mouthSmile`); None
+    for none of these."""
+    if name in names:
+        return [name]
+    folded = [n for n in names if n.lower() == name.lower()]
+    if len(folded) == 1:
+        return folded
+    sides = [name + side for side in ("Left", "Right")]
+    if all(n in names for n in sides):
+        return sides
+    return None

@@ -127,7 +127,8 @@ def test_the_builtin_scene_names_its_eyes_and_mouth_and_gets_face_parts(dataset_
     face parts a fit may hand that to a blink. With them a blink cannot reach the mouth and
     the jaw cannot reach the eyes, while the parts' defaults for tracked clips stay off."""
     from flamenerf.data.dataset import load_dataset
-    from flamenerf.data.scene import canonical_vertices, fit_dataset_expression_model
+    from flamenerf.data.head_pose import canonical_vertices
+    from flamenerf.data.mesh_model import fit_dataset_expression_model
 
     ds = load_dataset(dataset_dir)
     assert ds.face_landmarks is not None

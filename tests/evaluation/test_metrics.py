@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from flamenerf.evaluation.metrics import mean_abs_change, mse, psnr, ssim
-from flamenerf.evaluation.protocol import leakage_region, summarize
+from flamenerf.evaluation.metrics import mean_abs_change, mse, psnr, ssim, summarize
+from flamenerf.evaluation.protocol import leakage_region
 
 
 def test_psnr_of_a_constant_error_is_closed_form():
@@ -79,7 +79,7 @@ def test_scene_masks_leave_out_the_person(tiny_scene):
     the image's top corners (the room)."""
     from flamenerf.data.dataset import load_dataset
     from flamenerf.data.scene import FrameSet
-    from flamenerf.evaluation.protocol import image_metrics, scene_masks
+    from flamenerf.evaluation.metrics import image_metrics, scene_masks
 
     ds = load_dataset(tiny_scene)
     fs = FrameSet(ds, ds.split("train")[:4], ds.intrinsics)
@@ -101,7 +101,7 @@ def test_face_interior_leaves_out_the_outline():
     """An error on the face mask's outline only counts in psnr_face, not in its interior."""
     from scipy import ndimage
 
-    from flamenerf.evaluation.protocol import face_interior, image_metrics
+    from flamenerf.evaluation.metrics import face_interior, image_metrics
 
     face = np.zeros((128, 128), bool)
     face[30:90, 40:100] = True
@@ -123,7 +123,7 @@ def test_face_interior_leaves_out_the_outline():
 def test_beyond_head_is_the_face_mask_past_the_silhouette():
     """Face-mask pixels more than 8 cm behind the face interior's median depth are the room
     seen past the head; pixels on the head (a few cm of relief) are not."""
-    from flamenerf.evaluation.protocol import beyond_head
+    from flamenerf.evaluation.metrics import beyond_head
 
     face = np.zeros((64, 64), bool)
     face[10:50, 10:40] = True
@@ -141,7 +141,8 @@ def test_reanimation_rows_split_the_face_at_the_head(tiny_scene):
     depth follows a FrameSet at another resolution."""
     from flamenerf.data.dataset import load_dataset
     from flamenerf.data.scene import FrameSet
-    from flamenerf.evaluation.protocol import _compare, beyond_head
+    from flamenerf.evaluation.metrics import beyond_head
+    from flamenerf.evaluation.protocol import _compare
 
     ds = load_dataset(tiny_scene)
     frames = ds.split("reanimate")

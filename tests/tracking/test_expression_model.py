@@ -9,7 +9,7 @@ import torch
 
 from flamenerf.data.dataset import (DatasetError, Intrinsics, StoredMeshModel, load_dataset,
                                     write_mesh_model)
-from flamenerf.data.scene import fit_dataset_expression_model
+from flamenerf.data.mesh_model import fit_dataset_expression_model
 from flamenerf.geometry import look_at
 from flamenerf.meshes import expression_model_system, fit_expression_model, model_from_coefficients
 from flamenerf.tracking.expression_model import Sweep, consistent_coefficients, pinhole_projection

@@ -7,7 +7,8 @@ import torch
 
 from flamenerf.config import PRESETS, preset
 from flamenerf.data.dataset import load_dataset
-from flamenerf.data.scene import FrameSet, expression_model_residual
+from flamenerf.data.mesh_model import expression_model_residual
+from flamenerf.data.scene import FrameSet
 from flamenerf.evaluation.metrics import psnr
 from flamenerf.model.render_image import render_image
 from flamenerf.training.checkpoint import latest_checkpoint

@@ -19,6 +19,7 @@ import torch
 
 from flamenerf.data.dataset import Dataset, Intrinsics, reference_position
 from flamenerf.data.mesh_depth import triangle_ids
+from flamenerf.data.mesh_model import fit_dataset_expression_model
 from flamenerf.images import resize_image
 from flamenerf.meshes import expression_mesh
 
@@ -94,8 +95,6 @@ def mesh_function(model, ds: Dataset) -> Callable[[np.ndarray], np.ndarray]:
     (mesh-guided runs carry it), else one fitted on the dataset's training frames. The
     prior of a driven expression is this mesh's silhouette, so a jaw opened below the
     reference frame's chin still gets β."""
-    from flamenerf.data.scene import fit_dataset_expression_model
-
     prior = getattr(model, "expression", None)
     if prior is not None and prior.uses_mesh_model:
         neutral, basis = prior.mesh_neutral.cpu(), prior.mesh_basis.cpu()

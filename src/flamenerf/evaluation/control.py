@@ -23,7 +23,7 @@ driven, re-tracked the driven held-out renders re-tracked against their frames' 
 drive correlation  for a driving sequence, the correlation over time of driving and
                    re-tracked controls.
 A control *responds* when its gain is at least 0.5 and its correlation at least 0.9
-(`RESPONDS`, the bar the evaluation sets); each reading counts those (`responding`).
+(`metrics.RESPONDS`, the bar the evaluation sets); each reading counts those (`responding`).
 """
 
 from __future__ import annotations
@@ -41,6 +41,7 @@ from flamenerf.data.companions import Companions
 from flamenerf.data.dataset import Dataset, Intrinsics
 from flamenerf.data.scene import FrameSet
 from flamenerf.evaluation import metrics as M
+from flamenerf.evaluation.metrics import image_metrics, responds, scene_masks, summarize
 from flamenerf.model.flame_nerf import FlameNeRF
 from flamenerf.model.render_image import render_image
 from flamenerf.data.prior import prior_mask
@@ -71,11 +72,9 @@ def region_masks(ds: Dataset, fs: FrameSet, faces: np.ndarray) -> np.ndarray:
 
 def region_metrics(pred: np.ndarray, gt: np.ndarray, face: np.ndarray,
                    region: np.ndarray, scene: np.ndarray) -> dict[str, float]:
-    """pred, gt (H, W, 3); face, region, scene (H, W) bool -> `protocol.image_metrics`
+    """pred, gt (H, W, 3); face, region, scene (H, W) bool -> `metrics.image_metrics`
     (MSE, PSNR/SSIM of the whole image, PSNR of the face, the background and the scene) and
     PSNR of the expressive region."""
-    from flamenerf.evaluation.protocol import image_metrics
-
     return {**image_metrics(pred, gt, face, scene),
             "psnr_expressive": M.psnr(pred, gt, region)}
 
@@ -91,8 +90,6 @@ def driven(model: FlameNeRF, ds: Dataset, fs: FrameSet, omega0: torch.Tensor,
     against the frame's face mesh (`face_depth_error`: median |depth − mesh depth| over the
     pixels the mesh covers, scene units; a face rendered as a fog behind its surface looks
     right from the captured views only). -> (summary with rows, renders)."""
-    from flamenerf.evaluation.protocol import scene_masks, summarize
-
     regions = region_masks(ds, fs, expressive_faces(ds))
     scenes = scene_masks(fs)
     mesh_depths = fs.mesh_depths().numpy()
@@ -127,16 +124,6 @@ def fit_line(commanded: np.ndarray, measured: np.ndarray) -> tuple[float, float]
     slope = float(np.polyfit(x, y, 1)[0])
     corr = float(np.corrcoef(x, y)[0, 1]) if np.ptp(y) > 0 else float("nan")
     return slope, corr
-
-
-RESPONDS = (0.5, 0.9)
-"""The bar for a control that responds: re-tracked gain at least 0.5 and correlation
-at least 0.9."""
-
-
-def responds(gain: float, correlation: float) -> bool:
-    """Whether a control's (gain, correlation) meets `RESPONDS` (NaN does not)."""
-    return bool(gain >= RESPONDS[0] and correlation >= RESPONDS[1])
 
 
 @dataclass

@@ -38,8 +38,11 @@ import torch
 
 from flamenerf.data.dataset import Dataset
 from flamenerf.data.scene import FrameSet
+from flamenerf.evaluation import control as C
 from flamenerf.evaluation import metrics as M
-from flamenerf.evaluation.report import FORMAT, VERSION
+from flamenerf.evaluation.metrics import (SUMMARY_KEYS, beyond_head, image_metrics, scene_masks,
+                                         summarize)
+from flamenerf.evaluation.report import FORMAT, VERSION, eval_markdown
 from flamenerf.model.flame_nerf import FlameNeRF
 from flamenerf.model.render_image import render_image
 
@@ -80,80 +83,6 @@ class EvalOptions:
 
 
 # ------------------------------------------------------------------------- per image
-
-
-def scene_masks(fs: FrameSet) -> np.ndarray:
-    """Where each frame of `fs` shows only the static scene: outside the generous region
-    around the person that the camera solve masks out (an ellipse around the projected face
-    mesh for the head and hair, a widening band below the chin for neck and shoulders;
-    tracking.background.person_mask). "Background" (outside the face mask) also holds hair,
-    neck and shoulders, which no rigid motion carries; the scene is what should register
-    across frames. -> (N, H, W) bool."""
-    from flamenerf.geometry import project_points
-    from flamenerf.tracking.background import person_mask
-
-    out = []
-    for i in range(fs.n):
-        px, _ = project_points(fs.face_vertices[i].numpy().astype(np.float64), fs.intr,
-                               fs.c2w[i].numpy().astype(np.float64))
-        out.append(~person_mask(px, fs.intr.w, fs.intr.h))
-    return np.stack(out)
-
-
-def face_interior(face: np.ndarray) -> np.ndarray:
-    """The face mask (H, W) bool without its outline: eroded by H/64 pixels (two at 128 px).
-    The outline's pixels mix the face with what lies behind it, so at a new camera they
-    also measure the background and the edge's sharpness, alike with and without β."""
-    from scipy import ndimage
-
-    return ndimage.binary_erosion(face, iterations=max(1, round(face.shape[0] / 64)))
-
-
-BEYOND_HEAD = 0.08
-"""Scene units (metres) behind the face interior's median true depth from which a face-mask
-pixel shows what lies beyond the head (`beyond_head`)."""
-
-
-def beyond_head(face: np.ndarray, depth: np.ndarray) -> np.ndarray:
-    """Pixels of the face mask (H, W) bool whose ground-truth z-depth (H, W) lies more than
-    `BEYOND_HEAD` behind the median depth of the face's interior: the room seen past the
-    head's silhouette through the mask's dilation. At a new camera they measure how the
-    background registers there, alike with and without β. -> (H, W) bool."""
-    inner = face_interior(face)
-    if not inner.any():
-        return np.zeros_like(face)
-    return face & (depth > np.median(depth[inner]) + BEYOND_HEAD)
-
-
-def image_metrics(pred: np.ndarray, gt: np.ndarray, face: np.ndarray,
-                  scene: np.ndarray | None = None) -> dict[str, float]:
-    """pred, gt (H, W, 3) in [0, 1]; face (H, W) bool; scene (H, W) bool (`scene_masks`;
-    None: no psnr_scene). `psnr_face_interior` / `psnr_face_outline`: the face without its
-    outline (`face_interior`) / the outline alone."""
-    m = M.mse(pred, gt)
-    inner = face_interior(face)
-    out = {"mse": m, "psnr": M.psnr(pred, gt), "ssim": M.ssim(pred, gt),
-           "psnr_face": M.psnr(pred, gt, face),
-           "psnr_face_interior": M.psnr(pred, gt, inner),
-           "psnr_face_outline": M.psnr(pred, gt, face & ~inner),
-           "psnr_background": M.psnr(pred, gt, ~face)}
-    if scene is not None:
-        out["psnr_scene"] = M.psnr(pred, gt, scene)
-    return out
-
-
-SUMMARY_KEYS = ("mse", "psnr", "ssim", "psnr_face", "psnr_face_interior", "psnr_face_outline",
-                "psnr_background", "psnr_scene")
-
-
-def summarize(per_frame: list[dict[str, Any]], keys=SUMMARY_KEYS) -> dict[str, Any]:
-    """Means over frames (frames where a value is NaN, e.g. no face pixels, are skipped)."""
-    out: dict[str, Any] = {"num_frames": len(per_frame)}
-    for k in keys:
-        v = np.array([f.get(k, np.nan) for f in per_frame], np.float64)
-        v = v[np.isfinite(v)]
-        out[k] = float(v.mean()) if v.size else float("nan")
-    return out
 
 
 def render_frames(model: FlameNeRF, fs: FrameSet, omega: torch.Tensor, phi: torch.Tensor,
@@ -344,14 +273,13 @@ def evaluate_run(run, ds: Dataset, opts: EvalOptions, out_dir: Path | None = Non
     for k in range(min(opts.num_images, fs.n)):
         images[f"{opts.split}_{k:02d}.png"] = _triptych(fs, k, preds[k])
     omega0, phi0 = run.frame_codes(0)
-    from flamenerf.evaluation.control import driven, trackable_controls
 
     log(f"driven: {fs.n} {opts.split} frames with their own β and frame 0's codes")
-    res["driven"], preds = driven(model, ds, fs, omega0, phi0, opts.chunk)
+    res["driven"], preds = C.driven(model, ds, fs, omega0, phi0, opts.chunk)
     res["driven"]["split"] = opts.split
     for k in range(min(opts.num_images, fs.n)):
         images[f"driven_{k:02d}.png"] = _triptych(fs, k, preds[k])
-    if opts.control and trackable_controls(run.expression_names):
+    if opts.control and C.trackable_controls(run.expression_names):
         log(f"driven, re-tracked: {fs.n} renders and their frames")
         res["driven"]["retracked"] = driven_retracked(run, ds, fs, preds)
     leak_preds = None
@@ -392,7 +320,6 @@ def evaluate_run(run, ds: Dataset, opts: EvalOptions, out_dir: Path | None = Non
 def driven_retracked(run, ds: Dataset, fs: FrameSet, preds: list[np.ndarray]
                      ) -> dict[str, Any]:
     """The driven renders and their frames re-tracked (control.driven_response)."""
-    from flamenerf.evaluation import control as C
 
     track = C.Retracker()
     try:
@@ -408,7 +335,6 @@ def control_section(run, ds: Dataset, intr, omega0, phi0, opts: EvalOptions,
     """The control response (see module doc): the leakage sweep's renders against its ground
     truth when the dataset has one, else a sweep at the reference frame's camera (its
     picture, control.png, goes into `images`)."""
-    from flamenerf.evaluation import control as C
 
     names = run.expression_names
     train_e = ds.expression_matrix(ds.split("train"))
@@ -461,7 +387,6 @@ def drive_section(run, ds: Dataset, intr, omega0, phi0, opts: EvalOptions
                   ) -> tuple[dict[str, Any], np.ndarray]:
     """The drive correlation (see module doc) at the reference frame's camera, and a
     picture: six driving frames spread over the sequence, each over its render."""
-    from flamenerf.evaluation import control as C
     from flamenerf.images import hstack, vstack
     from flamenerf.rendering.expressions import from_video
 
@@ -543,7 +468,6 @@ def _sweep_figure(fs: FrameSet, preds: list[np.ndarray], dilate_px: int) -> np.n
 
 
 def write_results(out_dir: Path, res: dict[str, Any], images: dict[str, np.ndarray]) -> None:
-    from flamenerf.evaluation.report import eval_markdown
     from flamenerf.io import atomic_write_text, save_png, write_json
 
     out_dir.mkdir(parents=True, exist_ok=True)

@@ -10,6 +10,7 @@ from typing import Any, Callable
 
 from flamenerf.data.captured_views import MAX_ANGLE_DEG
 from flamenerf.errors import UserError
+from flamenerf.evaluation.metrics import BEYOND_HEAD, RESPONDS
 from flamenerf.io import read_json
 
 FORMAT = "flamenerf-eval"  # metrics.json, written by evaluation/protocol.py
@@ -88,7 +89,7 @@ COLUMNS = [
 ]
 """Table columns: the paper's two first (held-out MSE and PSNR), then ours. Leakage is
 the mean absolute background change on the 0-255 scale. Controls following: of the controls
-the driven held-out renders are re-tracked for, how many meet the bar of `control.RESPONDS` (`driven` →
+the driven held-out renders are re-tracked for, how many meet the bar of `metrics.RESPONDS` (`driven` →
 `retracked`), where the frames themselves show any."""
 
 
@@ -169,8 +170,6 @@ def load_eval(path: str | Path) -> dict[str, Any]:
 
 def eval_markdown(res: dict[str, Any]) -> str:
     """metrics.md of one run."""
-    from flamenerf.evaluation.control import RESPONDS
-
     p = res.get("protocol", {})
     L = [f"# Evaluation: {res.get('method')} ({res.get('preset')}, step {res.get('step')})", "",
          f"- run: `{res.get('run')}`",
@@ -198,8 +197,6 @@ def eval_markdown(res: dict[str, Any]) -> str:
                      f"{fmt(s.get('psnr_scene'))} |")
     ra = res.get("reanimate") or {}
     if "psnr_face_on_head" in ra:
-        from flamenerf.evaluation.protocol import BEYOND_HEAD
-
         L += ["", f"Re-animation face at the head's silhouette (ground-truth depth): "
               f"{fmt(ra['psnr_face_on_head'])} dB on the head, "
               f"{fmt(ra['psnr_face_beyond_head'])} dB beyond it (the face mask's pixels more "

@@ -27,7 +27,8 @@ from flamenerf.data.companions import Companions
 from flamenerf.data.dataset import MAX_CONTROL
 from flamenerf.data.expression_range import ExpressionRange
 from flamenerf.errors import UserError
-from flamenerf.keyvalues import suggest
+from flamenerf.keyvalues import resolve_control, suggest
+from flamenerf.rendering.expressions import ease
 
 OPS = ("+=", "-=", "*=", "=")
 ALL = "all"  # every control no other item names (not MediaPipe's `_neutral`)
@@ -99,21 +100,6 @@ def parse_edits(items: list[str], names: list[str]) -> list[Edit]:
     return edits
 
 
-def resolve_control(name: str, names: list[str]) -> list[str] | None:
-    """The controls `name` means where people type one (an edit, a keyframe): itself, the
-    one of that name in another case, or both sides of a pair's stem (`mouthSmile`); None
-    for none of these."""
-    if name in names:
-        return [name]
-    folded = [n for n in names if n.lower() == name.lower()]
-    if len(folded) == 1:
-        return folded
-    sides = [name + side for side in ("Left", "Right")]
-    if all(n in names for n in sides):
-        return sides
-    return None
-
-
 def _controls(name: str, names: list[str], item: str) -> list[str]:
     """The controls an edit's `name` means (`resolve_control`); else a one-line UserError
     that suggests the nearest."""
@@ -176,8 +162,6 @@ class EditWindow:
     def weights(self, n: int, fps: float) -> np.ndarray:
         """How much of the edit each of n frames at `fps` shows (n,), in [0, 1]; a
         UserError when the window misses every frame."""
-        from flamenerf.rendering.expressions import ease
-
         t = np.arange(n) / fps
         lo = 0.0 if self.start is None else self.start
         hi = t[-1] + 1.0 / fps if self.end is None else self.end

@@ -38,8 +38,8 @@ import numpy as np
 from flamenerf.data.companions import Companions
 from flamenerf.errors import UserError
 from flamenerf.io import read_json
-from flamenerf.keyvalues import parse_assignments, suggest
-from flamenerf.rendering.takes import is_take, load_take
+from flamenerf.keyvalues import parse_assignments, resolve_control, suggest
+from flamenerf.rendering import takes
 
 FILE_SUFFIXES = (".json", ".npy", ".csv")
 KEYFRAME_FRAMES = 60  # a keyframe sequence's length unless --frames says
@@ -134,9 +134,7 @@ def parse_keyframe(item: str, names: list[str], base: np.ndarray,
 
 def keyframe_values(item: str, names: list[str]) -> dict[str, float]:
     """A keyframe's `name=value` items -> {control: value}: a name may be a pair's stem
-    (both sides) or a control in another case, as in an edit (`edits.resolve_control`)."""
-    from flamenerf.rendering.edits import resolve_control
-
+    (both sides) or a control in another case, as in an edit (`keyvalues.resolve_control`)."""
     parts = []  # a pair's stem or another case, written out as the controls it means
     for part in item.split(","):
         name, eq, value = part.partition("=")
@@ -298,7 +296,7 @@ def load_file(path: Path, names: list[str], rate: float | None = None) -> Expres
         except Exception as e:  # noqa: BLE001 - any parse failure is the file's fault
             raise UserError(f"{path}: not a readable .npy array ({type(e).__name__})") from None
         values = _vectors(arr, str(path), names)
-    elif suffix == ".csv" and is_take(path):
+    elif suffix == ".csv" and takes.is_take(path):
         seq = load_take(path, names, rate)
         bounded(seq.values, str(path))
         return seq
@@ -323,6 +321,30 @@ def load_file(path: Path, names: list[str], rate: float | None = None) -> Expres
             values = _vectors(d, str(path), names)
     return ExpressionSequence(bounded(values, str(path)).astype(np.float32), label=path.stem,
                               fps=fps, notes=tuple(notes))
+
+
+def load_take(path: Path, names: list[str], fps: float | None = None) -> ExpressionSequence:
+    """A Live Link Face take (rendering/takes.py) -> an ExpressionSequence in the run's
+    control order, at its own rate (`takes.frame_rate`) or `fps`, with the head's turns as
+    `head_pose` where the take has the head columns (all three)."""
+    columns, arr, times, notes = takes.read_take(path)
+    rate = fps or takes.frame_rate(times) or 30.0
+    if fps is None and len(times) < 2:
+        notes.append(f"{path}: a take of one row: shown as one frame at {rate:g} fps")
+    controls = [j for j, c in enumerate(columns) if c not in takes.NOT_CONTROLS]
+    values, unknown = map_by_name(takes.resample(times, arr[:, controls], rate),
+                                  [takes.control_name(columns[j]) for j in controls], names,
+                                  str(path), strict=False, what="blendshapes")
+    if unknown:
+        notes.append(f"{path}: ignored blendshapes this run lacks ({', '.join(unknown[:5])}"
+                     f"{', ...' if len(unknown) > 5 else ''})")
+    head = None
+    if all(c in columns for c in takes.HEAD_COLUMNS):
+        head_columns = [columns.index(c) for c in takes.HEAD_COLUMNS]
+        angles = takes.resample(times, arr[:, head_columns], rate)
+        head = takes.head_turns(angles)
+    return ExpressionSequence(values, label=path.stem, fps=rate, head_pose=head,
+                              take=path, notes=tuple(notes))
 
 
 def bounded(values: np.ndarray, where: str) -> np.ndarray:

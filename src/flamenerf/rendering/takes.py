@@ -4,7 +4,7 @@ LeftEyeYaw,...,RightEyeRoll` and one row per tracked frame, its time an SMPTE ti
 `HH:MM:SS:FF.mmm` (FF the frame within the second at the timecode's rate, .mmm the
 fraction of a frame).
 
-A take becomes an `ExpressionSequence` on an even grid of frame times (its own rate, or
+A take becomes an `ExpressionSequence` (rendering/expressions.load_take) on an even grid of frame times (its own rate, or
 the one asked for), its blendshapes mapped by name onto the run's controls (ARKit's names
 with a lower-case first letter) and its head angles as `head_pose` rows (`render
 --head-pose take`)."""
@@ -171,28 +171,3 @@ def _is_number(text: str) -> bool:
         return True
     except ValueError:
         return False
-
-
-def load_take(path: Path, names: list[str], fps: float | None = None):
-    """A Live Link Face take -> an ExpressionSequence in the run's control order, at its
-    own rate (`frame_rate`) or `fps`, with the head's turns as `head_pose` where the take
-    has the head columns (all three)."""
-    from flamenerf.rendering.expressions import ExpressionSequence, map_by_name
-
-    columns, arr, times, notes = read_take(path)
-    rate = fps or frame_rate(times) or 30.0
-    if fps is None and len(times) < 2:
-        notes.append(f"{path}: a take of one row: shown as one frame at {rate:g} fps")
-    controls = [j for j, c in enumerate(columns) if c not in NOT_CONTROLS]
-    values, unknown = map_by_name(resample(times, arr[:, controls], rate),
-                                  [control_name(columns[j]) for j in controls], names,
-                                  str(path), strict=False, what="blendshapes")
-    if unknown:
-        notes.append(f"{path}: ignored blendshapes this run lacks ({', '.join(unknown[:5])}"
-                     f"{', ...' if len(unknown) > 5 else ''})")
-    head = None
-    if all(c in columns for c in HEAD_COLUMNS):
-        angles = resample(times, arr[:, [columns.index(c) for c in HEAD_COLUMNS]], rate)
-        head = head_turns(angles)
-    return ExpressionSequence(values, label=path.stem, fps=rate, head_pose=head,
-                              take=path, notes=tuple(notes))

@@ -183,7 +183,7 @@ def fit_for_dataset(ds, strength: float = 10.0, iterations: int = 3, ridge: floa
                     progress: Callable[[int, int], None] | None = None, stage=None):
     """The tracker-consistent β -> mesh model of a dataset's training frames (module doc),
     with each control on its part of the face. -> neutral (V, 3), basis (E, V, 3) float32
-    tensors in the canonical frame, as data/scene.fit_dataset_expression_model returns."""
+    tensors in the canonical frame, as data/mesh_model.fit_dataset_expression_model returns."""
     import torch
 
     from flamenerf.data.dataset import reference_position

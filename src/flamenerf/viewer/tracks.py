@@ -85,8 +85,8 @@ def load_track_file(path: str | Path, names: list[str]) -> Track:
     """A `flamenerf track` JSON file or a Live Link Face take (at the take's rate), with its
     channels matched to `names` by name (channels the run lacks are dropped, controls the
     file lacks stay 0)."""
-    from flamenerf.rendering.expressions import map_by_name
-    from flamenerf.rendering.takes import is_take, load_take
+    from flamenerf.rendering.expressions import load_take, map_by_name
+    from flamenerf.rendering.takes import is_take
     from flamenerf.tracking.expressions import load_expressions
 
     if Path(path).suffix.lower() == ".csv" and is_take(Path(path)):
