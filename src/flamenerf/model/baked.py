@@ -23,6 +23,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from flamenerf import cpu_kernels
+
 
 def _grid_points(n: int, device) -> Tensor:
     """The n³ vertices of [-1, 1]³, x fastest: vertex (i, j, k) at row i + j·n + k·n²."""
@@ -49,9 +51,8 @@ class DenseGrid:
         """x (N, 3) -> (N, C)."""
         C = self.table.shape[1]
         if x.device.type == "cpu" and x.dtype == torch.float32:
-            from flamenerf.cpu_kernels import kernel_library
 
-            lib = kernel_library()
+            lib = cpu_kernels.kernel_library()
             if lib is not None:
                 # one dense level of the hash-grid kernel is exactly this interpolation
                 u = ((x + 1.0) * 0.5).contiguous()

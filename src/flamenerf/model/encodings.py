@@ -14,7 +14,7 @@ import math
 import torch
 from torch import Tensor, nn
 
-from flamenerf import runtime
+from flamenerf import cpu_kernels, gpu_kernels, runtime
 
 
 def cosine_easing_window(num_freqs: int, alpha: float | Tensor) -> Tensor:
@@ -81,14 +81,12 @@ class HashGrid(nn.Module):
         kernel (gpu_kernels.py) where Triton is installed; else `forward_grouped`."""
         if (x.device.type == "cpu" and x.dtype == torch.float32
                 and self.tables[0].dtype == torch.float32):  # the kernel is float32 only
-            from flamenerf.cpu_kernels import kernel_library
 
-            lib = kernel_library()
+            lib = cpu_kernels.kernel_library()
             if lib is not None:
                 return _HashGridCPU.apply(x.contiguous(), self, lib, *self.tables)
             return self.forward_torch(x)
         if not torch.is_grad_enabled():
-            from flamenerf import gpu_kernels
 
             if gpu_kernels.available(x.device):  # inference on a GPU: one fused kernel
                 out = gpu_kernels.hashgrid_forward(self, x)
@@ -106,15 +104,13 @@ class HashGrid(nn.Module):
         if (x.device.type == "cpu" and x.dtype == torch.float32 and out.dtype == torch.float32
                 and self.tables[0].dtype == torch.float32 and out.stride(-1) == 1
                 and out.shape == (x.shape[0], self.out_dim)):
-            from flamenerf.cpu_kernels import kernel_library
 
-            lib = kernel_library()
+            lib = cpu_kernels.kernel_library()
             if lib is not None:
                 _kernel_forward(lib, self, x.contiguous(),
                                 [t.detach().contiguous() for t in self.tables], out)
                 return
         if out.stride(-1) == 1 and out.shape == (x.shape[0], self.out_dim):
-            from flamenerf import gpu_kernels
 
             # the Triton kernel stores in out's dtype (half on the GPU's inference path)
             if (gpu_kernels.available(x.device)
@@ -133,15 +129,13 @@ class HashGrid(nn.Module):
         if rank * features != self.features or z.shape != (x.shape[0], rank):
             return None
         if runtime.gpu_inference(x.device):
-            from flamenerf import gpu_kernels
 
             return (gpu_kernels.hashgrid_contract(self, x, z, features)
                     if gpu_kernels.available(x.device) else None)
         if x.device.type != "cpu":
             return None
-        from flamenerf.cpu_kernels import kernel_library
 
-        lib = kernel_library()
+        lib = cpu_kernels.kernel_library()
         if lib is None or self.features > 64 or self.tables[0].dtype != torch.float32:
             return None
         x, z = x.float().contiguous(), z.float().contiguous()

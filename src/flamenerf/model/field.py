@@ -7,7 +7,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from flamenerf import runtime
+from flamenerf import gpu_kernels, runtime
 from flamenerf.config import FieldConfig
 from flamenerf.geometry import ellipsoid_weight
 from flamenerf.model.encodings import HashGrid, pe_dim, positional_encoding
@@ -227,7 +227,6 @@ class HashField(nn.Module):
         the density head directly, per-sample conditioning of another shape, no Triton, the
         kernel turned off: FLAMENERF_GPU_KERNELS), before any work (the caller then computes the
         features itself)."""
-        from flamenerf import gpu_kernels
 
         if (self.direct or not gpu_kernels.available(x.device)
                 or "field_heads" not in gpu_kernels.working()):

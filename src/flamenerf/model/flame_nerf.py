@@ -25,6 +25,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from flamenerf.config import ModelConfig
+from flamenerf.data.captured_views import MAX_ANGLE_DEG
 from flamenerf.geometry import ellipsoid_weight
 from flamenerf.data.rays import RayBatch  # noqa: F401 - the model's input, re-exported
 from flamenerf.model.expression import ExpressionConditioner
@@ -34,6 +35,7 @@ from flamenerf.model.losses import (LossBatch, LossTerms, LossWeights, face_dept
 from flamenerf.model.render import (composite, interlevel_loss, render_weights, sample_pdf,
                                     stratified_samples)
 from flamenerf.model.se3 import apply_se3, exp_se3
+from flamenerf.model.view_directions import captured_direction
 from flamenerf.model.warp import SE3Field
 
 
@@ -288,8 +290,6 @@ class FlameNeRF(nn.Module):
         within `max_angle` radians of a captured view (default: captured_views.MAX_ANGLE_DEG).
         Not part of the checkpoint: a run's loader sets it from its dataset
         (training/run.Run.attach); training never uses it."""
-        from flamenerf.data.captured_views import MAX_ANGLE_DEG
-
         self.captured_max_angle = (math.radians(MAX_ANGLE_DEG) if max_angle is None
                                    else float(max_angle))
         if views is None:
@@ -304,49 +304,9 @@ class FlameNeRF(nn.Module):
 
     def captured_direction(self, origins: Tensor, dirs: Tensor, head: Tensor | None,
                            share: Tensor | None) -> Tensor:
-        """The view direction a ray's colour is taken at, kept within `captured_max_angle`
-        of the capture: of the training frames' camera centres, the one that sees the ray's
-        point nearest the face (its `focus`) from the direction closest to the ray's; a
-        ray further than the angle from it turns towards it until the angle is left. Rays
-        from training cameras keep their direction. Everything happens in the frame the
-        ray's direction is in: moved by `share` of its head twist (`_head_points`), where
-        frame f's centre is at exp(share ξ_f) c_f.
-        Origins (R, 3), unit directions (R, 3) in that frame, twists (R, 6) and shares (R,)
-        (None without head motion) -> unit directions (R, 3)."""
-        world, twists, focus = self.captured
-        moved = share is not None and twists is not None
-        if moved:
-            rot, p = exp_se3(head[:, :3], head[:, 3:])
-            f = torch.einsum("rji,rj->ri", rot, focus - p)  # the focus where the ray sees it
-            # the ray's own direction in the world: undo its share of the head's turn
-            dw = apply_se3(-share[:, None] * head[:, :3], torch.zeros_like(dirs), dirs)
-        else:
-            f, dw = focus.expand_as(origins), dirs
-        xw = origins + ((f - origins) * dw).sum(-1, keepdim=True) * dw  # (R, 3)
-        # the still world's rays (all of them without head motion) as (R, N) products
-        # rather than (R, N, 3) vectors: a 256 px frame's overhead is then a few ms
-        cos = ((xw * dirs).sum(-1, keepdim=True) - dirs @ world.T) / torch.sqrt(
-            ((xw * xw).sum(-1, keepdim=True) - 2 * xw @ world.T + (world * world).sum(-1)
-             ).clamp_min(1e-12))
-        cos, k = cos.max(1)
-        uk = F.normalize(xw - world[k], dim=-1)
-        if moved and bool((share > 0).any()):
-            r = (share > 0).nonzero()[:, 0]
-            s = share[r, None]
-            xs = apply_se3(s * head[r, :3], s * head[r, 3:], xw[r])
-            centres = apply_se3(s[:, None] * twists[None, :, :3],
-                                s[:, None] * twists[None, :, 3:],
-                                world[None].expand(len(r), -1, -1))  # (r, N, 3)
-            u = F.normalize(xs[:, None] - centres, dim=-1)
-            cos_r, k_r = (u * dirs[r, None]).sum(-1).max(1)
-            cos = cos.index_put((r,), cos_r)
-            uk = uk.index_put((r,), u[torch.arange(len(r), device=r.device), k_r])
-        # within `captured_max_angle` of a captured view the direction stays as asked;
-        # beyond, it turns from that view towards the one asked by that angle only (slerp)
-        a = torch.acos(cos.clamp(-1.0, 1.0))[:, None]
-        th = torch.full_like(a, self.captured_max_angle)
-        turned = (torch.sin(a - th) * uk + torch.sin(th) * dirs) / torch.sin(a).clamp_min(1e-9)
-        return torch.where(a > th, F.normalize(turned, dim=-1), dirs)
+        """`view_directions.captured_direction` with this model's captured views."""
+        return captured_direction(self.captured, self.captured_max_angle, origins, dirs,
+                                  head, share)
 
     def _background(self) -> float:
         return 0.0 if self.training else self.background

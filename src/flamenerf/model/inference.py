@@ -40,6 +40,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from flamenerf import cpu_kernels
 from flamenerf.data.rays import RayBatch
 from flamenerf.model.baked import baked_proposal_logits, baked_warp
 from flamenerf.model.field import trunc_exp
@@ -186,9 +187,8 @@ def prepare(model, deform_code: Tensor, settings: RenderSettings) -> None:
         if _bakes_proposal(model, settings):
             baked_proposal_logits(model.proposal, settings.proposal_grid, dev)
     if dev.type == "cpu":
-        from flamenerf.cpu_kernels import kernel_library
 
-        kernel_library()
+        cpu_kernels.kernel_library()
 
 
 def _warp_fn(model, rays: RayBatch, settings: RenderSettings):
