@@ -130,6 +130,7 @@ CHECK = textwrap.dedent("""
 """)
 
 
+@pytest.mark.slow
 def test_triton_kernels_match_their_references_under_the_interpreter():
     env = {**os.environ, "TRITON_INTERPRET": "1", "FLAMENERF_GPU_KERNELS": "1"}
     out = subprocess.run([sys.executable, "-c", CHECK], env=env, capture_output=True,
@@ -247,15 +248,12 @@ def test_the_kernels_named_in_the_environment(monkeypatch):
     assert "were off" in gpu_kernels.fault_advice()
 
 
-def test_the_kernel_check_tries_each_configuration_once_and_keeps_the_largest_right(
-        monkeypatch):
-    """benchmarks/gpu_kernel_check.py, which the next GPU call runs first: the padded heads
-    alone are among its renders (a first version dropped them), nothing twice, and the set
-    it hands on is the largest that rendered right at every size."""
-    from pathlib import Path
-
-    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[1] / "benchmarks"))
-    import gpu_kernel_check as g
+def test_the_kernel_check_tries_each_configuration_once_and_keeps_the_largest_right():
+    """benchmarks/gpu_kernel_check.py's choices (workflows/kernel_check.py), which the next
+    GPU call runs first: the padded heads alone are among its renders (a first version
+    dropped them), nothing twice, and the set it hands on is the largest that rendered right
+    at every size."""
+    from flamenerf.workflows import kernel_check as g
 
     configs = g.FIRST + g.BISECT
     labels = [c[0] for c in configs]

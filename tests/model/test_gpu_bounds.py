@@ -1,5 +1,6 @@
 """The Triton kernels stay inside their tensors on a whole frame: an untrained `fast` model
-(bench_render.py's, with its toy face mesh, detail levels and expression fields) rendered
+(workflows/untrained.py's, which bench_render.py times: a toy face mesh, detail levels and
+expression fields) rendered
 down the GPU's inference path under Triton's interpreter, every load and store checked
 (tests/triton_bounds.py). The kernels' own tests check their values; this checks what a
 GPU would fault on, with the shapes a frame gives them."""
@@ -25,10 +26,11 @@ CHECK = textwrap.dedent("""
     import numpy as np
     import torch
     import triton_bounds
-    from bench_render import FAST, camera, untrained
     from flamenerf import gpu_kernels
     from flamenerf.model.gpu_emulation import gpu_path_on_cpu
+    from flamenerf.model.inference import FAST
     from flamenerf.model.render_image import render_image
+    from flamenerf.workflows.untrained import camera, untrained
 
     triton_bounds.install()
     m = untrained("fast", torch.device("cpu"))
@@ -47,11 +49,11 @@ CHECK = textwrap.dedent("""
 """)
 
 
+@pytest.mark.slow
 def test_the_kernels_stay_inside_their_tensors_on_a_frame():
     env = {**os.environ, "TRITON_INTERPRET": "1", "FLAMENERF_GPU_KERNELS": "1",
            "FLAMENERF_CPU_KERNELS": "0",
-           "PYTHONPATH": os.pathsep.join([str(ROOT / "tests"), str(ROOT / "benchmarks"),
-                                          os.environ.get("PYTHONPATH", "")])}
+           "PYTHONPATH": os.pathsep.join([str(ROOT / "tests"), os.environ.get("PYTHONPATH", "")])}
     out = subprocess.run([sys.executable, "-W", "ignore", "-c", CHECK], env=env,
                          capture_output=True, text=True, timeout=600)
     assert out.returncode == 0, out.stderr[-3000:]
