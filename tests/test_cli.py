@@ -25,6 +25,7 @@ def test_missing_dataset_is_one_error_line(tmp_path, capsys):
     assert not (tmp_path / "run").exists()
 
 
+@pytest.mark.slow
 def test_bad_preset_name_is_refused_with_the_choices(tmp_path):
     r = _run("train", str(tmp_path), "--preset", "nope")
     assert r.returncode != 0
@@ -34,6 +35,7 @@ def test_bad_preset_name_is_refused_with_the_choices(tmp_path):
 
 @pytest.mark.parametrize("args", [["render"], ["preprocess", "only-one.mp4"],
                                   ["bench", "--steps", "many"]])
+@pytest.mark.slow
 def test_malformed_arguments_exit_non_zero_without_a_traceback(args):
     r = _run(*args)
     assert r.returncode != 0 and "Traceback" not in r.stderr
@@ -71,6 +73,7 @@ def test_fast_on_a_gpu_suggests_fast_gpu(tmp_path, capsys, monkeypatch, toy_data
         assert ("--preset fast-gpu" in capsys.readouterr().out) == noted, extra
 
 
+@pytest.mark.slow
 def test_top_level_help_lists_each_command_on_a_line_or_two():
     """`flamenerf --help` is a short index (tyro's printed every whole docstring, ~220
     lines); a command's own --help keeps its whole text."""

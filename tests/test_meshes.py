@@ -1,6 +1,7 @@
 """The per-subject expression model and the mesh-guided displacement."""
 
 import numpy as np
+import pytest
 import torch
 
 from flamenerf.data.dataset import load_dataset
@@ -9,6 +10,7 @@ from flamenerf.meshes import (expression_mesh, fit_expression_model, mesh_displa
                               surface_points)
 
 
+@pytest.mark.slow
 def test_expression_model_reproduces_the_training_meshes(synth_scene):
     ds = load_dataset(synth_scene)
     train = ds.split("train")

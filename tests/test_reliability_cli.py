@@ -374,6 +374,7 @@ def test_bad_numbers_are_one_line_before_any_work(args, words, toy_run, toy_data
     assert sorted(p.name for p in tmp_path.iterdir()) == ["afile", "flat.json"]
 
 
+@pytest.mark.slow
 def test_resume_says_which_settings_it_ignores(toy_dataset, tmp_path, capsys):
     run = tmp_path / "run"
     assert main(["train", str(toy_dataset), "--out", str(run), "--steps", "1"]) == 0

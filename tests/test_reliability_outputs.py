@@ -73,6 +73,7 @@ def cfg(steps: int, every: int = 10_000):
 # ----------------------------------------------------------------------------- outputs
 
 
+@pytest.mark.slow
 def test_a_video_cut_short_by_a_full_disk_is_an_error_and_not_left(toy_run, tmp_path):
     out = tmp_path / "efbig.mp4"
     r = limited(1024, "render", toy_run, "--out", out, "--frames", "8")
@@ -83,6 +84,7 @@ def test_a_video_cut_short_by_a_full_disk_is_an_error_and_not_left(toy_run, tmp_
     no_temporaries(tmp_path)
 
 
+@pytest.mark.slow
 def test_a_video_written_whole_is_reported(toy_run, tmp_path):
     from flamenerf.data.video import check_video, read_frames
 
@@ -94,6 +96,7 @@ def test_a_video_written_whole_is_reported(toy_run, tmp_path):
     assert check_video(out, 9) == "it holds 8 of the 9 frames written"
 
 
+@pytest.mark.slow
 def test_a_checkpoint_save_cut_short_is_one_line(toy_dataset, tmp_path):
     run = tmp_path / "run"
     r = limited(2_000_000, "train", toy_dataset, "--out", run, "--steps", "1")
@@ -103,6 +106,7 @@ def test_a_checkpoint_save_cut_short_is_one_line(toy_dataset, tmp_path):
     assert not list((run / "checkpoints").glob("*")) if (run / "checkpoints").exists() else True
 
 
+@pytest.mark.slow
 def test_eval_cut_short_names_the_file_and_leaves_no_empty_folder(toy_run, tmp_path):
     out = tmp_path / "ev"
     r = limited(1024, "eval", toy_run, "--out", out, "--fit-steps", "2", "--no-control",
@@ -128,6 +132,7 @@ def test_an_output_that_does_not_read_back_gets_no_name(tmp_path):
 # ----------------------------------------------------------------------------- checkpoints
 
 
+@pytest.mark.slow
 def test_pruning_never_keeps_a_damaged_checkpoint_in_place_of_a_good_one(toy_dataset,
                                                                          tmp_path, capsys):
     """A run of 4 steps, checkpoints at 3 and 4; 4 cut to half: the resume falls back to 3,

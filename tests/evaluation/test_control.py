@@ -312,6 +312,7 @@ def face_scene(tmp_path_factory):
     return make_scene(out, seed=0, size=128, frames=12, reanimate=2, leakage_steps=2, workers=1)
 
 
+@pytest.mark.slow
 def test_retracker_reads_the_ground_truth_jaw(face_scene):
     from flamenerf.data.dataset import load_dataset
 
@@ -330,6 +331,7 @@ def test_retracker_reads_the_ground_truth_jaw(face_scene):
         track.close()
 
 
+@pytest.mark.slow
 def test_expressive_region_is_mouth_eyes_and_brows(face_scene):
     from flamenerf.data.dataset import load_dataset
 
@@ -357,6 +359,7 @@ def test_control_figure_rows_are_the_strongest_controls_in_sweep_order():
     assert img[0, 0, 0] == pytest.approx(0.3) and img[6, 0, 0] == pytest.approx(0.0)
 
 
+@pytest.mark.slow
 def test_ground_truth_renderer_redraws_the_built_in_scene(tiny_scene, toy_dataset):
     """The drive's ground truth: the built-in scene re-rendered at the reference frame's
     camera reproduces that frame for its own β, and opens the mouth for jawOpen; a dataset

@@ -27,6 +27,7 @@ def evaluated(toy_run, tmp_path_factory):
     return out
 
 
+@pytest.mark.slow
 def test_eval_writes_the_documented_schema(evaluated):
     res = _strict(evaluated / "metrics.json")
     assert res["format"] == "flamenerf-eval" and res["version"] == 1
@@ -76,6 +77,7 @@ def test_eval_can_render_at_the_directions_asked(toy_run, tmp_path):
     assert _strict(tmp_path / "eval" / "metrics.json")["view_directions"] == "as asked"
 
 
+@pytest.mark.slow
 def test_eval_drive_reports_the_driving_correlation(toy_run, astronaut_video, tmp_path):
     out = tmp_path / "eval"
     eval_cmd(toy_run, fit_steps=1, fit_batch_rays=32, out=out, device="cpu", images=0,
@@ -98,6 +100,7 @@ def test_eval_drive_reports_the_driving_correlation(toy_run, astronaut_video, tm
     assert not (tmp_path / "e2").exists()
 
 
+@pytest.mark.slow
 def test_compare_prints_a_table(evaluated, tmp_path, capsys):
     out = tmp_path / "table.md"
     compare([evaluated / "metrics.json", evaluated / "metrics.json"], labels=["A", "B"],
@@ -123,6 +126,7 @@ def test_compare_names_a_missing_eval(tmp_path):
         compare([tmp_path])
 
 
+@pytest.mark.slow
 def test_compare_refuses_a_newer_metrics_format(evaluated, tmp_path):
     import json
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import pytest
 import torch
 
 from flamenerf.data.scene import FrameSet
@@ -21,6 +22,7 @@ def _assert_same(model, before):
         assert torch.equal(after[k], v), f"{k} changed"
 
 
+@pytest.mark.slow
 def test_fit_changes_only_the_deformation_code(toy_run):
     run = load_run(toy_run, "cpu")
     ds = run.dataset()
@@ -37,6 +39,7 @@ def test_fit_changes_only_the_deformation_code(toy_run):
     assert not run.model.training
 
 
+@pytest.mark.slow
 def test_the_whole_evaluation_leaves_the_model_untouched(toy_run, tmp_path):
     run = load_run(toy_run, "cpu")
     before = _snapshot(run.model)

@@ -97,6 +97,7 @@ BUILD = textwrap.dedent("""
 """)
 
 
+@pytest.mark.slow
 def test_gpu_inference_path_matches_the_cpu_one_under_the_interpreter():
     """With every kernel on (the default), and with the field heads' kernel off: the same
     image as the CPU's path, and the features computed once either way (the heads'
@@ -136,6 +137,7 @@ def _nvidia_tools() -> bool:
 
 @pytest.mark.skipif(importlib.util.find_spec("triton") is None or not _nvidia_tools(),
                     reason="Triton without its NVIDIA backend's tools, or older than 3.3")
+@pytest.mark.slow
 def test_the_gpu_paths_kernels_build_for_an_h100_without_one(tmp_path):
     """The launches of a half-precision frame down the GPU's path (recorded under the
     interpreter) compile for sm_90 with Triton's compiler and ptxas, which ship with Triton:

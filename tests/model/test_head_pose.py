@@ -190,6 +190,7 @@ def _train_without_and_with_still_head_poses(toy_dataset, tmp_path, everywhere: 
     return runs, (toy_dataset, posed)
 
 
+@pytest.mark.slow
 def test_confined_warp_trains_alike_with_and_without_still_head_poses(toy_dataset, tmp_path):
     """`fast`'s defaults confine the deformation to the head's region both where the head
     is followed (`warp.head_only`) and where it is not (`warp.still_head_only`): the same
@@ -227,6 +228,7 @@ def test_an_unfollowed_moving_head_keeps_the_warp_everywhere(toy_dataset, tmp_pa
     assert not m.follows_head and not m.warp_in_head
 
 
+@pytest.mark.slow
 def test_still_head_poses_train_exactly_as_no_head_poses(toy_dataset, tmp_path):
     """The same capture with an identity head_pose on every frame: same weights after
     training, same renders (a dataset without head poses behaves as it always did), when
@@ -248,6 +250,7 @@ def test_still_head_poses_train_exactly_as_no_head_poses(toy_dataset, tmp_path):
     assert all(np.array_equal(x, y) for x, y in zip(*imgs))
 
 
+@pytest.mark.slow
 def test_a_still_head_deforms_only_in_its_region(toy_dataset, tmp_path):
     """`warp.still_head_only`: without head poses the deformation acts in the head's region
     alone (the room's samples skip it), the model does not follow a head, and a loaded run

@@ -173,6 +173,7 @@ def test_mesh_guided_inference_equals_reference():
     assert (ref["rgb"] - render(toy_model(), REFERENCE)["rgb"]).abs().max() > 1e-3  # it acts
 
 
+@pytest.mark.slow
 def test_centred_expression_inference_equals_reference():
     """With β̄ set (`fast`'s expression_centre) both paths give the networks 𝕀·(β − β̄) and
     the meshes β: the guide and the per-control prior of the inference path take β's
@@ -212,6 +213,7 @@ def test_bakes_converge_to_the_fields(kernel, monkeypatch):
     assert perr[1] < perr[0] * 0.6, perr
 
 
+@pytest.mark.slow
 def test_default_path_renders_the_same_scene():
     """Termination and 128³ bakes: the bakes interpolate this random model's fields, which
     vary much faster than a trained one's (the trained `fast` run: 43 dB against the
@@ -234,6 +236,7 @@ def test_fewer_main_samples_render_the_same_scene():
     assert 0 < VIEWER.main_fraction < FAST.main_fraction == 1.0
 
 
+@pytest.mark.slow
 def test_inference_is_deterministic():
     m = toy_model()
     a, b = render(m, FAST), render(m, FAST)
@@ -411,6 +414,7 @@ def test_warp_bake_follows_the_code_and_the_weights():
     assert (after - before).abs().max() > 0.05
 
 
+@pytest.mark.slow
 def test_settings_chunk_changes_nothing_but_speed():
     m = toy_model()
     a = render(m, dataclasses.replace(FAST, chunk=7))
@@ -418,6 +422,7 @@ def test_settings_chunk_changes_nothing_but_speed():
     assert torch.allclose(a["rgb"], b["rgb"], atol=1e-5)
 
 
+@pytest.mark.slow
 def test_proposal_group_changes_nothing_but_speed():
     """One termination check for the whole proposal ray (the GPU's default) and a check
     every few samples render the same image: a ray stops only once its remaining samples
@@ -441,6 +446,7 @@ def test_gpu_chunk_follows_the_field():
     assert dataclasses.replace(FAST, chunk=99).rays_per_chunk(cuda, toy_model()) == 99
 
 
+@pytest.mark.slow
 def test_threads_render_the_same_image_and_restore_the_thread_count():
     """Chunks rendered side by side in Python threads (each with one torch thread) give the
     image one thread gives, and the process keeps its thread count."""

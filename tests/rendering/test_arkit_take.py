@@ -154,6 +154,7 @@ def test_head_pose_take_needs_a_take_with_head_columns(tmp_path):
         source_head_pose("drive", load_file(write_take(tmp_path / "t.csv", 0.2), TOY_NAMES))
 
 
+@pytest.mark.slow
 def test_render_plays_a_take_at_its_rate(toy_run, tmp_path, capsys):
     from flamenerf.cli import main
     from flamenerf.data.video import probe_video, read_frames
@@ -173,6 +174,7 @@ def test_render_plays_a_take_at_its_rate(toy_run, tmp_path, capsys):
     assert len(read_frames(out)) == 12 and probe_video(out).fps == pytest.approx(25)
 
 
+@pytest.mark.slow
 def test_head_pose_take_turns_a_head_run(head_run, tmp_path):
     from flamenerf.rendering.videos import RenderOptions, head_transforms
     from flamenerf.training.run import load_run

@@ -34,6 +34,7 @@ def test_training_frames_keep_their_codes_and_held_out_ones_lie_between(toy_run,
     assert not torch.equal(own[4][0], own[3][0])  # (which differ, so the test can fail)
 
 
+@pytest.mark.slow
 def test_a_split_renders_each_frame_with_its_own_codes(toy_run, tmp_path):
     from flamenerf.rendering.reanimate import render_sequence
 
@@ -60,6 +61,7 @@ def test_a_split_renders_each_frame_with_its_own_codes(toy_run, tmp_path):
     # frame 0's codes render the last training frame otherwise
     assert np.abs(alone(len(train) - 1, plan.run.frame_codes(0)) - frames[-1]).max() > 1e-5
 
+@pytest.mark.slow
 def test_own_codes_need_a_split_of_capture_frames(toy_run, toy_dataset, tmp_path):
     import shutil
 
@@ -98,6 +100,7 @@ def test_a_moved_dataset_keeps_own_codes(toy_run, toy_dataset, tmp_path):
     assert p.codes is not None
 
 
+@pytest.mark.slow
 def test_a_still_camera_reuses_what_the_codes_do_not_change(toy_run, tmp_path):
     """Own codes along a static camera: a frame whose codes are the last one's keeps the
     pixels outside the face (`StillCamera.same_codes`), and each frame is exactly what

@@ -101,6 +101,7 @@ def test_each_edit_gets_its_own_file_name():
     assert file_tag(["a/b+=1"], ["a/b"]) == "edited"  # no folders made of a control's name
 
 
+@pytest.mark.slow
 def test_capture_edited_beside_its_frames(toy_run, tmp_path, monkeypatch):
     """--split capture --edit: the train and val frames in the clip's order, the edited
     control changed (clamped to the training range) and the others as tracked; the prior's
@@ -193,6 +194,7 @@ def test_an_edited_sequence_inside_its_window_only():
     assert "too short for the whole edit" in short.where
 
 
+@pytest.mark.slow
 def test_a_capture_edited_only_during_a_window(toy_run, tmp_path):
     """The frames outside --edit-during as tracked; inside, the edit (clamped as always);
     the note and the file's name say when."""

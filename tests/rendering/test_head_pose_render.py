@@ -25,6 +25,7 @@ def _far_from_head(model, intr, c2w, transforms) -> np.ndarray:
     return (torch.stack(w).amax(0).reshape(intr.h, intr.w, -1).amax(-1) == 0).numpy()
 
 
+@pytest.mark.slow
 def test_head_pose_turns_the_head_not_the_far_background(head_run):
     from flamenerf.data.prior import dataset_dilation
     from flamenerf.geometry import se3_log
@@ -51,6 +52,7 @@ def test_head_pose_turns_the_head_not_the_far_background(head_run):
     assert diff[~far].max() > 1e-3
 
 
+@pytest.mark.slow
 def test_render_cli_head_pose(head_run, toy_run, tmp_path):
     out = tmp_path / "h.mp4"
     render(RenderOptions(head_run, out=out, head_pose=["yaw=20,pitch=-5", "roll=5"], frames=4,
@@ -66,6 +68,7 @@ def test_render_cli_head_pose(head_run, toy_run, tmp_path):
                              device="cpu"))
 
 
+@pytest.mark.slow
 def test_head_pose_from_a_driving_video(head_run, astronaut_video, tmp_path):
     from flamenerf.rendering.expressions import ExpressionSequence
     from flamenerf.rendering.videos import head_transforms
@@ -97,6 +100,7 @@ def _json(tmp_path, rows):
     return p
 
 
+@pytest.mark.slow
 def test_train_options_grow_the_head_region(tmp_path):
     """`train --head-region-scale/--head-band` reach the run's config and its model's
     ellipsoid; a non-positive value is a one-line error."""

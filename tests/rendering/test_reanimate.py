@@ -4,9 +4,11 @@ frame (rendering/reanimate.py): the frames must be those of rendering each one w
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import torch
 
 
+@pytest.mark.slow
 def test_still_camera_frames_equal_whole_renders(toy_run, toy_dataset, monkeypatch, tmp_path):
     from flamenerf.data.prior import dataset_dilation, prior_mask
     from flamenerf.model import render_image as ri

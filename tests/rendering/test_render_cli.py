@@ -13,6 +13,7 @@ from flamenerf.data.prior import estimate_dilation, prior_mask
 from flamenerf.data.video import read_frames
 
 
+@pytest.mark.slow
 def test_orbit_with_depth_and_side_by_side(toy_run, tmp_path):
     out = tmp_path / "v.mp4"
     render(RenderOptions(toy_run, out=out, expressions=["jawOpen=1"], camera="orbit", frames=5,
@@ -28,6 +29,7 @@ def test_orbit_with_depth_and_side_by_side(toy_run, tmp_path):
     assert np.abs(f[0].astype(int) - f[2].astype(int)).mean() > 0
 
 
+@pytest.mark.slow
 def test_split_and_file_sources_set_the_length(toy_run, tmp_path):
     render(RenderOptions(toy_run, out=tmp_path / "s.mp4", split="reanimate", device="cpu"))
     assert len(read_frames(tmp_path / "s.mp4")) == 2
@@ -41,6 +43,7 @@ def test_split_and_file_sources_set_the_length(toy_run, tmp_path):
     assert len(read_frames(tmp_path / "t.mp4")) % 24 == 1
 
 
+@pytest.mark.slow
 def test_bad_inputs_are_user_errors(toy_run, tmp_path):
     with pytest.raises(UserError, match="nope: run directory does not exist"):
         render(RenderOptions(tmp_path / "nope"))
@@ -79,6 +82,7 @@ def test_prior_mask_reproduces_the_dataset_masks(toy_dataset):
     assert small.shape == (8, 8) and small.any()
 
 
+@pytest.mark.slow
 def test_controls_beyond_the_training_range_are_clamped_unless_asked(toy_run, tmp_path):
     """jawOpen=5 renders as the largest jawOpen the training frames show, with a note;
     --extrapolate renders it as given (the values handed to the renderer: the toy run,
@@ -118,6 +122,7 @@ def test_controls_beyond_the_training_range_are_clamped_unless_asked(toy_run, tm
         assert np.isclose(plan.values[:, jaw].max(), want)
 
 
+@pytest.mark.slow
 def test_side_by_side_panels_carry_titles_where_they_fit(toy_run, tmp_path):
     render(RenderOptions(toy_run, out=tmp_path / "v.mp4", expressions=["jawOpen=1"], frames=2,
                          size=80, side_by_side=True, device="cpu"))
@@ -127,6 +132,7 @@ def test_side_by_side_panels_carry_titles_where_they_fit(toy_run, tmp_path):
     assert np.median(titles) > 200 and titles.min() < 100  # black text on white
 
 
+@pytest.mark.slow
 def test_the_capture_carries_the_clips_sound(toy_dataset, toy_run, tmp_path):
     """--split capture of a preprocessed clip (frame times, the source video) at its own
     pace: the video and the side by side carry the clip's sound from the first frame's
@@ -170,6 +176,7 @@ def test_the_capture_carries_the_clips_sound(toy_dataset, toy_run, tmp_path):
     assert any("no sound: the clip's sound track is silent" in n for n in notes)
 
 
+@pytest.mark.slow
 def test_a_gap_in_the_clip_plays_for_its_time(toy_dataset, toy_run, tmp_path):
     """--split capture of a clip with a gap (frames the camera dropped, or where no face was
     found): the frame before it is shown for as long as the gap lasted, so that the video

@@ -64,6 +64,7 @@ def run_cli(capsys, *args):
     return rc, out.out, out.err
 
 
+@pytest.mark.slow
 def test_a_drive_carries_its_sound_in_step_with_its_frames(toy_run, click_drive, tmp_path,
                                                            capsys):
     out = tmp_path / "d.mp4"
@@ -79,6 +80,7 @@ def test_a_drive_carries_its_sound_in_step_with_its_frames(toy_run, click_drive,
         assert abs(click - 1.5) < 0.1, click  # within one frame of where it was
 
 
+@pytest.mark.slow
 def test_a_drive_without_sound_or_with_no_sound_gives_a_silent_video(toy_run, click_drive,
                                                                      tmp_path, capsys):
     out = tmp_path / "n.mp4"
@@ -98,6 +100,7 @@ def test_drive_pace_holds_the_frame_before_a_gap():
     assert drive_pace(np.arange(5) / 10, 10.0) is None
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seconds, word", [(0.5, "padded with silence"), (3.0, "cut to")])
 def test_audio_is_laid_under_any_render_cut_or_padded(seconds, word, toy_run, tmp_path,
                                                       capsys):
@@ -136,6 +139,7 @@ def test_audio_errors_are_one_line_before_rendering(make, args, words, toy_run, 
     assert not (tmp_path / "x.mp4").exists()
 
 
+@pytest.mark.slow
 def test_frames_dir_writes_the_frames_and_the_sound_without_loss(toy_run, tmp_path, capsys):
     out, frames = tmp_path / "f.mp4", tmp_path / "frames"
     args = ["render", toy_run, "--expressions", "jawOpen=0.9", "--frames", "6", "--fps", "10",

@@ -87,6 +87,7 @@ def test_novel_cameras_are_off_the_capture_path():
 # ----------------------------------------------------------------------------- geometry
 
 
+@pytest.mark.slow
 def test_depth_reprojects_between_views_static_scene(still):
     intr = still.intr
     a, b = orbit(-5.0, 2.0), orbit(5.0, -2.0)
@@ -104,6 +105,7 @@ def test_depth_reprojects_between_views_static_scene(still):
     assert (s > 5e-3).mean() < 0.01
 
 
+@pytest.mark.slow
 def test_depth_reprojects_on_the_head_while_body_sways(swaying):
     intr = swaying.intr
     a, b = orbit(-5.0, 2.0), orbit(5.0, -2.0)
@@ -120,6 +122,7 @@ def test_depth_reprojects_on_the_head_while_body_sways(swaying):
     assert (np.abs(dbf - zf) > 2e-3).mean() > 0.15
 
 
+@pytest.mark.slow
 def test_depth_is_z_depth_of_pixel_centres(still):
     """A wall pixel's depth equals the plane's z-depth along the pixel-centre ray."""
     v = still.render(orbit(0.0, 0.0), expr())
@@ -132,6 +135,7 @@ def test_depth_is_z_depth_of_pixel_centres(still):
     assert not np.allclose(corner, (t_wall * d.norm(dim=-1))[:4, -4:].numpy(), rtol=1e-3)
 
 
+@pytest.mark.slow
 def test_mesh_vertices_lie_on_the_rendered_surface(still):
     from flamenerf.synthetic.head import mesh_layout
 
@@ -148,6 +152,7 @@ def test_mesh_vertices_lie_on_the_rendered_surface(still):
     assert (np.abs(dz) < 3e-3).mean() > 0.9
 
 
+@pytest.mark.slow
 def test_jaw_open_drops_the_chin_vertices(still):
     closed = still.head_state(expr()).vertices
     opened = still.head_state(expr(jawOpen=1.0)).vertices
@@ -159,6 +164,7 @@ def test_jaw_open_drops_the_chin_vertices(still):
 # ----------------------------------------------------------------------------- masks
 
 
+@pytest.mark.slow
 def test_mask_covers_the_face_and_not_the_wall(still):
     c2w = orbit(0.0, 0.0)
     v = still.render(c2w, expr())
@@ -185,6 +191,7 @@ def test_mask_covers_the_face_and_not_the_wall(still):
 # ----------------------------------------------------------------------------- expressions
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("yaw,pitch", [(0.0, 0.0), (24.0, -8.0), (-25.0, 9.0)])
 def test_expression_changes_only_pixels_inside_the_face_mask(swaying, yaw, pitch):
     c2w = orbit(yaw, pitch)
@@ -205,6 +212,7 @@ def test_expression_changes_only_pixels_inside_the_face_mask(swaying, yaw, pitch
         assert not (dchanged & ~(base.mask | v.mask)).any()
 
 
+@pytest.mark.slow
 def test_every_control_has_a_visible_effect(still):
     c2w = orbit(0.0, 0.0)
     intr = intrinsics(128)
@@ -302,6 +310,7 @@ def test_every_capture_has_a_val_split():
     assert [t for t in range(300) if capture_split(t, 300) == "val"] == list(range(5, 300, 10))
 
 
+@pytest.mark.slow
 def test_expressions_act_only_well_inside_the_face_mesh(still):
     from flamenerf.synthetic.head import GEO_STEP, MESH_STEP, Grid, mesh_layout
 
@@ -333,6 +342,7 @@ def head_motion_scene(tmp_path_factory):
                       workers=1, head_motion=True)
 
 
+@pytest.mark.slow
 def test_head_motion_scene_has_consistent_posed_meshes_and_masks(head_motion_scene):
     from flamenerf.data.head_pose import canonical_vertices
     from flamenerf.synthetic.scene import scene_from_dataset
@@ -363,6 +373,7 @@ def test_head_motion_scene_has_consistent_posed_meshes_and_masks(head_motion_sce
     assert spread(canon) < 0.5 * spread(world)
 
 
+@pytest.mark.slow
 def test_head_pose_moves_the_head_not_the_background():
     from flamenerf.synthetic.motion import head_pose
 

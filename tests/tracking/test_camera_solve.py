@@ -93,6 +93,7 @@ def test_shots_split_at_a_cut_and_not_at_motion():
     assert shot_indices(np.zeros((1, 32, 32))).tolist() == [0]
 
 
+@pytest.mark.slow
 def test_a_jump_cut_keeps_its_frames(cut_video, canonical_mesh, landmarker_path):
     """An edited clip's jump cut: the solve smoothed the cameras' motion across it, and the
     frames either side of the cut missed their landmarks (three were dropped as misfits);

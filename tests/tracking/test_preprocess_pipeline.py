@@ -23,6 +23,7 @@ def dataset(tmp_path_factory, gappy_video, landmarker_path):
     return out
 
 
+@pytest.mark.slow
 def test_dataset_is_valid_and_complete(dataset):
     ds = load_dataset(dataset)
     assert (ds.intrinsics.w, ds.intrinsics.h) == (128, 128)
@@ -48,6 +49,7 @@ def test_dataset_is_valid_and_complete(dataset):
     assert ds.mesh_model.basis.shape == (52, 478, 3)
 
 
+@pytest.mark.slow
 def test_masks_cover_the_projected_face(dataset):
     from flamenerf.geometry import project_points
 
@@ -65,6 +67,7 @@ def test_masks_cover_the_projected_face(dataset):
         assert rgb[:, 0].mean() > rgb[:, 2].mean()
 
 
+@pytest.mark.slow
 def test_report_lists_dropped_frames_and_qa_files(dataset):
     qa = dataset / "qa"
     for name in ("overlay.mp4", "cameras.png", "contact_sheet.png", "tracking_report.json"):
@@ -138,6 +141,7 @@ def test_wrong_model_path(tmp_path, astronaut_video, capsys):
     assert "nowhere/face_landmarker.task: landmarker model file does not exist" in msg
 
 
+@pytest.mark.slow
 def test_failure_after_writing_started_leaves_nothing(tmp_path, astronaut_video,
                                                       monkeypatch):
     import flamenerf.tracking.qa as qa
@@ -152,6 +156,7 @@ def test_failure_after_writing_started_leaves_nothing(tmp_path, astronaut_video,
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.slow
 def test_flame_backend_end_to_end(tmp_path, astronaut_video, tiny_flame):
     out = tmp_path / "ds"
     rep = preprocess_video(astronaut_video, out, PreprocessOptions(
@@ -175,6 +180,7 @@ def test_flame_needs_its_files(tmp_path, astronaut_video):
             face_model="flame", flame_dir=tmp_path / "FLAME", progress=False))
 
 
+@pytest.mark.slow
 def test_a_clip_too_short_for_a_val_split_says_so(tmp_path, astronaut_video, capsys):
     """12 frames held out one in 20: a dataset without val, and a note saying why and what
     to change (eval needs held-out frames)."""
@@ -186,6 +192,7 @@ def test_a_clip_too_short_for_a_val_split_says_so(tmp_path, astronaut_video, cap
     assert note and "no val split" in note[0] and "--val-every 20" in note[0]
 
 
+@pytest.mark.slow
 def test_other_faces_are_named_and_native_logs_stay_out(tmp_path, two_faces_video, capfd):
     """preprocess on a clip with two faces: one line says so; and COLMAP's bundle
     adjustment (its binding sets its own log level) prints none of its log lines."""

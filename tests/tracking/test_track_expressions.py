@@ -58,6 +58,7 @@ def test_relative_transfer_math():
     np.testing.assert_allclose(n, [0.05, 0.1])
 
 
+@pytest.mark.slow
 def test_relative_to_a_dataset(tmp_path, gappy_video, landmarker_path):
     ds = tmp_path / "subject"
     assert main(["preprocess", str(gappy_video), str(ds), "--size", "32", "--no-qa"]) == 0
@@ -101,6 +102,7 @@ def test_load_expressions_validates(tmp_path):
         load_expressions(p)
 
 
+@pytest.mark.slow
 def test_track_with_flame(tmp_path, astronaut_video, tiny_flame):
     out = tmp_path / "drive.json"
     assert main(["track", str(astronaut_video), "--out", str(out), "--face-model", "flame",

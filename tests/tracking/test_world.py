@@ -54,6 +54,7 @@ def _align(est: np.ndarray, gt: np.ndarray):
     return s, R, b.mean(0) - s * a.mean(0)
 
 
+@pytest.mark.slow
 def test_cameras_and_head_poses_of_a_moving_head(canonical_mesh):
     room = render_room(canonical_mesh.vertices, n=N, size=SIZE)
     sol, reg, world = _solve(room, canonical_mesh)
@@ -76,6 +77,7 @@ def test_cameras_and_head_poses_of_a_moving_head(canonical_mesh):
     assert world.warnings == []
 
 
+@pytest.mark.slow
 def test_still_head_gets_one_pose_and_metric_cameras(canonical_mesh):
     room = render_room(canonical_mesh.vertices, n=N, size=SIZE, head_yaw_deg=0.0,
                        head_shift=0.0)
@@ -90,6 +92,7 @@ def test_still_head_gets_one_pose_and_metric_cameras(canonical_mesh):
     assert _rot_deg(world.c2w[:, :3, :3], gt[:, :3, :3]).max() < 1.0
 
 
+@pytest.mark.slow
 def test_still_camera_is_detected_and_held_fixed(canonical_mesh):
     room = render_room(canonical_mesh.vertices, n=N, size=SIZE, camera_deg=0.0)
     sol, reg, world = _solve(room, canonical_mesh)
@@ -102,6 +105,7 @@ def test_still_camera_is_detected_and_held_fixed(canonical_mesh):
     assert any("does not move" in w for w in world.warnings)
 
 
+@pytest.mark.slow
 def test_textureless_background_falls_back_to_the_head(canonical_mesh):
     room = render_room(canonical_mesh.vertices, n=N, size=SIZE, textured=False)
     sol, reg, world = _solve(room, canonical_mesh)
@@ -116,6 +120,7 @@ def test_textureless_background_falls_back_to_the_head(canonical_mesh):
     assert not any("could not be solved" in w for w in asked.warnings)
 
 
+@pytest.mark.slow
 def test_textureless_background_of_a_still_camera_is_a_still_camera(canonical_mesh):
     # a plain wall behind a tripod clip: nothing to register, but its pixels stay put
     room = render_room(canonical_mesh.vertices, n=N, size=SIZE, textured=False,

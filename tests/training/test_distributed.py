@@ -189,6 +189,7 @@ def test_train_nproc_passes_its_other_options_on():
                                               "--random-background", "False", "--resume"]
 
 
+@pytest.mark.slow
 def test_torchrun_command_runs_the_package():
     cmd = torchrun_command(2, ["train", "scene"])
     assert cmd[1:4] == ["-m", "torch.distributed.run", "--standalone"]

@@ -47,6 +47,7 @@ def same_params(a, b):
 # ----------------------------------------------------------------------------- no pickle
 
 
+@pytest.mark.slow
 def test_checkpoint_loads_without_pickle(tiny_scene, tmp_path):
     trainer(tiny_scene, tmp_path / "run", 1).fit()
     st = torch.load(latest_checkpoint(tmp_path / "run"), weights_only=True)
@@ -57,6 +58,7 @@ def bits(t):
     return t.reshape(-1).view(torch.uint8)
 
 
+@pytest.mark.slow
 def test_adam_moments_of_untouched_table_rows_are_not_stored(tiny_scene, tmp_path):
     trainer(tiny_scene, tmp_path / "run", 1).fit()
     raw = torch.load(latest_checkpoint(tmp_path / "run"), weights_only=True)
@@ -89,6 +91,7 @@ class Payload:
         return (os.mkdir, (self.marker,))
 
 
+@pytest.mark.slow
 def test_checkpoint_that_needs_pickle_is_refused_and_runs_nothing(tiny_scene, tmp_path):
     run = tmp_path / "run"
     trainer(tiny_scene, run, 1).fit()
@@ -104,6 +107,7 @@ def test_checkpoint_that_needs_pickle_is_refused_and_runs_nothing(tiny_scene, tm
     assert not (tmp_path / "pwned").exists()
 
 
+@pytest.mark.slow
 def test_old_checkpoint_converts_on_request_and_resumes_exactly(tiny_scene, tmp_path):
     """A flamenerf 0.1 checkpoint (NumPy/Python RNG states pickled) is refused with the
     command that converts it; after `convert --trust` the run resumes as if never stopped."""
@@ -136,6 +140,7 @@ def test_old_checkpoint_converts_on_request_and_resumes_exactly(tiny_scene, tmp_
 # ----------------------------------------------------------------------------- Ctrl-C
 
 
+@pytest.mark.slow
 def test_ctrl_c_inside_a_step_resumes_bit_exactly(tiny_scene, tmp_path, monkeypatch):
     a = trainer(tiny_scene, tmp_path / "a", 6)
     a.fit()
@@ -166,6 +171,7 @@ def fail_saves(monkeypatch, effect):
     monkeypatch.setattr(torch, "save", save)
 
 
+@pytest.mark.slow
 def test_second_ctrl_c_during_the_save_still_saves(tiny_scene, tmp_path, monkeypatch):
     t = trainer(tiny_scene, tmp_path / "run", 6)
     ctrl_c_at(t, monkeypatch, 2)
@@ -176,6 +182,7 @@ def test_second_ctrl_c_during_the_save_still_saves(tiny_scene, tmp_path, monkeyp
     assert load_run(tmp_path / "run").step == 3
 
 
+@pytest.mark.slow
 def test_third_ctrl_c_gives_up_the_save_and_keeps_the_last_checkpoint(tiny_scene, tmp_path,
                                                                      monkeypatch):
     t = trainer(tiny_scene, tmp_path / "run", 6, every=2)
@@ -199,6 +206,7 @@ def test_third_ctrl_c_gives_up_the_save_and_keeps_the_last_checkpoint(tiny_scene
     assert load_run(tmp_path / "run").step == 2
 
 
+@pytest.mark.slow
 def test_full_disk_at_the_final_save_is_one_line_and_keeps_the_last_checkpoint(
         tiny_scene, tmp_path, monkeypatch):
     t = trainer(tiny_scene, tmp_path / "run", 3, every=2)
@@ -217,6 +225,7 @@ def test_full_disk_at_the_final_save_is_one_line_and_keeps_the_last_checkpoint(
     assert load_run(tmp_path / "run").step == 2
 
 
+@pytest.mark.slow
 def test_non_finite_loss_stops_and_keeps_the_last_good_checkpoint(tiny_scene, tmp_path,
                                                                  monkeypatch):
     t = trainer(tiny_scene, tmp_path / "run", 6, every=2)
@@ -238,6 +247,7 @@ def test_non_finite_loss_stops_and_keeps_the_last_good_checkpoint(tiny_scene, tm
                if v.is_floating_point())
 
 
+@pytest.mark.slow
 def test_interrupted_train_exits_130_with_one_line(tiny_scene, tmp_path, monkeypatch, capsys):
     from flamenerf.cli import main
 
@@ -279,6 +289,7 @@ def test_stale_partial_checkpoints_are_removed_on_the_next_start(tiny_scene, tmp
     assert alive.exists() and theirs.exists()
 
 
+@pytest.mark.slow
 def test_corrupt_latest_checkpoint_falls_back_to_the_previous(tiny_scene, tmp_path, capsys):
     run = tmp_path / "run"
     trainer(tiny_scene, run, 4, every=2).fit()
@@ -295,6 +306,7 @@ def test_corrupt_latest_checkpoint_falls_back_to_the_previous(tiny_scene, tmp_pa
     assert load_run(run).step == 6
 
 
+@pytest.mark.slow
 def test_a_checkpoint_damaged_in_place_is_caught_by_its_checksums(tiny_scene, tmp_path,
                                                                    capsys):
     """Bytes changed inside a tensor (a disk or copy error; the file's length unchanged)
@@ -326,6 +338,7 @@ def test_a_checkpoint_damaged_in_place_is_caught_by_its_checksums(tiny_scene, tm
 # ----------------------------------------------------------------------------- damaged runs
 
 
+@pytest.mark.slow
 def test_a_damaged_config_json_is_one_line_naming_it(tiny_scene, tmp_path):
     import json
     import shutil
@@ -359,6 +372,7 @@ def test_a_run_whose_dataset_moved_says_how_to_give_it(toy_run, toy_dataset, tmp
     assert r.dataset(toy_dataset).root == toy_dataset  # given where it is now
 
 
+@pytest.mark.slow
 def test_a_checkpoint_of_another_run_is_refused(tiny_scene, toy_dataset, tmp_path):
     run, other = tmp_path / "run", tmp_path / "other"
     trainer(tiny_scene, run, 2).fit()

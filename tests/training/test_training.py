@@ -89,6 +89,7 @@ def test_fast_preset_overfits_tiny_scene(tiny_scene, tmp_path):
     assert np.mean(scores) > 22.0, scores
 
 
+@pytest.mark.slow
 def test_resume_reproduces_uninterrupted_run(tiny_scene, tmp_path):
     a = Trainer(small(preset("fast"), 6), tiny_scene, tmp_path / "a", quiet=True)
     a.fit()
@@ -103,6 +104,7 @@ def test_resume_reproduces_uninterrupted_run(tiny_scene, tmp_path):
         assert torch.equal(sa[k], sb[k]), k
 
 
+@pytest.mark.slow
 def test_bf16_is_settled_once_per_run_and_kept_on_resume(tiny_scene, tmp_path, monkeypatch):
     """`train.bf16` asks for bfloat16 layers; a new run settles it by measuring
     (`bf16_pays`) and stores the answer, so a resume trains as the run began whatever a
@@ -178,6 +180,7 @@ def test_checkpoint_from_an_older_model_layout_is_a_one_line_error(tiny_scene, t
         Trainer(small(preset("fast"), 2), tiny_scene, tmp_path / "run", resume=True, quiet=True)
 
 
+@pytest.mark.slow
 def test_cli_bad_dataset_is_one_line_error(tmp_path):
     r = subprocess.run([sys.executable, "-m", "flamenerf.cli", "train", str(tmp_path / "nope"),
                         "--out", str(tmp_path / "run")], capture_output=True, text=True)
@@ -236,6 +239,7 @@ def test_cli_detail_levels_background_and_view_dependence_reach_the_run(tiny_sce
     assert not (tmp_path / "bad").exists()
 
 
+@pytest.mark.slow
 def test_mesh_guided_training_carries_the_expression_model(synth_scene, tmp_path):
     cfg = small(preset("fast"), 2)
     cfg.model.mesh_guide.enabled = True
@@ -265,6 +269,7 @@ def test_mesh_guided_training_carries_the_expression_model(synth_scene, tmp_path
     assert torch.equal(m.expression.guide_points(x, e, m.expression.inside(outside)), x)
 
 
+@pytest.mark.slow
 def test_vertices_the_mesh_model_misses_do_not_guide(synth_scene, tmp_path):
     """`mesh_guide.max_residual`: the vertices whose β -> mesh fit misses the training
     meshes by more than it are left out of the guide, and a loaded run keeps them out."""
@@ -334,6 +339,7 @@ def test_face_depth_prior_moves_the_face_onto_its_mesh(synth_scene, tmp_path):
     assert errors[1.0] < 0.7 * errors[0.0], errors
 
 
+@pytest.mark.slow
 def test_hash_grid_resolution_settles_to_one_training_pixel_at_the_face(tiny_scene, tmp_path):
     from flamenerf.data.scene import face_pixel_resolution, scene_box
 

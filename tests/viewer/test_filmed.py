@@ -34,6 +34,7 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
+@pytest.mark.slow
 def test_a_frame_as_filmed_is_what_render_renders(head_run):
     run = load_run(head_run, "cpu")
     ds = run.dataset(None)
@@ -93,6 +94,7 @@ def test_a_frame_as_filmed_is_what_render_renders(head_run):
         wk.stop()
 
 
+@pytest.mark.slow
 def test_the_viewer_plays_the_capture_as_filmed(head_run, tmp_path):
     from flamenerf.viewer.app import Viewer
     from flamenerf.viewer.options import ViewerOptions
@@ -152,6 +154,7 @@ def test_the_viewer_plays_the_capture_as_filmed(head_run, tmp_path):
         v.stop()
 
 
+@pytest.mark.slow
 def test_a_reanimation_splits_frame_is_what_render_renders(head_run, tmp_path):
     """A split whose frames have no codes (the built-in scene's novel head poses): the
     viewer shows each frame with frame 0's codes and its own head pose and mesh, as
@@ -194,6 +197,7 @@ def test_a_reanimation_splits_frame_is_what_render_renders(head_run, tmp_path):
         v.worker.stop()
 
 
+@pytest.mark.slow
 def test_the_edit_boxes_and_pause_show_what_they_say(head_run):
     """With an edit in force, unticking "Stay within the clip's range" shows the frame
     edited beyond it at once (the command changed, the picture kept the clamp); Pause

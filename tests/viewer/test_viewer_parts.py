@@ -91,6 +91,7 @@ def test_tracks(tiny_scene, tmp_path):
         load_track_file(p, names)
 
 
+@pytest.mark.slow
 def test_worker_renders_coarse_to_fine_and_follows_changes(tiny_run):
     from flamenerf.training.run import load_run
 

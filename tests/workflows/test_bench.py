@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 
+import pytest
+
 from flamenerf.workflows import bench
 from flamenerf.workflows.bench import BenchOptions, method_configs, run_bench
 from toy import toy_config
@@ -22,6 +24,7 @@ def test_cpu_methods_share_the_fast_machinery_and_budget():
         "flame-in-nerf": "flame-in-nerf", "nerfies": "nerfies", "no-prior": "no-prior"}
 
 
+@pytest.mark.slow
 def test_bench_end_to_end(toy_dataset, tmp_path, monkeypatch):
     # the `fast` machinery at toy size (a 16x16 scene needs no 2^17-entry hash tables)
     monkeypatch.setattr(bench, "preset", lambda name: toy_config())
