@@ -72,6 +72,7 @@ def test_displacement_by_k_d_tree_matches_every_vertex_blended():
         assert torch.allclose(bd2[fin], td2[fin], atol=1e-6) and torch.equal(bidx, tidx)
 
 
+@pytest.mark.slow
 def test_displacement_of_many_meshes_at_once_is_each_mesh_alone():
     """A training batch guides points of ~100 frames at once (one k-d tree on a CPU,
     batched distances elsewhere): each point must move with its own frame's mesh."""

@@ -217,6 +217,7 @@ def own_dataset(tmp_path: Path, name: str = "dataset") -> Path:
     return make_toy_dataset(tmp_path / name)
 
 
+@pytest.mark.slow
 def test_resume_refuses_a_dataset_made_again_at_the_same_place(tmp_path, capsys):
     ds, run = own_dataset(tmp_path), tmp_path / "run"
     train(ds, run, cfg(2), device="cpu", quiet=True)
@@ -230,6 +231,7 @@ def test_resume_refuses_a_dataset_made_again_at_the_same_place(tmp_path, capsys)
     assert res.step == 3 and "resuming on it as asked" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_resume_takes_a_moved_dataset_and_refuses_another_once_it_is_gone(tmp_path):
     ds, run = own_dataset(tmp_path), tmp_path / "run"
     train(ds, run, cfg(2), device="cpu", quiet=True)
@@ -245,6 +247,7 @@ def test_resume_takes_a_moved_dataset_and_refuses_another_once_it_is_gone(tmp_pa
     assert read_json(run / "config.json")["dataset"] == str(moved.resolve())
 
 
+@pytest.mark.slow
 def test_resume_of_a_run_without_checkpoint_keeps_its_saved_settings(toy_dataset, tmp_path,
                                                                      capsys):
     run = tmp_path / "run"

@@ -105,6 +105,7 @@ def test_head_points_match_the_per_point_screw_everywhere():
     assert (dc - ref_d).abs().max() < 1e-6
 
 
+@pytest.mark.slow
 def test_the_deformation_stays_in_the_head_region():
     # with head poses the background is static in the world: the warp leaves every point
     # outside the head's region where it is, moves those inside by the full warp and

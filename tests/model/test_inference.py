@@ -163,6 +163,7 @@ def test_second_pass_takes_the_rays_the_proposal_ends():
     assert s.unfinished(acc, prop).tolist() == [0, 3]
 
 
+@pytest.mark.slow
 def test_mesh_guided_inference_equals_reference():
     # tracked clips train mesh-guided (fast's default there): the inference path's guide
     # (nearest vertices by k-d tree) is the training forward's

@@ -67,6 +67,7 @@ def test_estimates_the_focal_length(canonical_mesh):
     assert np.median(res.rigid_error) < 0.4
 
 
+@pytest.mark.slow
 def test_smoothness_reduces_jitter(canonical_mesh):
     L, times, intr, c2w_gt, _ = synthetic(canonical_mesh, noise=1.5, seed=3)
     kw = dict(template0=canonical_mesh.vertices, faces=canonical_mesh.faces,

@@ -64,6 +64,7 @@ def test_skinning_rest_pose_and_jaw(tiny_flame):
     assert np.all(m.weights[moved, 2] > 0)  # only jaw-weighted vertices move
 
 
+@pytest.mark.slow
 def test_fit_recovers_expression_from_landmarks(tiny_flame, canonical_mesh):
     """Synthetic landmarks from known FLAME parameters and cameras -> the fit finds them."""
     from types import SimpleNamespace

@@ -42,6 +42,7 @@ def test_every_preset_trains_two_steps(name, tiny_scene, tmp_path):
     assert run.step == 2 and run.config.preset == name
 
 
+@pytest.mark.slow
 def test_warp_and_appearance_codes_learn_at_their_own_rates(tiny_scene, tmp_path):
     cfg = small(preset("fast"), 5)
     cfg.train.lr_warmup = 0
@@ -137,6 +138,7 @@ def test_bf16_is_settled_once_per_run_and_kept_on_resume(tiny_scene, tmp_path, m
         assert t.step == 4 and t.cfg.train.bf16 is pays and bool(seen) is pays
 
 
+@pytest.mark.slow
 def test_ctrl_c_saves_a_resumable_checkpoint(tiny_scene, tmp_path, monkeypatch):
     import signal
 
@@ -208,6 +210,7 @@ def test_face_depth_prior_starts_at_its_share_of_the_run(tiny_scene, tmp_path):
     assert seen == [False, False, True, True]
 
 
+@pytest.mark.slow
 def test_cli_face_depth_weight_reaches_the_run(tiny_scene, tmp_path):
     from flamenerf.cli import main
 
@@ -219,6 +222,7 @@ def test_cli_face_depth_weight_reaches_the_run(tiny_scene, tmp_path):
                  "--face-depth-weight", "-1"]) == 2
 
 
+@pytest.mark.slow
 def test_cli_detail_levels_background_and_view_dependence_reach_the_run(tiny_scene, tmp_path):
     from flamenerf.cli import main
 

@@ -345,6 +345,7 @@ def test_a_slider_stops_at_the_training_range_unless_unticked(tiny_run):
         v.stop()
 
 
+@pytest.mark.slow
 def test_status_says_when_the_camera_leaves_the_capture(tiny_run):
     """At frame 0's camera the status line says nothing more; well away from every training
     camera it says how far (views there extrapolate)."""
@@ -382,6 +383,7 @@ def test_a_failed_image_says_what_to_do(tiny_run):
     assert "restart the viewer with FLAMENERF_GPU_KERNELS=0" in status.content
 
 
+@pytest.mark.slow
 def test_the_first_image_of_a_change_is_always_shown(tiny_run):
     """A state that changes again while its image renders (a track playing faster than
     the renderer) still gets that image shown, with Progressive off too, and an expression
