@@ -18,6 +18,8 @@ from dataclasses import dataclass
 from dataclasses import field as _field
 from typing import Any, Literal
 
+from flamenerf.errors import UserError
+
 ExpressionMode = Literal["masked", "none", "everywhere"]
 
 
@@ -485,8 +487,6 @@ PRESETS: dict[str, tuple[str, Any]] = {
 
 
 def preset(name: str) -> Config:
-    from flamenerf.errors import UserError
-
     if name not in PRESETS:
         raise UserError(f"unknown preset {name!r} (choose from {', '.join(PRESETS)})")
     return PRESETS[name][1]()
@@ -496,8 +496,6 @@ def override(cfg: Config, values: dict[str, Any]) -> Config:
     """Set dotted fields of `cfg` in place (`{"train.batch_rays": 2048}`); None values are
     skipped, so a command can pass its optional flags as they are. Strings given for
     numeric or boolean fields are converted ("true"/"1"/"yes" for booleans). -> cfg."""
-    from flamenerf.errors import UserError
-
     for key, val in values.items():
         if val is None:
             continue
@@ -530,8 +528,6 @@ def _optional_value(val: str) -> float | bool | str | None:
 def parse_overrides(text: str) -> dict[str, str]:
     """`key=value,key=value` (dotted fields, as `override` takes them) -> a dict of strings;
     the benchmarks' variant specs (`name:key=value,...`)."""
-    from flamenerf.errors import UserError
-
     out = {}
     for item in filter(None, (t.strip() for t in text.split(","))):
         key, eq, val = item.partition("=")
@@ -559,8 +555,6 @@ def from_dict(d: dict[str, Any], source: str | os.PathLike = "config") -> Config
     is a file people edit and copy, and a wrong value otherwise surfaced as a traceback deep
     in the model (or, for a Literal, silently trained another variant). A one-line
     UserError naming `source` (the file) and the key otherwise."""
-    from flamenerf.errors import UserError
-
     try:
         cfg = _build(Config, d, "")
         _check_ranges(cfg)

@@ -35,6 +35,8 @@ import warnings
 import torch
 from torch import Tensor
 
+from flamenerf.errors import UserError
+
 _kernels: dict | None = None
 _tried = False
 _recorded: list | None = None  # `recording()`'s launches
@@ -61,8 +63,6 @@ def chosen() -> frozenset[str]:
                 "1": frozenset(NAMES)}[value]
     names = {n.strip() for n in value.split(",") if n.strip()}
     if names - set(NAMES):
-        from flamenerf.errors import UserError
-
         raise UserError(f"FLAMENERF_GPU_KERNELS={value}: no kernel "
                         f"{', '.join(sorted(names - set(NAMES)))} (there are "
                         f"{', '.join(NAMES)}; or 0 for none, 1 for all)")

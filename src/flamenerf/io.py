@@ -22,6 +22,7 @@ from typing import Any, BinaryIO, Callable
 import numpy as np
 
 from flamenerf.errors import UserError
+from flamenerf.images import to_uint8
 
 
 def temp_prefix(name: str) -> str:
@@ -126,8 +127,6 @@ def save_png(path: str | os.PathLike, img: np.ndarray) -> None:
     """Atomically write an (H, W[, 3]) float-in-[0, 1] or uint8 image as PNG, decoded again
     before it gets its name."""
     import imageio.v3 as iio
-
-    from flamenerf.images import to_uint8
 
     pixels = to_uint8(np.asarray(img))
     data = iio.imwrite("<bytes>", pixels, extension=".png")

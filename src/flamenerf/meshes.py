@@ -18,6 +18,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from flamenerf import gpu_kernels
+from flamenerf.cpu_kernels import kernel_library
+
 
 def surface_points(vertices: Tensor, faces: Tensor, tri: Tensor, uv: Tensor,
                    which: Tensor | None = None) -> Tensor:
@@ -155,7 +158,6 @@ def nearest_vertices(pts: Tensor, verts: Tensor, k: int, bound: float,
     if pts.dim() == 3:
         which = which.repeat_interleave(pts.shape[1])
         pts = pts.reshape(-1, 3)
-    from flamenerf.cpu_kernels import kernel_library
 
     lib = kernel_library()
     if lib is not None and lib.knn_vectorised() and 1 <= k <= KNN_MAX_K:
@@ -223,8 +225,6 @@ def nearest_vertices_brute(pts: Tensor, meshes: Tensor, k: int, bound: float, wh
     `fast-gpu` at 5 steps/s; one (P, V, 3) gather of each point's mesh was gigabytes).
     Where Triton runs (GPUs), one kernel instead (gpu_kernels.knn: `topk` over the
     distances was over a third of a guided 256 px frame on an H200)."""
-    from flamenerf import gpu_kernels
-
     x = pts if pts.dim() == 3 else pts[:, None]  # (R, S, 3)
     M, V = meshes.shape[:2]
     if which.shape != x.shape[:1]:  # the kernel would read past its end

@@ -11,6 +11,8 @@ from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from typing import TYPE_CHECKING, TypeVar
 
+from flamenerf.errors import UserError
+
 if TYPE_CHECKING:
     import torch
 
@@ -43,8 +45,6 @@ def pick_device(device: str = "auto") -> torch.device:
     it; anything else is a one-line UserError naming --device."""
     import torch
 
-    from flamenerf.errors import UserError
-
     if device == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     try:
@@ -76,8 +76,6 @@ def set_threads(threads: int) -> None:
     """Use `threads` CPU threads for torch; 0 keeps torch's default; below 0 is a one-line
     UserError (--threads)."""
     if threads < 0:
-        from flamenerf.errors import UserError
-
         raise UserError(f"--threads {threads}: must be >= 0 (0: torch's default)")
     if threads > 0:
         import torch

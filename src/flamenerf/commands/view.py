@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+# what the command runs is imported inside its function: the CLI imports every command
+# module to build its --help (cli.py), which stays quick that way
+
 from pathlib import Path
 from typing import Annotated
 

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from flamenerf.data.expression_range import ExpressionRange
+from flamenerf.data.expression_range import ExpressionRange, training_expressions
 from flamenerf.data.face_parts import applies, part_and_side
 
 RIDGE = 1e-3
@@ -94,7 +94,5 @@ def fit_companions(names: list[str], kind: str, num_vertices: int,
 
 def dataset_companions(ds) -> Companions | None:
     """`fit_companions` on a dataset's training frames."""
-    from flamenerf.data.expression_range import training_expressions
-
     return fit_companions(ds.expression_names, ds.expression_kind,
                           int(ds.face_vertices.shape[1]), training_expressions(ds))

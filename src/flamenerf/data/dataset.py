@@ -40,6 +40,10 @@ import numpy as np
 
 from flamenerf.errors import UserError, warn
 from flamenerf.geometry import is_rigid
+from flamenerf.data.face_parts import LANDMARK_KEYS
+from flamenerf.data.video import FPS_RANGE
+from flamenerf.io import atomic_write_bytes, temp_prefix
+from flamenerf.outdir import check_replaceable, clean_stale_temps, replace_dir, writable_dir
 
 FORMAT_VERSION = 1
 CAPTURE = "capture"
@@ -109,7 +113,6 @@ def playback(times: np.ndarray, rate: float | None = None
     t = np.asarray(times, np.float64)
     if len(t) < 2 or t[-1] <= t[0]:
         return None
-    from flamenerf.data.video import FPS_RANGE
 
     dt = np.diff(t)
     gap = dt > GAP * np.median(dt)
@@ -281,8 +284,6 @@ MESH_MODEL_FILE = "expression_model.npz"
 
 def write_mesh_model(root: str | os.PathLike, model: StoredMeshModel) -> Path:
     """Store a β -> mesh model in a dataset (atomically; read back by `load_dataset`)."""
-    from flamenerf.io import atomic_write_bytes
-
     path = Path(root) / MESH_MODEL_FILE
     atomic_write_bytes(path, lambda f: np.savez(
         f, neutral=model.neutral.astype(np.float32), basis=model.basis.astype(np.float32),
@@ -388,8 +389,6 @@ MAX_SIZE = 4096  # pixels a side that `synth` and `preprocess` make frames of
 def _face_landmarks(meta: dict, where: str, num_vertices: int) -> dict[str, list[int]] | None:
     """The optional `face_landmarks`, checked: each of the keys a non-empty list of vertex
     indices of the face mesh."""
-    from flamenerf.data.face_parts import LANDMARK_KEYS
-
     raw = meta.get("face_landmarks")
     if raw is None:
         return None
@@ -662,9 +661,6 @@ class DatasetWriter:
         overwrite: bool = False,
         prior_dilation_px: int | None = None,
     ):
-        from flamenerf.io import temp_prefix
-        from flamenerf.outdir import check_replaceable, clean_stale_temps, writable_dir
-
         self.out = Path(out)
         if self.out.exists() and not overwrite:
             raise DatasetError(f"{self.out}: already exists (pass --overwrite to replace it)")
@@ -762,7 +758,6 @@ class DatasetWriter:
             self.tmp / "face_mesh.npz", faces=self.faces, vertices=np.stack(self.verts)
         )
         (self.tmp / "transforms.json").write_text(json.dumps(self.meta, indent=1))
-        from flamenerf.outdir import replace_dir
 
         replace_dir(self.tmp, self.out, "dataset")
         return self.out

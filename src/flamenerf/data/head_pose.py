@@ -22,6 +22,8 @@ import numpy as np
 from flamenerf.data.dataset import Dataset, Frame, reference_position
 from flamenerf.errors import UserError
 from flamenerf.geometry import euler_head, se3_log
+from flamenerf.io import read_json
+from flamenerf.keyvalues import parse_assignments
 
 
 @dataclass
@@ -142,8 +144,6 @@ def control_transform(key: HeadPoseKey, region: HeadRegion) -> np.ndarray:
 
 def parse_head_key(item: str, where: str = "--head-pose") -> HeadPoseKey:
     """`yaw=20,pitch=-5` (degrees; x, y, z in metres) -> a HeadPoseKey."""
-    from flamenerf.keyvalues import parse_assignments
-
     key = HeadPoseKey(**parse_assignments(item, list(HeadPoseKey.__dataclass_fields__),
                                           where))
     # a head turned more than a full turn or moved a metre has left the scene it was filmed in
@@ -163,8 +163,6 @@ def head_pose_items(items: list[str]) -> tuple[np.ndarray, bool]:
     are keyframes (to ease through, as expression keyframes are) rather than one FILE's
     per-frame poses (.json: a list of {yaw, pitch, ...} objects, or {"head_pose": [...]})."""
     from pathlib import Path
-
-    from flamenerf.io import read_json
 
     if not items:
         raise UserError("--head-pose: give yaw=..,pitch=.. keyframes or a .json file")

@@ -15,6 +15,7 @@ from flamenerf.data.prior import training_mask
 from flamenerf.images import resize_image
 from flamenerf.meshes import surface_points
 from flamenerf.geometry import project_points
+from flamenerf.data.mesh_depth import mesh_depth
 
 
 def scene_box(ds: Dataset, margin: float = 0.05) -> tuple[list[float], list[float]]:
@@ -156,8 +157,6 @@ class FrameSet:
         -> (N, H, W) float32, computed on first use."""
         if getattr(self, "_mesh_depths", None) is None:
             from scipy import ndimage
-
-            from flamenerf.data.mesh_depth import mesh_depth
 
             dirs, faces, out = self.dirs_cam.numpy(), self.faces.numpy(), []
             for i in range(self.n):

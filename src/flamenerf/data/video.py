@@ -28,6 +28,7 @@ import numpy as np
 
 from flamenerf.errors import UserError, warn
 from flamenerf.io import temp_prefix
+from flamenerf.images import to_uint8
 
 
 FPS_RANGE = (0.1, 1000.0)  # a frame every ten seconds to far above any player's rate:
@@ -412,8 +413,6 @@ class VideoWriter:
 
     def write(self, frame: np.ndarray) -> None:
         import imageio_ffmpeg
-
-        from flamenerf.images import to_uint8
 
         img = even_pad(np.ascontiguousarray(to_uint8(np.asarray(frame))[..., :3]))
         h, w = img.shape[:2]

@@ -36,15 +36,23 @@ from typing import Any
 import numpy as np
 import torch
 
-from flamenerf.tracking.landmarker import part_outlines
+from flamenerf.tracking.landmarker import (FaceLandmarker, NUM_LANDMARKS, NUM_MESH_VERTICES,
+                                           blendshape_names, part_outlines)
 from flamenerf.data.companions import Companions
-from flamenerf.data.dataset import Dataset, Intrinsics
+from flamenerf.data.dataset import Dataset, DatasetError, Intrinsics, reference_position
 from flamenerf.data.scene import FrameSet
 from flamenerf.evaluation import metrics as M
 from flamenerf.evaluation.metrics import image_metrics, responds, scene_masks, summarize
 from flamenerf.model.flame_nerf import FlameNeRF
-from flamenerf.model.render_image import render_image
-from flamenerf.data.prior import prior_mask
+from flamenerf.model.render_image import StillCamera, render_image
+from flamenerf.data.prior import dataset_dilation, mesh_function, prior_mask
+from flamenerf.data.expression_range import span, varies
+from flamenerf.data.face_parts import MEDIAPIPE_VERTEX_COUNTS
+from flamenerf.data.head_pose import canonical_vertices
+from flamenerf.geometry import project_points
+from flamenerf.model.inference import FAST
+from flamenerf.synthetic.scene import scene_from_dataset
+from flamenerf.tracking.blendshapes import BlendshapeStage
 
 
 def expressive_faces(ds: Dataset, fraction: float = 0.2) -> np.ndarray:
@@ -52,8 +60,6 @@ def expressive_faces(ds: Dataset, fraction: float = 0.2) -> np.ndarray:
     motion over the training frames (RMS distance from its mean position, in the head's
     canonical frame, the rigid sway removed by subtracting each frame's mesh centroid)
     exceeds `fraction` of the largest. -> (F', 3) int."""
-    from flamenerf.data.head_pose import canonical_vertices
-
     train = ds.training_frames()
     v = canonical_vertices(ds, train).astype(np.float64)
     v = v - v.mean(1, keepdims=True)
@@ -134,8 +140,6 @@ class Retracker:
     min_size: int = 256
 
     def __post_init__(self):
-        from flamenerf.tracking.landmarker import FaceLandmarker, blendshape_names
-
         self._lm = FaceLandmarker()
         self.names = blendshape_names()
 
@@ -156,8 +160,6 @@ class Retracker:
         """img (H, W, 3) -> ({control: score}, the re-tracked face mesh's vertices (468, 2) in
         img's pixels, the irises left out) from one detection, or None when no face is
         found."""
-        from flamenerf.tracking.landmarker import NUM_MESH_VERTICES
-
         det = self.detect(img)
         if det is None:
             return None
@@ -176,8 +178,6 @@ class Retracker:
 
 def trackable_controls(names: list[str]) -> list[str]:
     """Controls the landmarker reports by the same name (ARKit-named expression models)."""
-    from flamenerf.tracking.landmarker import blendshape_names
-
     known = set(blendshape_names())
     return [n for n in names if n in known]
 
@@ -185,8 +185,6 @@ def trackable_controls(names: list[str]) -> list[str]:
 def sweep_values(values: np.ndarray, steps: int) -> np.ndarray | None:
     """`steps` values across the span a control covers in the training frames (its 5th to
     95th percentile, data/expression_range.span); None when it barely varies."""
-    from flamenerf.data.expression_range import span, varies
-
     if not varies(values):
         return None
     return np.linspace(*span(values), steps)
@@ -216,16 +214,10 @@ def landmark_motion(ds: Dataset, mesh_of: Callable[[np.ndarray], np.ndarray],
                     ) -> LandmarkMotion | None:
     """The geometry reading of a sweep at camera c2w, where the dataset's face mesh is the
     landmarker's own (MediaPipe's topology); None elsewhere (FLAME, the built-in head)."""
-    from flamenerf.data.face_parts import MEDIAPIPE_VERTEX_COUNTS
-    from flamenerf.geometry import project_points
-    from flamenerf.tracking.landmarker import NUM_LANDMARKS, NUM_MESH_VERTICES
-
     if ds.face_vertices.shape[1] not in MEDIAPIPE_VERTEX_COUNTS:
         return None
     scores = None
     if ds.face_vertices.shape[1] == NUM_LANDMARKS:
-        from flamenerf.tracking.blendshapes import BlendshapeStage
-
         stage = BlendshapeStage()
 
         def scores(b: np.ndarray) -> dict[str, float]:
@@ -434,8 +426,6 @@ def driven_response(preds: list[np.ndarray], images: list[np.ndarray], values: n
     from the capture at this resolution, the most a render can show.
     -> as `retrack_series`, plus "truth": {"controls": {name: {gain, correlation}},
     "responding", "mean_gain", "mean_correlation"}."""
-    from flamenerf.data.expression_range import varies
-
     want = [n for n in trackable_controls(names) if varies(train_values[:, names.index(n)])]
     out = retrack_series(preds, values, names, track, controls=want)
     gt = retrack_series(images, values, names, track, controls=want)
@@ -547,9 +537,6 @@ def model_renderer(model: FlameNeRF, ds: Dataset, intr: Intrinsics, c2w: np.ndar
     inference path that `flamenerf render` and the viewer use (what a user sees; within
     0.01 dB of the training forward and 2-3x faster on a CPU), in its own chunks; after the
     first β only the silhouettes' pixels again (`StillCamera`)."""
-    from flamenerf.model.inference import FAST
-    from flamenerf.model.render_image import StillCamera
-
     still = StillCamera(model, intr, c2w, omega, phi, settings=FAST)
 
     def render(beta: np.ndarray) -> np.ndarray:
@@ -564,9 +551,6 @@ def reference_renderer(model: FlameNeRF, ds: Dataset, intr: Intrinsics, omega: t
     """What the sweeps and the drive render: `model_renderer` at the reference frame's camera
     with codes (ω, φ), each β's prior mask from that β's mesh (data/prior.mesh_function).
     -> (render, the reference frame, β -> mesh)."""
-    from flamenerf.data.dataset import reference_position
-    from flamenerf.data.prior import dataset_dilation, mesh_function
-
     ref = ds.frames[reference_position(ds)]
     mesh_of = mesh_function(model, ds)
     return (model_renderer(model, ds, intr, ref.c2w, omega, phi, mesh_of,
@@ -578,9 +562,6 @@ def ground_truth_renderer(ds: Dataset, intr: Intrinsics) -> RenderFn | None:
     reference frame's camera and pose: ground truth for any expression, so that a drive's
     figures can be read against what the scene itself does under the same commands. None
     for a dataset that `flamenerf synth` did not make."""
-    from flamenerf.data.dataset import DatasetError, reference_position
-    from flamenerf.synthetic.scene import scene_from_dataset
-
     try:
         scene = scene_from_dataset(ds)
     except DatasetError:
@@ -603,8 +584,6 @@ def sweep_response(fs: FrameSet, preds: list[np.ndarray], track: Callable) -> di
     images are re-tracked alike, so `gain` reads against `gt_gain`: what the landmarker sees
     in the true scene is the most a model can show. -> as `control_response`, plus gt_gain,
     gt_correlation and relative_gain (gain / gt_gain) per control."""
-    from flamenerf.tracking.landmarker import blendshape_names
-
     known = set(blendshape_names())
     ref_pred, ref_gt = track(preds[0]), track(fs.images[0].numpy())
     by_control: dict[str, list[int]] = {}

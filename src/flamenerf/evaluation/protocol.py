@@ -36,6 +36,7 @@ from typing import Any
 import numpy as np
 import torch
 
+import flamenerf
 from flamenerf.data.dataset import Dataset
 from flamenerf.data.scene import FrameSet
 from flamenerf.evaluation import control as C
@@ -45,6 +46,13 @@ from flamenerf.evaluation.metrics import (SUMMARY_KEYS, beyond_head, image_metri
 from flamenerf.evaluation.report import FORMAT, VERSION, eval_markdown
 from flamenerf.model.flame_nerf import FlameNeRF
 from flamenerf.model.render_image import render_image
+from flamenerf.data.companions import dataset_companions
+from flamenerf.data.expression_range import training_range
+from flamenerf.errors import UserError
+from flamenerf.evaluation.heldout import fit_deformation_codes
+from flamenerf.images import abs_diff, hstack, resize_to_height, vstack
+from flamenerf.io import atomic_write_text, save_png, write_json
+from flamenerf.rendering.expressions import from_video
 
 
 METHOD_NAMES = {"masked": "FLAME-in-NeRF", "none": "Nerfies", "everywhere": "No prior"}
@@ -131,8 +139,6 @@ def _compare(fs: FrameSet, preds: list[np.ndarray], split_head: bool = False
 def heldout(model: FlameNeRF, fs: FrameSet, opts: EvalOptions, quiet: bool = True
             ) -> tuple[dict[str, Any], list[np.ndarray]]:
     """The paper's protocol on frames `fs` -> (summary with per-frame rows, renders)."""
-    from flamenerf.evaluation.heldout import fit_deformation_codes
-
     t0 = time.perf_counter()
     omega, phi = fit_deformation_codes(model, fs, steps=opts.fit_steps,
                                        batch_rays=opts.fit_batch_rays, lr=opts.fit_lr,
@@ -228,9 +234,6 @@ def evaluate_run(run, ds: Dataset, opts: EvalOptions, out_dir: Path | None = Non
                  quiet: bool = False, log=print) -> dict[str, Any]:
     """Every section that `ds` supports; writes metrics.json, metrics.md and PNGs to
     `out_dir` (atomic writes) when given. -> the results dict (the JSON's content)."""
-    import flamenerf
-    from flamenerf.errors import UserError
-
     model = run.model
     run.attach(ds, opts.captured_directions)  # `ds` need not come from run.dataset
     intr = run.train_intrinsics(ds)
@@ -351,8 +354,6 @@ def control_section(run, ds: Dataset, intr, omega0, phi0, opts: EvalOptions,
             renders.append(render(beta))
             return renders[-1]
 
-        from flamenerf.data.companions import dataset_companions
-
         res = C.control_response(keep, names, ds.expression_matrix([fr])[0], train_e, track,
                                  opts.control_steps, companions=dataset_companions(ds),
                                  motion=motion)
@@ -369,8 +370,6 @@ def _control_figure(res: dict[str, Any], renders: list[np.ndarray], rows: int = 
     """The sweep's renders, one row per control (the `rows` with the largest gain), from the
     low end of its range to the high end; with its companions where it has some (what a
     keyframe renders). -> image, the rows' control names."""
-    from flamenerf.images import hstack, vstack
-
     per, at, gain = {}, 0, {}
     for name, c in res["controls"].items():
         n = len(c["commanded"])
@@ -387,17 +386,12 @@ def drive_section(run, ds: Dataset, intr, omega0, phi0, opts: EvalOptions
                   ) -> tuple[dict[str, Any], np.ndarray]:
     """The drive correlation (see module doc) at the reference frame's camera, and a
     picture: six driving frames spread over the sequence, each over its render."""
-    from flamenerf.images import hstack, vstack
-    from flamenerf.rendering.expressions import from_video
-
     names = run.expression_names
     seq = from_video(Path(opts.drive), ds, names, max_frames=opts.drive_frames,
                      panel_height=intr.h)
     render = C.reference_renderer(run.model, ds, intr, omega0, phi0)[0]
     rendered, notes = seq.values, list(seq.notes)
     if ds.expression_names == names:  # as `render` does by default
-        from flamenerf.data.expression_range import training_range
-
         rng = training_range(ds)
         if over := rng.beyond(seq.values):
             rendered = rng.clamp(seq.values)
@@ -424,8 +418,6 @@ def drive_section(run, ds: Dataset, intr, omega0, phi0, opts: EvalOptions
 
 
 def _triptych(fs: FrameSet, k: int, pred: np.ndarray) -> np.ndarray:
-    from flamenerf.images import abs_diff, hstack, resize_to_height
-
     gt = fs.images[k].numpy()
     img = hstack([gt, pred, abs_diff(pred, gt, DIFF_GAIN)], gap=2)
     return resize_to_height(img, max(img.shape[0], 128))
@@ -454,8 +446,6 @@ def pick_sweep_frames(fs: FrameSet, limit: int = 8) -> list[int]:
 def _sweep_figure(fs: FrameSet, preds: list[np.ndarray], dilate_px: int) -> np.ndarray:
     """Row 1: renders across the sweep; row 2: |render - reference| x gain, with the region
     where leakage is not measured tinted blue."""
-    from flamenerf.images import abs_diff, hstack, resize_to_height, vstack
-
     idx = pick_sweep_frames(fs)
     outside = leakage_region(fs.masks.numpy(), dilate_px)
     diffs = []
@@ -468,8 +458,6 @@ def _sweep_figure(fs: FrameSet, preds: list[np.ndarray], dilate_px: int) -> np.n
 
 
 def write_results(out_dir: Path, res: dict[str, Any], images: dict[str, np.ndarray]) -> None:
-    from flamenerf.io import atomic_write_text, save_png, write_json
-
     out_dir.mkdir(parents=True, exist_ok=True)
     for name, img in images.items():
         save_png(out_dir / "images" / name, img)

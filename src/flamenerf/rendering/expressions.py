@@ -28,6 +28,9 @@ Accepted `--expressions` values:
 
 from __future__ import annotations
 
+# imported (through rendering/videos.py) to build `flamenerf --help`: tracking a driving
+# video is imported inside the functions that do it
+
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -40,6 +43,11 @@ from flamenerf.errors import UserError
 from flamenerf.io import read_json
 from flamenerf.keyvalues import parse_assignments, resolve_control, suggest
 from flamenerf.rendering import takes
+from flamenerf.data.dataset import MAX_CONTROL
+from flamenerf.data.expression_range import MIN_SPAN, span
+from flamenerf.data.face_parts import part_and_side
+from flamenerf.data.video import iter_frames, probe_video
+from flamenerf.images import resize_image
 
 FILE_SUFFIXES = (".json", ".npy", ".csv")
 KEYFRAME_FRAMES = 60  # a keyframe sequence's length unless --frames says
@@ -182,8 +190,6 @@ def _pair_stem(name: str) -> str:
     """The name a control shares with its other side (`mouthSmileLeft` -> `mouthSmile`),
     else its own: ARKit's sideways moves (data/face_parts: not sided) and gaze
     (eyeLookInLeft turns the left eye to the nose) are not one motion on two sides."""
-    from flamenerf.data.face_parts import part_and_side
-
     stem = re.sub(r"(Left|Right)$", "", name)
     if not stem or not part_and_side(name)[1] or stem.startswith("eyeLook"):
         return name
@@ -200,8 +206,6 @@ def tour_keyframes(training: np.ndarray, names: list[str], base: np.ndarray,
     pair is one keyframe, both sides to the same end (a side that does not move itself
     keeps the base). -> keys (2K - 1, E) and the K keyframes' names (a pair by its
     stem)."""
-    from flamenerf.data.expression_range import MIN_SPAN, span
-
     lo, top = span(training, TOUR_QUANTILES)
     base = np.asarray(base, np.float32)
     moves = top - lo >= MIN_SPAN
@@ -351,8 +355,6 @@ def bounded(values: np.ndarray, where: str) -> np.ndarray:
     """values, unless one is beyond ±MAX_CONTROL (a one-line UserError naming `where`), as
     datasets' expressions are refused: no expression model means such a value, and float32
     arithmetic turns it into inf."""
-    from flamenerf.data.dataset import MAX_CONTROL
-
     v = np.asarray(values)
     if v.size and float(np.abs(v).max()) > MAX_CONTROL:
         raise UserError(f"{where}: a value of {float(np.abs(v).max()):.3g} (expression values "
@@ -433,8 +435,6 @@ def from_split(ds, split: str, panel_hw: tuple[int, int] | None = None) -> Expre
     """A dataset split's expressions, cameras, per-frame face meshes and images, at the
     clip's frame rate (`capture`: the clip's frames in order), or `STILLS_FPS` for frames
     outside the capture."""
-    from flamenerf.images import resize_image
-
     frames = ds.split(split)
     if not frames:
         raise UserError(f"{ds.root / 'transforms.json'}: split {split!r} is empty")
@@ -461,8 +461,6 @@ def from_video(video: Path, ds, names: list[str], relative: bool = True,
 
     With `relative` and a dataset of the same expression model, expressions are transferred
     relative to each subject's neutral face (as `flamenerf track --relative-to`)."""
-    from flamenerf.data.video import iter_frames, probe_video
-    from flamenerf.images import resize_image
     from flamenerf.tracking.expressions import transfer_to_subject
     from flamenerf.tracking.driving import track_expressions
 

@@ -12,6 +12,7 @@ import numpy as np
 import torch
 
 from flamenerf.data.dataset import Dataset, Frame
+from flamenerf.data.head_pose import canonical_from_world, canonical_vertices, posed_vertices
 
 
 def own_codes_settings(settings):
@@ -63,8 +64,6 @@ class FilmedFrame:
              head: np.ndarray | None = None) -> np.ndarray:
         """(V, 3) world: the frame's mesh at `expression`, posed by `head` (canonical-from-
         world (4, 4); None: the frame's own pose)."""
-        from flamenerf.data.head_pose import posed_vertices
-
         v = changed_meshes(self.canonical[None], mesh_of, np.asarray(expression, np.float32)[None],
                            self.expression[None])[0]
         return posed_vertices(v, self.head if head is None else head)
@@ -80,8 +79,6 @@ class FilmedClip:
 
     def __init__(self, run, ds: Dataset, frames: list[Frame],
                  codes: tuple[torch.Tensor, torch.Tensor] | None = None):
-        from flamenerf.data.head_pose import canonical_from_world, canonical_vertices
-
         self.own_codes = codes is None
         if codes is None:
             self.omega, self.phi = run.clip_codes(ds, frames)  # on the run's device

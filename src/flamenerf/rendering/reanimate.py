@@ -16,6 +16,7 @@ from flamenerf.model.flame_nerf import FlameNeRF
 from flamenerf.model.inference import FAST, RenderSettings
 from flamenerf.model.render_image import StillCamera
 from flamenerf.data.prior import prior_mask
+from flamenerf.images import colorize_depth
 
 
 @dataclass
@@ -72,6 +73,4 @@ def depth_range(frame: RenderedFrame, near: float, far: float) -> tuple[float, f
 
 def depth_image(frame: RenderedFrame, lo: float, hi: float) -> np.ndarray:
     """Colour-mapped depth, faded to black where the ray hit nothing."""
-    from flamenerf.images import colorize_depth
-
     return colorize_depth(frame.depth, lo, hi) * np.clip(frame.acc, 0, 1)[..., None]

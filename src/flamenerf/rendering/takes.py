@@ -11,6 +11,9 @@ with a lower-case first letter) and its head angles as `head_pose` rows (`render
 
 from __future__ import annotations
 
+# imported (through rendering/expressions.py) to build `flamenerf --help`: tracking.driving
+# is imported where a take's head turns are read
+
 import csv
 import re
 from pathlib import Path
@@ -18,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from flamenerf.errors import UserError
+from flamenerf.geometry import euler_head
 
 TIMECODE = re.compile(r"^(\d{1,2}):(\d{2}):(\d{2})[:;](\d{1,3})(\.\d+)?$")
 # timecode rates Live Link Face and video use; a take's is the smallest above its largest FF
@@ -107,7 +111,6 @@ def head_turns(angles: np.ndarray) -> np.ndarray:
     about ARKit's z, out of the face, negated), so HeadRoll > 0 tilts the top of the head
     to the subject's left. Not checked against a recorded take with head turns.
     """
-    from flamenerf.geometry import euler_head
     from flamenerf.tracking.driving import relative_head_pose
 
     deg = np.degrees(np.asarray(angles, np.float64))

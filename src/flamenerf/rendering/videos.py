@@ -7,6 +7,9 @@ source, which cameras, how many frames) can be read and tested on its own.
 
 from __future__ import annotations
 
+# imported to build `flamenerf --help` (RenderOptions): what only rendering needs (the run,
+# the renderer, edits, filmed clips, frame folders) is imported inside the functions that use it
+
 import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
@@ -16,14 +19,20 @@ import numpy as np
 import tyro
 
 from flamenerf.data.dataset import Dataset, Intrinsics, reference_position
-from flamenerf.data.head_pose import posed_vertices
+from flamenerf.data.head_pose import canonical_vertices, posed_vertices
 from flamenerf.errors import UserError
 from flamenerf.model.inference import FAST, REFERENCE, RenderSettings
 from flamenerf.rendering import cameras as C
 from flamenerf.rendering import expressions as X
 from flamenerf.rendering import soundtrack as S
-from flamenerf.data.video import check_fps
+from flamenerf.data.video import VideoWriter, check_fps
 from flamenerf.runtime import set_threads
+from flamenerf.data import head_pose as H
+from flamenerf.data.companions import dataset_companions
+from flamenerf.data.expression_range import ExpressionRange, training_expressions, training_range
+from flamenerf.geometry import se3_log
+from flamenerf.images import expression_panel, resize_to_height, titled_row
+from flamenerf.outdir import folders_kept_only_on_success, writable_dir
 
 MAX_FRAMES = 1_000_000
 
@@ -288,8 +297,6 @@ def expression_source(opts: RenderOptions, ds: Dataset, names: list[str], intr: 
 def tour_training(opts: RenderOptions, ds: Dataset, names: list[str]) -> np.ndarray | None:
     """What `--expressions tour` reads: the training frames' expressions (N, E), where a
     tour is asked for and the dataset's controls are the run's; else None."""
-    from flamenerf.data.expression_range import training_expressions
-
     if opts.expressions != ["tour"] or ds.expression_names != names:
         return None
     return training_expressions(ds)
@@ -297,8 +304,6 @@ def tour_training(opts: RenderOptions, ds: Dataset, names: list[str]) -> np.ndar
 
 def keyframe_companions(opts: RenderOptions, ds: Dataset, names: list[str]):
     """The dataset's companions for --expressions keyframes, unless --no-companions."""
-    from flamenerf.data.companions import dataset_companions
-
     if not opts.companions or ds.expression_names != names:
         return None
     return dataset_companions(ds)
@@ -322,16 +327,12 @@ def within_training_range(opts: RenderOptions, ds: Dataset, names: list[str],
 def training_limits(opts: RenderOptions, ds: Dataset, names: list[str]):
     """The training frames' range (data/expression_range.ExpressionRange) that what the
     user asks for is clamped to; None with --extrapolate or another expression model."""
-    from flamenerf.data.expression_range import training_range
-
     if opts.extrapolate or ds.expression_names != names:
         return None
     return training_range(ds)
 
 
 def clamp_note(over: list[str]) -> str:
-    from flamenerf.data.expression_range import ExpressionRange
-
     return f"note: {ExpressionRange.note(over)}"
 
 
@@ -413,8 +414,6 @@ def head_transforms(opts: RenderOptions, run, ds: Dataset, n: int, log=print,
     """Each frame's canonical-from-world head transform (n, 4, 4): --head-pose (`drive` /
     `take`: the driving video's / the ARKit take's head turns, from `seq`), else a split's
     own head poses; None: the head at frame 0's pose."""
-    from flamenerf.data import head_pose as H
-
     if opts.head_pose:
         if not getattr(run.model, "follows_head", False):
             raise UserError(f"--head-pose: {opts.run} was not trained on a dataset with head "
@@ -447,8 +446,6 @@ def write_videos(plan: RenderPlan) -> None:
 
     from tqdm import tqdm
 
-    from flamenerf.data.video import VideoWriter
-    from flamenerf.images import expression_panel, resize_to_height, titled_row
     from flamenerf.rendering.reanimate import depth_image, depth_range
 
     intr, values, seq = plan.intr, plan.values, plan.seq
@@ -496,8 +493,6 @@ def write_videos(plan: RenderPlan) -> None:
 
 def render_videos(opts: RenderOptions, log=print) -> RenderSummary:
     """The whole of `flamenerf render` (see its --help)."""
-    from flamenerf.outdir import folders_kept_only_on_success
-
     opts.check()
     with folders_kept_only_on_success(opts.out.parent if opts.out is not None
                                       else Path(opts.run) / "renders"):
@@ -516,7 +511,6 @@ def plan_render(opts: RenderOptions, log=print) -> RenderPlan:
     """Everything `flamenerf render` decides before it renders (see its --help); checks
     that the outputs can be written, writes nothing."""
     from flamenerf.data.prior import dataset_dilation, mesh_function
-    from flamenerf.outdir import writable_dir
     from flamenerf.training.run import load_run
 
     set_threads(opts.threads)
@@ -572,8 +566,6 @@ def plan_render(opts: RenderOptions, log=print) -> RenderPlan:
     if seq.vertices is not None and not opts.head_pose and not edits:
         verts = seq.vertices[:n]  # a split's own (posed) meshes
     elif seq.vertices is not None:  # the split's meshes, turned by --head-pose, edited
-        from flamenerf.data.head_pose import canonical_vertices
-
         canon = canonical_vertices(ds, ds.split(opts.split))[:n]
         if edits:  # the tracked mesh, moved as the expression model moves it for the edit
             from flamenerf.rendering.filmed import changed_meshes
@@ -585,8 +577,6 @@ def plan_render(opts: RenderOptions, log=print) -> RenderPlan:
         verts = posed_vertices(np.stack([mesh_of(v) for v in values]), T)
     heads = None
     if T is not None:
-        from flamenerf.geometry import se3_log
-
         heads = se3_log(T).astype(np.float32)
     if opts.head_pose:
         cam_label = f"{cam_label}_head"
@@ -642,8 +632,6 @@ def not_covered(opts: RenderOptions, ds: Dataset, names: list[str], values: np.n
                 edits: list, log=print) -> list[str]:
     """Say which of the controls a drive, a file, keyframes or an edit ask for the
     training frames never move (a clip without a blink has no blink to give). -> them."""
-    from flamenerf.data.expression_range import ExpressionRange, training_range
-
     if ds.expression_names != names or not (opts.drive or opts.expressions or edits):
         return []
     rng = training_range(ds)

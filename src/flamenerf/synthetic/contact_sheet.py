@@ -11,6 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
+from flamenerf.data.dataset import load_dataset
+
 LEAKAGE_SHOWN = ("neutral", "jawOpen", "mouthSmileLeft", "mouthPucker", "cheekPuff",
                  "mouthFrownRight", "browInnerUp", "browDownLeft", "eyeBlinkRight", "eyeWideLeft")
 
@@ -30,8 +32,6 @@ def contact_sheet(dataset: str | Path, out: str | Path, columns: int = 5) -> Pat
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from flamenerf.data.dataset import load_dataset
 
     ds = load_dataset(dataset)
 

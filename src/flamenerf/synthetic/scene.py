@@ -30,9 +30,14 @@ from typing import Any, Callable, Iterator
 
 import numpy as np
 
-from flamenerf.synthetic.cameras import capture_path, novel_path
+from flamenerf.synthetic.cameras import capture_path, intrinsics, novel_path
 from flamenerf.synthetic.expressions import leakage_sweep, speech_trajectory
 from flamenerf.synthetic.head import CONTROLS, mesh_landmarks
+from flamenerf import __version__
+from flamenerf.data.dataset import DatasetError, DatasetWriter
+from flamenerf.synthetic.background import sway_pose
+from flamenerf.synthetic.motion import head_motion_path, novel_head_poses
+from flamenerf.synthetic.render import SyntheticScene, mask_dilation
 
 SOURCE_NAME = "flamenerf synth"
 
@@ -67,9 +72,6 @@ def frame_specs(seed: int, frames: int, sway: float, reanimate: int | None = Non
                 leakage_steps: int = 3, head_motion: bool = False) -> list[FrameSpec]:
     """Every frame of the scene, in dataset order (train/val, reanimate, leakage, and with
     head_motion novel_pose)."""
-    from flamenerf.synthetic.background import sway_pose
-    from flamenerf.synthetic.motion import head_motion_path, novel_head_poses
-
     specs: list[FrameSpec] = []
     c2ws, angles = capture_path(frames, seed)
     exprs = speech_trajectory(frames, seed, stream=0)
@@ -111,8 +113,6 @@ _WORKER_SCENE = None
 
 def _init_worker(seed: int, size: int, sway: float) -> None:
     import torch
-
-    from flamenerf.synthetic.render import SyntheticScene
 
     global _WORKER_SCENE
     torch.set_num_threads(1)
@@ -177,11 +177,6 @@ def make_scene(out: str | os.PathLike, seed: int = 0, size: int = 256, frames: i
     progress(n): called after each frame is written; head_motion: the head turns and
     shifts independently of the camera against a static room (needs sway = 0; adds the
     novel_pose split). Returns the dataset path."""
-    from flamenerf import __version__
-    from flamenerf.data.dataset import DatasetError, DatasetWriter
-    from flamenerf.synthetic.cameras import intrinsics
-    from flamenerf.synthetic.render import SyntheticScene
-
     if size < 16:
         raise DatasetError(f"{out}: size must be at least 16 pixels, got {size}")
     if frames < 1:
@@ -198,7 +193,6 @@ def make_scene(out: str | os.PathLike, seed: int = 0, size: int = 256, frames: i
               **({"head_motion": True} if head_motion else {})}
     info = {"description": "synthetic face rig; controls named after ARKit blendshapes, "
                            "each in [0, 1] ('Left' = the subject's left, +x)"}
-    from flamenerf.synthetic.render import mask_dilation
 
     writer = DatasetWriter(out, intr, 0.1, 10.0, list(CONTROLS), "synthetic",
                            expression_info=info, source=source, overwrite=overwrite,
@@ -229,9 +223,6 @@ def make_scene(out: str | os.PathLike, seed: int = 0, size: int = 256, frames: i
 def scene_from_dataset(ds) -> "SyntheticScene":  # noqa: F821
     """The SyntheticScene that made dataset `ds` (a loaded Dataset), to render ground truth
     for any camera/expression: `scene.render(c2w, expr, frame.extra["body_pose"])`."""
-    from flamenerf.data.dataset import DatasetError
-    from flamenerf.synthetic.render import SyntheticScene
-
     src = ds.source or {}
     if src.get("name") != SOURCE_NAME:
         raise DatasetError(f"{ds.root / 'transforms.json'}: not made by `flamenerf synth`")

@@ -4,6 +4,9 @@ preprocessing pipeline and the driving-video tracker."""
 
 from __future__ import annotations
 
+# imported (through tracking/pipeline.py) to build `flamenerf --help`: the landmarker, the
+# camera solve and the background are imported inside the functions that run them
+
 import os
 import time
 from dataclasses import dataclass, field
@@ -12,6 +15,7 @@ from typing import Any
 import numpy as np
 
 from flamenerf.errors import UserError
+from flamenerf.data.video import iter_frames, probe_video, select_frames
 
 MAX_ERROR = 0.03
 """Default misfit limit of the camera solve, as a fraction of the face size."""
@@ -117,7 +121,6 @@ def track_clip(video: str | os.PathLike, fps: float | None = None,
     one person among other faces (`choose_face`; `face`: whose, FACE_CHOICES)."""
     if face not in FACE_CHOICES:
         raise UserError(f"--face {face}: one of {', '.join(FACE_CHOICES)}")
-    from flamenerf.data.video import iter_frames, probe_video, select_frames
     from flamenerf.tracking.landmarker import FaceLandmarker, blendshape_names, find_model
     from flamenerf.tracking.shots import shot_indices, thumbnail
 
@@ -249,7 +252,6 @@ def solve_scene(clip: TrackedClip, mesh, fov: float | None, max_error: float = M
     4. `compose_world`: metric scale, head poses, the case, warnings.
     With background=False, or when the registration fails, the head is the world (as
     before). -> (clip, SolveResult, Scene)"""
-    from flamenerf.data.video import iter_frames
     from flamenerf.tracking.background import (BackgroundOptions, person_mask,
                                                register_background)
     from flamenerf.tracking.world import compose_world

@@ -8,8 +8,14 @@ from typing import Literal
 
 import numpy as np
 
+import flamenerf
 from flamenerf.errors import UserError
 from flamenerf.tracking.clip import require_enough, solve_clip, track_clip
+from flamenerf.geometry import head_euler
+from flamenerf.tracking.crop import face_boxes
+from flamenerf.tracking.expressions import ExpressionTrack
+from flamenerf.tracking.flame import fit_flame, load_flame_dir
+from flamenerf.tracking.landmarker import find_model, load_canonical_mesh
 
 
 def track_expressions(video: str | os.PathLike, fps: float | None = None,
@@ -19,21 +25,12 @@ def track_expressions(video: str | os.PathLike, fps: float | None = None,
                       min_tracked: float = 0.5, progress: bool = True,
                       face: str = "largest"):
     """Per-frame expression vectors of a (driving) video -> ExpressionTrack."""
-    import flamenerf
-    from flamenerf.tracking.crop import face_boxes
-    from flamenerf.tracking.expressions import ExpressionTrack
-
     flame = None
     if face_model == "flame":
-        from flamenerf.tracking.flame import load_flame_dir
-
         flame = load_flame_dir(flame_dir)
     clip = track_clip(video, fps, max_frames, landmarker, progress, face)
     require_enough(clip, min_tracked, minimum=1)
     if flame is not None:
-        from flamenerf.tracking.flame import fit_flame
-        from flamenerf.tracking.landmarker import find_model, load_canonical_mesh
-
         if len(clip.frames) < 2:
             raise UserError(f"{video}: the FLAME fit needs at least 2 tracked frames")
         mesh = load_canonical_mesh(find_model(landmarker))
@@ -64,8 +61,6 @@ def relative_head_pose(transforms: np.ndarray) -> np.ndarray:
     the face, as the canonical face model's), as rows (T, 6) of yaw, pitch, roll (degrees)
     and x, y, z = 0 (`render --head-pose drive`: turns, not the driver's distance to
     the camera)."""
-    from flamenerf.geometry import head_euler
-
     R = np.asarray(transforms, np.float64)[:, :3, :3]
     u, _, vt = np.linalg.svd(R)  # the landmarker's matrices carry a scale: keep the rotation
     R = u @ vt

@@ -33,6 +33,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from flamenerf.data.dataset import (StoredMeshModel, load_dataset, reference_position,
+                                    write_mesh_model)
+from flamenerf.data.expression_range import span, training_expressions, varies
+from flamenerf.data.face_parts import control_weights
+from flamenerf.data.head_pose import canonical_vertices
+from flamenerf.geometry import project_points
+from flamenerf.meshes import expression_model_system, model_from_coefficients
+from flamenerf.tracking.blendshapes import BlendshapeStage
+from flamenerf.tracking.landmarker import NUM_LANDMARKS, blendshape_names
+
 MM = 1e-3
 """The scale of the fit term: world units are metres (preprocess)."""
 
@@ -135,8 +145,6 @@ def pinhole_projection(intr, c2w: np.ndarray
                        ) -> Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]:
     """mesh (V, 3) world -> its pixels (V, 2) in camera c2w (geometry.project_points) and
     their derivatives (V, 2, 3)."""
-    from flamenerf.geometry import project_points
-
     w2c = np.linalg.inv(np.asarray(c2w, np.float64))
 
     def project(mesh: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -155,8 +163,6 @@ def pinhole_projection(intr, c2w: np.ndarray
 def applies(ds) -> bool:
     """Whether the tracker can read the dataset's meshes: MediaPipe's blendshape scores on
     its full mesh, irises included (the blendshape stage reads them)."""
-    from flamenerf.tracking.landmarker import NUM_LANDMARKS
-
     return ds.expression_kind == "arkit" and ds.face_vertices.shape[1] == NUM_LANDMARKS
 
 
@@ -164,9 +170,6 @@ def dataset_sweeps(ds, stage_names: list[str]) -> tuple[list[Sweep], list[int]]:
     """The sweeps `eval` makes (each control that varies in the training frames and that the
     tracker scores, alone, over its training span, at the reference frame's expression),
     at their low end, middle and high end; and the scored rows' indices in `stage_names`."""
-    from flamenerf.data.dataset import reference_position
-    from flamenerf.data.expression_range import span, training_expressions, varies
-
     x = training_expressions(ds)
     base = ds.frames[reference_position(ds)].expression.astype(np.float64)
     known = set(stage_names)
@@ -185,12 +188,6 @@ def fit_for_dataset(ds, strength: float = 10.0, iterations: int = 3, ridge: floa
     with each control on its part of the face. -> neutral (V, 3), basis (E, V, 3) float32
     tensors in the canonical frame, as data/mesh_model.fit_dataset_expression_model returns."""
     import torch
-
-    from flamenerf.data.dataset import reference_position
-    from flamenerf.data.face_parts import control_weights
-    from flamenerf.data.head_pose import canonical_vertices
-    from flamenerf.meshes import expression_model_system, model_from_coefficients
-    from flamenerf.tracking.blendshapes import BlendshapeStage
 
     stage = stage or BlendshapeStage()
     train = ds.training_frames()
@@ -224,9 +221,6 @@ def add_to_dataset(root, progress: bool = True) -> dict | None:
     (`expression_model.npz`, read by data/dataset.load_dataset); None where the tracker
     cannot read the dataset's meshes (`applies`). -> {"method", "controls", "seconds"}."""
     import time
-
-    from flamenerf.data.dataset import StoredMeshModel, load_dataset, write_mesh_model
-    from flamenerf.tracking.landmarker import blendshape_names
 
     ds = load_dataset(root)
     if not applies(ds):

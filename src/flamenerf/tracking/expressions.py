@@ -33,7 +33,7 @@ import numpy as np
 from flamenerf.data.dataset import Dataset
 from flamenerf.data.video import check_fps
 from flamenerf.errors import UserError
-from flamenerf.io import read_json
+from flamenerf.io import atomic_write_text, read_json
 
 FORMAT = "flamenerf-expressions"
 VERSION = 1
@@ -68,8 +68,6 @@ class ExpressionTrack:
 
 def save_expressions(path: str | os.PathLike, track: ExpressionTrack) -> Path:
     """Write atomically (flamenerf.io: temp file + rename)."""
-    from flamenerf.io import atomic_write_text
-
     path = Path(path)
     atomic_write_text(path, json.dumps(track.to_json(), indent=None, separators=(",", ":")))
     return path

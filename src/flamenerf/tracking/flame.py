@@ -30,6 +30,8 @@ import torch
 
 from flamenerf.errors import UserError
 from flamenerf.geometry import matrix_to_rotvec, project, so3_exp, umeyama
+from flamenerf.runtime import torch_threads
+from flamenerf.tracking.cameras import MIN_DEPTH, _lbfgs, cauchy
 
 NUM_FLAME_SHAPE = 300  # FLAME's shape components precede its expression components
 
@@ -284,16 +286,12 @@ def fit_flame(m: FlameModel, clip, sol, num_expr: int = 50, num_shape: int = 100
     Loss: Cauchy reprojection error of the embedded landmarks (face-size units) + L2 priors
     + temporal smoothness of ψ and jaw. L-BFGS over all frames, float64.
     """
-    from flamenerf.runtime import torch_threads
-
     with torch_threads(1):  # small tensors: as in the camera solve
         return _fit(m, clip, sol, num_expr, num_shape, iters, reg_shape, reg_expr, reg_pose,
                     smooth)
 
 
 def _fit(m, clip, sol, num_expr, num_shape, iters, reg_shape, reg_expr, reg_pose, smooth):
-    from flamenerf.tracking.cameras import MIN_DEPTH, _lbfgs, cauchy
-
     dt = torch.float64
     sub = embedded_vertices(m)
     local = {int(v): k for k, v in enumerate(sub)}

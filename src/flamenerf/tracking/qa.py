@@ -10,6 +10,7 @@ from PIL import Image, ImageDraw
 
 from flamenerf.data.dataset import Intrinsics
 from flamenerf.geometry import project_points
+from flamenerf.tracking.world import mean_pose
 
 AXIS_LENGTH = 0.06  # metres
 
@@ -157,8 +158,6 @@ def plot_motion(path: Path, times: np.ndarray, c2w: np.ndarray, head_pose: np.nd
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from flamenerf.tracking.world import mean_pose
 
     fig, axes = plt.subplots(2, 2, figsize=(11, 5.6), sharex=True, layout="constrained")
     rows = (("camera", c2w), ("head", head_pose))

@@ -8,6 +8,8 @@ from pathlib import Path
 import numpy as np
 
 from flamenerf.tracking.still_head import RULE_CONTRADICTED
+from flamenerf.data.expression_range import ExpressionRange, span, varies
+from flamenerf.tracking import qa
 
 GROUPS_ARKIT = {  # channels plotted in qa/expressions.png (groups are averaged)
     "jawOpen": ["jawOpen"],
@@ -135,8 +137,6 @@ def expression_coverage(expressions: np.ndarray, names: list[str], splits: list[
     nods before a still camera is seen from above and below as an orbit sees it. ->
     {"varying": [...], "barely_moving": [...], "controls": {name: {...}},
     "follow_the_view": {name: {...}}}"""
-    from flamenerf.data.expression_range import ExpressionRange, span, varies
-
     x = np.asarray(expressions, np.float64)
     train = np.array([s == "train" for s in splits]) if "train" in splits else np.ones(len(x),
                                                                                          bool)
@@ -194,8 +194,6 @@ def frame_entry(k: int, source_frame: int, clip, sol, crop, split: str, mask: np
 def write_qa(qa_dir: Path, report: dict, sheet_frames: list[np.ndarray], sol, scene, clip,
              splits, expressions, names, kind) -> None:
     import imageio.v3 as iio
-
-    from flamenerf.tracking import qa
 
     qa_dir.mkdir(exist_ok=True)
     iio.imwrite(qa_dir / "contact_sheet.png", qa.contact_sheet(sheet_frames, cols=4))

@@ -37,6 +37,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from flamenerf.geometry import cayley, cayley_grad
+from flamenerf.tracking.world import metric_scale
 
 
 RULE_AS_GOOD = "as good as SfM"
@@ -288,8 +289,6 @@ def sfm_metric_scale(rec, w2c_face: np.ndarray, names: list[str]) -> float:
     """The least-squares metric scale (`world.metric_scale`) that composes SfM's cameras
     with the face's: not positive when the face says the camera travels against SfM's
     path; NaN when too few frames are registered."""
-    from flamenerf.tracking.world import metric_scale
-
     c2w = reconstruction_c2w(rec, names)
     ok = np.isfinite(c2w[:, 0, 0])
     if ok.sum() < 2:

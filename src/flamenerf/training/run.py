@@ -16,6 +16,7 @@ from flamenerf.model.flame_nerf import FlameNeRF
 from flamenerf.io import read_json
 from flamenerf.runtime import pick_device
 from flamenerf.training.checkpoint import load_latest, load_model_state
+from flamenerf.data.captured_views import captured_views
 
 
 @dataclass
@@ -50,8 +51,6 @@ class Run:
         """Render with `ds`'s capture: colour at a new camera as the nearest captured view
         saw it (data/captured_views.py); `captured_directions` False: at the direction
         asked, as the training forward does."""
-        from flamenerf.data.captured_views import captured_views
-
         self.model.set_captured_views(captured_views(ds) if captured_directions else None)
 
     def train_intrinsics(self, ds: Dataset) -> Intrinsics:

@@ -21,6 +21,13 @@ from flamenerf.viewer.options import ViewerOptions
 from flamenerf.viewer.renderer import Frame, RenderWorker
 from flamenerf.viewer.tracks import (Track, dataset_tracks, load_track_file, slider_range,
                                      tour_track)
+from flamenerf.data.companions import dataset_companions
+from flamenerf.data.expression_range import training_range
+from flamenerf.data.head_pose import HeadPoseKey, HeadRegion, control_transform
+from flamenerf.gpu_kernels import fault_advice, first_line, gpu_faulted
+from flamenerf.rendering.cameras import rig_from_dataset
+from flamenerf.rendering.edits import apply_edits, describe, parse_edits
+from flamenerf.rendering.filmed import FilmedClip, filmed_codes_error
 
 STATUS_PREFIX = "Render"
 
@@ -60,7 +67,6 @@ class Viewer:
         self.ds = run.dataset(opts.dataset)
         self.names = run.expression_names
         self.home = home_camera(self.ds)
-        from flamenerf.rendering.cameras import rig_from_dataset
 
         self.rig = rig_from_dataset(self.ds)  # where the capture filmed from (status line)
         self.masker = FaceMasker(self.ds, self.home.frame_position, run.model)
@@ -68,8 +74,6 @@ class Viewer:
         fi = self.ds.frames[self.home.frame_position]
         self.frame0_expression = np.clip(fi.expression, self.lo, self.hi).astype(np.float32)
         self.neutral = np.clip(np.zeros(len(self.names), np.float32), self.lo, self.hi)
-        from flamenerf.data.companions import dataset_companions
-        from flamenerf.data.expression_range import training_range
 
         same = self.ds.expression_names == self.names
         self.companions = dataset_companions(self.ds) if same else None
@@ -77,7 +81,6 @@ class Viewer:
         self.tracks: list[Track] = [load_track_file(p, self.names) for p in opts.track]
         tour = tour_track(self.ds, self.names, self.frame0_expression, self.companions)
         self.tracks += ([tour] if tour is not None else []) + dataset_tracks(self.ds)
-        from flamenerf.rendering.filmed import filmed_codes_error
 
         # tracks of the clip's own frames, which can play as filmed (their own codes)
         self.filmable = {t.name for t in self.tracks if t.clip and filmed_codes_error(
@@ -280,8 +283,6 @@ class Viewer:
         self._head_changed()
 
     def _head_changed(self) -> None:
-        from flamenerf.data.head_pose import HeadPoseKey, HeadRegion, control_transform
-
         self._update_command()
         yaw, pitch, roll = (float(s.value) for s in self.g_head)
         if yaw == pitch == roll == 0:
@@ -382,9 +383,6 @@ class Viewer:
     def set_edit(self, text: str) -> None:
         """Edit every track's frames (`render --edit`'s items; empty: none); a mistyped
         edit is shown under the box and leaves the last good one in force."""
-        from flamenerf.errors import UserError
-        from flamenerf.rendering.edits import describe, parse_edits
-
         items = [text.replace(";", ",")] if text.strip() else []
         try:
             self._edits = parse_edits(items, self.names) if items else []
@@ -466,8 +464,6 @@ class Viewer:
             return None
         clip = self._filmed.get(t.name)
         if clip is None:
-            from flamenerf.rendering.filmed import FilmedClip
-
             codes = None if t.name in self.filmable else (self.worker.omega, self.worker.phi)
             clip = self._filmed[t.name] = FilmedClip(self.run, self.ds, t.clip, codes)
         return clip
@@ -513,8 +509,6 @@ class Viewer:
         key = (t.name, tuple(edits), comp is not None, limits is not None)
         v = self._edited.get(key)
         if v is None:
-            from flamenerf.rendering.edits import apply_edits
-
             # as render: a source that is not the clip's own frames is clamped first,
             # then edited (the edit clamped on its own)
             src = t.frames if t.clip or limits is None else limits.clamp(t.frames)
@@ -677,8 +671,6 @@ class Viewer:
     def _render_failed(self, key, err: BaseException) -> None:
         status = self._status.get(key)
         if status is not None:
-            from flamenerf.gpu_kernels import fault_advice, first_line, gpu_faulted
-
             msg = first_line(err)[:160]
             # a lost CUDA context fails every image after it: say how to get going again
             after = ("the GPU cannot render in this process again: "

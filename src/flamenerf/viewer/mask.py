@@ -10,6 +10,7 @@ import numpy as np
 from flamenerf.data.dataset import Dataset, Intrinsics
 from flamenerf.data.prior import dataset_dilation, mesh_function, prior_mask
 from flamenerf.rendering.filmed import FilmedFrame
+from flamenerf.data.head_pose import posed_vertices
 
 
 class FaceMasker:
@@ -45,8 +46,6 @@ class FaceMasker:
         if filmed is not None:
             verts = filmed.mesh(self.mesh_of, filmed.expression if e is None else e, head)
         else:
-            from flamenerf.data.head_pose import posed_vertices
-
             verts = posed_vertices(self.vertices if e is None else self.mesh_of(e), head)
         m = prior_mask(self.ds, verts, c2w, intr, self.dilate_px)
         with self._lock:

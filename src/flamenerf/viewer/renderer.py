@@ -27,8 +27,10 @@ import torch
 from flamenerf.data.dataset import Intrinsics
 from flamenerf.model.inference import VIEWER, RenderSettings
 from flamenerf.model.render_image import StillCamera
-from flamenerf.rendering.filmed import FilmedFrame
+from flamenerf.rendering.filmed import FilmedFrame, own_codes_settings
 from flamenerf.viewer.camera import view_intrinsics
+from flamenerf.geometry import se3_log
+from flamenerf.images import colorize_depth, to_uint8
 
 
 @dataclass
@@ -296,8 +298,6 @@ class RenderWorker:
         """A snapshot's intrinsics, camera and head twist (or None)."""
         head = None
         if snap["head"] is not None:
-            from flamenerf.geometry import se3_log
-
             head = torch.from_numpy(se3_log(snap["head"]).astype(np.float32))
         return view_intrinsics(snap["fov_y"], snap["aspect"], snap["height"]), snap["c2w"], head
 
@@ -368,8 +368,6 @@ class RenderWorker:
         return v is None or (v.version, self.shared.version) != snap["state"] or self._stop
 
     def _render(self, snap, level: int, cancellable: bool) -> Frame:
-        from flamenerf.images import colorize_depth, to_uint8
-
         t0 = time.perf_counter()
         intr, c2w, head = self._view(snap)
         # head pose: the masker poses the mesh, render_image moves the head's points
@@ -380,8 +378,6 @@ class RenderWorker:
         if v is not None and snap["final"] and self._reusable(v, snap):
             still = v.cache  # only the pixels a new expression reaches
         else:
-            from flamenerf.rendering.filmed import own_codes_settings
-
             f = snap["filmed"]  # a frame's own ω is not baked, as in render
             settings = (own_codes_settings(self.settings) if f is not None and f.own_codes
                         else self.settings)

@@ -10,6 +10,11 @@ from pathlib import Path
 import numpy as np
 
 from flamenerf.data.dataset import Dataset, Frame, frames_shown
+from flamenerf.data.expression_range import training_expressions
+from flamenerf.errors import UserError
+from flamenerf.rendering.expressions import from_items, load_take, map_by_name, split_fps
+from flamenerf.rendering.takes import is_take
+from flamenerf.tracking.expressions import load_expressions
 
 
 @dataclass
@@ -51,7 +56,6 @@ def dataset_tracks(ds: Dataset) -> list[Track]:
     if capture:
         out.append(Track(f"capture ({len(capture)} frames)", ds.expression_matrix(capture), fps,
                          capture, ("--split", "capture"), frames_shown(capture, fps)))
-    from flamenerf.rendering.expressions import split_fps
 
     for name in sorted(ds.splits, key=lambda s: (s not in ("train", "val"), s)):
         frames = ds.split(name)
@@ -67,10 +71,6 @@ def tour_track(ds: Dataset, names: list[str], base: np.ndarray, companions=None
     """`tour`: each control the training frames show, in turn, from `base` to an end of
     its range and back (`render --expressions tour`); None where the dataset's controls
     are not the run's or none moves."""
-    from flamenerf.data.expression_range import training_expressions
-    from flamenerf.errors import UserError
-    from flamenerf.rendering.expressions import from_items
-
     if ds.expression_names != names:
         return None
     try:
@@ -85,10 +85,6 @@ def load_track_file(path: str | Path, names: list[str]) -> Track:
     """A `flamenerf track` JSON file or a Live Link Face take (at the take's rate), with its
     channels matched to `names` by name (channels the run lacks are dropped, controls the
     file lacks stay 0)."""
-    from flamenerf.rendering.expressions import load_take, map_by_name
-    from flamenerf.rendering.takes import is_take
-    from flamenerf.tracking.expressions import load_expressions
-
     if Path(path).suffix.lower() == ".csv" and is_take(Path(path)):
         seq = load_take(Path(path), names)
         return Track(f"take {Path(path).name} ({len(seq)} frames)", seq.values,

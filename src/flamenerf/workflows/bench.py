@@ -15,6 +15,9 @@ paper's architecture takes days there. `--machinery` overrides the choice.
 
 from __future__ import annotations
 
+# imported to build `flamenerf --help` (BenchOptions): training, evaluation and the synthetic
+# scene are imported inside the functions that run them
+
 import json
 import os
 import platform
@@ -30,6 +33,11 @@ import tyro
 
 from flamenerf.config import Config, override, preset
 from flamenerf.errors import UserError
+from flamenerf.data.dataset import load_dataset
+from flamenerf.images import abs_diff, hstack, resize_to_height, text_strip, titled_row, vstack
+from flamenerf.io import atomic_write_text, read_json, save_png, write_json
+from flamenerf.outdir import check_replaceable
+from flamenerf.runtime import pick_device, set_threads
 
 METHODS = [  # (run name, expression mode, the preset used with the paper's machinery)
     ("flame-in-nerf", "masked", "flame-in-nerf"),
@@ -142,7 +150,6 @@ def _comparable(cfg: dict) -> dict:
 
 
 def _prepare_scene(o: BenchOptions, log) -> tuple[Path, float, bool]:
-    from flamenerf.data.dataset import load_dataset
     from flamenerf.synthetic.scene import SOURCE_NAME, make_scene
 
     if o.scene is not None:
@@ -167,7 +174,6 @@ def _prepare_scene(o: BenchOptions, log) -> tuple[Path, float, bool]:
 
 
 def _train(name: str, cfg: Config, scene: Path, o: BenchOptions, log) -> dict[str, Any]:
-    from flamenerf.io import atomic_write_text, read_json
     from flamenerf.training.checkpoint import latest_checkpoint
     from flamenerf.training.trainer import train
 
@@ -175,7 +181,6 @@ def _train(name: str, cfg: Config, scene: Path, o: BenchOptions, log) -> dict[st
     timing_file = run_dir / "bench_timing.json"
     prev = 0.0
     if latest_checkpoint(run_dir) is not None:
-        from flamenerf.data.dataset import load_dataset
         from flamenerf.training.trainer import settle_dataset_defaults
 
         settle_dataset_defaults(cfg, load_dataset(scene))  # as the saved run has them
@@ -186,7 +191,6 @@ def _train(name: str, cfg: Config, scene: Path, o: BenchOptions, log) -> dict[st
             if not o.overwrite:
                 raise UserError(f"{run_dir}: holds a run with other settings; pass --overwrite "
                                 "to retrain it, or another --work")
-            from flamenerf.outdir import check_replaceable
 
             check_replaceable(run_dir, "run")  # --overwrite removes only what we wrote
             shutil.rmtree(run_dir)
@@ -208,10 +212,7 @@ def _train(name: str, cfg: Config, scene: Path, o: BenchOptions, log) -> dict[st
 
 def run_bench(o: BenchOptions, log=print) -> dict[str, Any]:
 
-    from flamenerf.data.dataset import load_dataset
     from flamenerf.evaluation.protocol import EvalOptions, evaluate_run
-    from flamenerf.io import atomic_write_text, write_json
-    from flamenerf.runtime import pick_device, set_threads
     from flamenerf.training.run import load_run
 
     set_threads(o.threads)
@@ -296,9 +297,6 @@ def _prior_figure(o: BenchOptions, ds, methods: dict[str, Any], train_size: int)
 
     from flamenerf.data.scene import FrameSet
     from flamenerf.evaluation.protocol import DIFF_GAIN, pick_sweep_frames, render_frames
-    from flamenerf.images import (abs_diff, hstack, resize_to_height, text_strip, titled_row,
-                                  vstack)
-    from flamenerf.io import save_png
     from flamenerf.training.run import load_run
 
     if not ds.splits.get("leakage") or len(ds.splits["leakage"]) < 2:
