@@ -7,9 +7,6 @@ import torch
 
 from flamenerf.data.dataset import Dataset, Frame, Intrinsics
 from flamenerf.data.head_pose import canonical_vertices, head_region, head_twists
-# re-exported: training/trainer.py imports them from here
-from flamenerf.data.mesh_model import (expression_model_residual,  # noqa: F401
-                                       fit_dataset_expression_model)
 from flamenerf.data.rays import RayBatch, pixel_directions
 from flamenerf.data.prior import training_mask
 from flamenerf.images import resize_image

@@ -4,6 +4,7 @@ on one process or several (DistributedDataParallel under torchrun, docs/distribu
 from __future__ import annotations
 
 import contextlib
+import json
 import math
 import time
 from dataclasses import dataclass
@@ -15,15 +16,17 @@ import torch
 from flamenerf import __version__
 from flamenerf.config import Config
 from flamenerf.data.dataset import Dataset, fingerprint, load_dataset
-from flamenerf.data.scene import (FrameSet, expression_model_residual, face_pixel_resolution,
-                                  fit_dataset_expression_model,
-                                  model_detail_region, model_head_region,
-                                  model_warp_region, scene_box)
+from flamenerf.data.expression_range import training_expressions
+from flamenerf.data.face_parts import applies, has_parts
+from flamenerf.data.mesh_model import expression_model_residual, fit_dataset_expression_model
+from flamenerf.data.scene import (FrameSet, face_pixel_resolution, model_detail_region,
+                                  model_head_region, model_warp_region, scene_box)
 from flamenerf.errors import Interrupted, UserError, warn
-from flamenerf.io import TEMP_NAME, atomic_write_text, read_json
+from flamenerf.io import TEMP_NAME, atomic_write_text, read_json, save_png
 from flamenerf.lock import folder_lock
 from flamenerf.model.flame_nerf import FlameNeRF
 from flamenerf.model.mlp import bf16_pays, bf16_training
+from flamenerf.model.render_image import render_image
 from flamenerf.outdir import (LOCK_NAME, RUN_LAYOUT, clean_stale_temps,
                               folders_kept_only_on_success, writable_dir)
 from flamenerf.runtime import set_threads
@@ -94,8 +97,6 @@ def settle_dataset_defaults(cfg: Config, ds: Dataset) -> Config:
     whether the deformation is mesh-guided, whether and how closely it stays in the head's
     region, the hash grid's finest resolution), so that a run's config.json holds what it
     trained with. -> cfg."""
-    from flamenerf.data.face_parts import applies, has_parts
-
     kind, names, nv = ds.expression_kind, ds.expression_names, ds.face_vertices.shape[1]
     use_parts = cfg.model.mesh_guide.face_parts
     regions = cfg.model.expression_regions
@@ -128,8 +129,6 @@ def build_for_dataset(cfg: Config, ds: Dataset) -> FlameNeRF:
                       warp_region=model_warp_region(cfg, ds),
                       background=cfg.train.render_background)
     if cfg.model.expression_centre and cfg.model.expression_mode != "none" and ds.expression_dim:
-        from flamenerf.data.expression_range import training_expressions
-
         model.set_expression_mean(torch.from_numpy(training_expressions(ds).mean(0)))
     if model.expression.uses_mesh_model:
         mg = cfg.model.mesh_guide
@@ -350,8 +349,6 @@ class Trainer:
             "model_args": self.model.init_args,
             "config": self.cfg.to_dict(),
         }
-        import json
-
         atomic_write_text(self.run_dir / "config.json", json.dumps(meta, indent=1))
 
     def state(self) -> dict:
@@ -510,9 +507,6 @@ class Trainer:
     # --------------------------------------------------------------- loop
     def preview(self, writer=None) -> None:
         """Render the first val frame (else train frame 0) with its own codes."""
-        from flamenerf.io import save_png
-        from flamenerf.model.render_image import render_image
-
         frames = self.ds.splits.get("val") or self.ds.splits["train"]
         fr = self.ds.frames[frames[0]]
         fs = FrameSet(self.ds, [fr], self.intr)
