@@ -24,6 +24,7 @@ def eval(  # noqa: A001 - the subcommand's name
     images: int = 3,
     drive: Path | None = None,
     drive_frames: int = 40,
+    drive_match_range: bool = False,
     captured_directions: bool = True,
     out: Path | None = None,
     device: str = "auto",
@@ -66,6 +67,8 @@ def eval(  # noqa: A001 - the subcommand's name
             the correlation over time of driving and re-tracked controls is reported
             (section `drive`, images/drive.png: driving over result).
         drive_frames: Frames of the driving video used, spread over the clip.
+        drive_match_range: Transfer the drive with each control's reach matched to the
+            subject's (`render --match-range`).
         captured_directions: Colour at new cameras as the nearest captured view saw it
             (within 2 degrees of one, as asked), as `render` and `view` show it; off: at
             the direction asked, as training renders.
@@ -120,6 +123,7 @@ def eval(  # noqa: A001 - the subcommand's name
                        fit_lr=fit_lr, seed=seed, leakage_dilate_px=leakage_dilate_px,
                        num_images=images, control=control, control_steps=control_steps,
                        drive=None if drive is None else str(drive), drive_frames=drive_frames,
+                       drive_match_range=drive_match_range,
                        captured_directions=captured_directions)
     # one eval writes a folder at a time (its lock, taken before minutes of fitting), and
     # a failed or interrupted one leaves no empty folder behind

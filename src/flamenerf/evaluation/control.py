@@ -438,22 +438,31 @@ def driven_response(preds: list[np.ndarray], images: list[np.ndarray], values: n
 # MediaPipe face-mesh landmarks: inner lip centres; each eye's upper and lower lid centre
 # ("left" is the subject's left, MediaPipe's left eye); the eye corners, for the scale
 _LIPS = (13, 14)
+_MOUTH_CORNERS = (61, 291)
 _LIDS = {"eye_open_left": (386, 374), "eye_open_right": (159, 145)}
 _EYE_CORNERS = ((263, 362), (33, 133))
+_BROWS = {"brow_left": 334, "brow_right": 105}  # the middle of each brow's upper edge
+GEOMETRY = ("mouth_open", "mouth_width", *_LIDS, *_BROWS)
 
 
 def openings(landmarks: np.ndarray) -> dict[str, float]:
-    """How open the mouth and each eye are: the inner-lip gap and the lid gaps over the
-    distance between the eye centres. landmarks (478 or 468, 2+) -> {mouth_open,
-    eye_open_left, eye_open_right}. Unlike blendshape scores this does not depend on how
-    the tracker splits an expression into controls (an open mouth read as jawOpen on one
-    face and mouthLowerDown on another), so it compares a driver with another face."""
+    """The face's geometry in units of the distance between the eye centres: the inner-lip
+    gap (mouth_open), the mouth corners' distance (mouth_width), the lid gaps
+    (eye_open_left/right) and each brow's height over its eye's centre (brow_left/right).
+    landmarks (478 or 468, 2+) -> {GEOMETRY name: value}. Unlike blendshape scores this
+    does not depend on how the tracker splits an expression into controls (an open mouth
+    read as jawOpen on one face and mouthLowerDown on another), so it compares a driver with
+    another face."""
     p = np.asarray(landmarks, np.float64)[:, :2]
     eyes = [p[list(c)].mean(0) for c in _EYE_CORNERS]
     scale = max(float(np.linalg.norm(eyes[0] - eyes[1])), 1e-9)
-    out = {"mouth_open": float(np.linalg.norm(p[_LIPS[0]] - p[_LIPS[1]])) / scale}
+    out = {"mouth_open": float(np.linalg.norm(p[_LIPS[0]] - p[_LIPS[1]])) / scale,
+           "mouth_width": float(np.linalg.norm(p[_MOUTH_CORNERS[0]] - p[_MOUTH_CORNERS[1]]))
+           / scale}
     for name, (a, b) in _LIDS.items():
         out[name] = float(np.linalg.norm(p[a] - p[b])) / scale
+    for (name, brow), eye in zip(_BROWS.items(), eyes):
+        out[name] = float(np.linalg.norm(p[brow] - eye)) / scale
     return out
 
 
@@ -504,7 +513,8 @@ def edge_change(before: np.ndarray, after: np.ndarray, mask_before: np.ndarray,
 
 def geometry_response(driving: list[np.ndarray], renders: list[np.ndarray],
                       detect: Callable, min_range: float = 0.02) -> dict[str, Any]:
-    """The mouth's and eyes' openings (`openings`) of each driving frame and of its render:
+    """The face's geometry (`openings`: mouth, eyes, brows) of each driving frame and of its
+    render:
     per measure the driving and re-tracked series, their correlation over time and the gain
     (slope of the render's on the driver's); measures the driver moves by less than
     `min_range` are skipped. detect: image -> Detection or None."""
@@ -517,7 +527,7 @@ def geometry_response(driving: list[np.ndarray], renders: list[np.ndarray],
 
     drv, got = measure(driving), measure(renders)
     res: dict[str, Any] = {"measures": {}, "skipped": {}}
-    for key in ("mouth_open", *_LIDS):
+    for key in GEOMETRY:
         x = np.array([math.nan if d is None else d[key] for d in drv])
         y = np.array([math.nan if g is None else g[key] for g in got])
         ok = np.isfinite(x) & np.isfinite(y)

@@ -83,6 +83,8 @@ class EvalOptions:
     """A driving video: render its tracked expressions at the reference frame's camera,
     re-track the renders, report the correlation over time (`drive` section, drive.png)."""
     drive_frames: int = 40
+    drive_match_range: bool = False
+    """The drive's transfer with each control's reach matched (`render --match-range`)."""
     """Frames of the driving video used, spread over the clip."""
     chunk: int = 16384
     captured_directions: bool = True
@@ -388,7 +390,7 @@ def drive_section(run, ds: Dataset, intr, omega0, phi0, opts: EvalOptions
     picture: six driving frames spread over the sequence, each over its render."""
     names = run.expression_names
     seq = from_video(Path(opts.drive), ds, names, max_frames=opts.drive_frames,
-                     panel_height=intr.h)
+                     panel_height=intr.h, match_range=opts.drive_match_range)
     render = C.reference_renderer(run.model, ds, intr, omega0, phi0)[0]
     rendered, notes = seq.values, list(seq.notes)
     if ds.expression_names == names:  # as `render` does by default

@@ -452,24 +452,67 @@ def from_split(ds, split: str, panel_hw: tuple[int, int] | None = None) -> Expre
         vertices=ds.face_vertices[[f.position for f in frames]], driving=driving)
 
 
+MAX_GAIN = 10.0
+
+
+def parse_gains(items: list[str] | None, names: list[str], where: str = "--gain"
+                ) -> dict[str, float]:
+    """`name=G[,name=G]` items (a pair's stem sets both sides, as for keyframes) ->
+    {control: gain}; a one-line UserError for a name that is no control or a gain outside
+    0..MAX_GAIN."""
+    out: dict[str, float] = {}
+    for item in items or []:
+        for part in filter(None, (p.strip() for p in item.split(","))):
+            name, _, val = part.partition("=")
+            controls = resolve_control(name.strip(), names)
+            if controls is None:
+                raise UserError(f"{where} {part!r}: {name.strip()!r} is no control"
+                                f"{suggest(name.strip(), names)}")
+            try:
+                g = float(val)
+            except ValueError:
+                raise UserError(f"{where} {part!r}: expected name=gain, a number") from None
+            if not 0 <= g <= MAX_GAIN:
+                raise UserError(f"{where} {part!r}: the gain must be 0 to {MAX_GAIN:g}")
+            out.update({c: g for c in controls})
+    return out
+
+
 def from_video(video: Path, ds, names: list[str], relative: bool = True,
                fps: float | None = None, max_frames: int | None = None,
-               panel_height: int | None = None, landmarker: Path | None = None
+               panel_height: int | None = None, landmarker: Path | None = None,
+               match_range: bool = False, gains: dict[str, float] | None = None
                ) -> ExpressionSequence:
     """Track a driving video (`flamenerf track`'s pipeline) -> its expressions, mapped by
     control name onto the run's, and its frames (for side-by-side videos).
 
     With `relative` and a dataset of the same expression model, expressions are transferred
-    relative to each subject's neutral face (as `flamenerf track --relative-to`)."""
+    relative to each subject's neutral face (as `flamenerf track --relative-to`); with
+    `match_range` too, each control's motion is scaled from the driver's reach to the
+    subject's (tracking/expressions.range_gains). `gains` {control: g} scale each named
+    control's motion from the subject's neutral (from 0 without the relative transfer)."""
     from flamenerf.tracking.expressions import transfer_to_subject
     from flamenerf.tracking.driving import track_expressions
 
     tr = track_expressions(video, fps=fps, max_frames=max_frames, landmarker=landmarker)
     notes = []
+    neutral = None
     if relative and tr.names == ds.expression_names and tr.kind == ds.expression_kind:
-        tr = transfer_to_subject(tr, ds)
-        notes.append("expressions transferred relative to each subject's neutral face")
+        tr = transfer_to_subject(tr, ds, mode="range" if match_range else "relative")
+        neutral = np.asarray(tr.transfer["subject_neutral"], np.float32)
+        notes.append("expressions transferred relative to each subject's neutral face"
+                     + (", each control's reach matched to the subject's" if match_range
+                        else ""))
+    elif match_range:
+        notes.append("--match-range: needs the relative transfer (a dataset of the driver's "
+                     "expression model): ignored")
     values, unknown = map_by_name(tr.frames, tr.names, names, str(video), strict=False)
+    if gains:
+        rest = (np.zeros(len(names), np.float32) if neutral is None or names != tr.names
+                else neutral)
+        g = np.array([gains.get(n, 1.0) for n in names], np.float32)
+        values = (rest + g * (values - rest)).astype(np.float32)
+        notes.append("gains " + ", ".join(f"{n} x{v:g}" for n, v in gains.items()))
     if unknown:
         notes.append(f"{video}: {len(unknown)} tracked controls are not in this run's "
                      "expression model and are ignored")

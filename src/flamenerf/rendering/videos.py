@@ -100,6 +100,13 @@ class RenderOptions:
             the clip).
         relative: With --drive on a dataset of the same expression model, transfer
             expressions relative to each subject's neutral face.
+        match_range: With --drive and --relative: also scale each control's motion so that
+            the furthest the driver takes it (its 99th percentile) lands on the furthest the
+            subject's own frames take it (a broad smile gives the subject's broadest, a
+            small jaw the subject's own reach); controls either face moves by less than 0.1
+            are left as transferred.
+        gain: With --drive: scale the named controls' motion from the subject's neutral,
+            as in `jawOpen=1.5,mouthSmile=0.5` (a pair's stem sets both sides; 0 to 10).
         companions: Keyframes, the tour and --edit also move the controls the tracker
             reads with the named ones (same part of the face and side, by a regression on
             the training frames:
@@ -158,6 +165,8 @@ class RenderOptions:
     dilate_px: int | None = None
     max_frames: int | None = None
     relative: bool = True
+    match_range: bool = False
+    gain: list[str] | None = None
     companions: bool = True
     extrapolate: bool = False
     landmarker: Path | None = None
@@ -203,6 +212,9 @@ class RenderOptions:
                 raise UserError("--audio: lays a sound under the video; --no-sound leaves "
                                 "sound out: give one of them")
             S.check_audio(self.audio)  # its one-line error, before anything is loaded
+        if (self.gain or self.match_range) and not self.drive:
+            raise UserError(f"--{'gain' if self.gain else 'match-range'}: scales a driving "
+                            "video's expressions; give one with --drive")
         if self.codes == "own" and not self.split:
             raise UserError("--codes own: takes each frame's codes from a split of the run's "
                             "dataset; give --split (e.g. --split capture)")
@@ -283,7 +295,8 @@ def expression_source(opts: RenderOptions, ds: Dataset, names: list[str], intr: 
     if opts.drive:
         seq = X.from_video(opts.drive, ds, names, relative=opts.relative, fps=opts.fps,
                            max_frames=opts.max_frames, panel_height=intr.h,
-                           landmarker=opts.landmarker)
+                           landmarker=opts.landmarker, match_range=opts.match_range,
+                           gains=X.parse_gains(opts.gain, names))
         if opts.max_frames is not None and opts.fps is None:
             log(f"note: --max-frames spreads the {len(seq)} frames over the clip; the video "
                 f"plays at their rate ({seq.fps:.3g} fps) unless --fps is given")

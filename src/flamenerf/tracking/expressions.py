@@ -111,23 +111,53 @@ def estimate_neutral(expr: np.ndarray, k: int = 5) -> tuple[np.ndarray, list[int
 
 
 def transfer_relative(drive: np.ndarray, driver_neutral: np.ndarray,
-                      subject_neutral: np.ndarray, kind: str) -> np.ndarray:
-    """NerFACE-style cross-subject transfer: subject_neutral + (drive - driver_neutral).
-    ARKit scores are clipped back to [0, 1]."""
-    out = subject_neutral[None] + (np.asarray(drive) - driver_neutral[None])
+                      subject_neutral: np.ndarray, kind: str,
+                      gains: np.ndarray | None = None) -> np.ndarray:
+    """NerFACE-style cross-subject transfer: subject_neutral + gains · (drive -
+    driver_neutral), gains (E,) 1 unless given (`range_gains`). ARKit scores are clipped
+    back to [0, 1]."""
+    delta = np.asarray(drive) - driver_neutral[None]
+    if gains is not None:
+        delta = delta * np.asarray(gains)[None]
+    out = subject_neutral[None] + delta
     if kind == "arkit":
         out = np.clip(out, 0.0, 1.0)
     return out.astype(np.float32)
 
 
+REACH = 99.0
+"""The percentile of a control's values that stands for the furthest a face takes it (the
+largest value is often one frame's tracking glitch)."""
+MIN_REACH = 0.1
+GAIN_RANGE = (0.25, 4.0)
+
+
+def range_gains(drive: np.ndarray, driver_neutral: np.ndarray, subject: np.ndarray,
+                subject_neutral: np.ndarray) -> np.ndarray:
+    """Per control, how much the driver's motion is scaled so that the furthest the driver
+    takes it from their neutral (its REACH percentile over `drive` (T, E)) lands on the
+    furthest the subject's frames (N, E) take it: a driver who smiles broadly gives the
+    subject's broadest smile instead of clipping at it, and a small talker's jaw moves the
+    subject's as far as the subject's own. 1 where either moves it by less than MIN_REACH
+    (nothing to match: a control the subject never shows stays near its range, as `render`
+    says); within GAIN_RANGE. -> (E,)"""
+    d_reach = np.percentile(np.asarray(drive, np.float64), REACH, axis=0) - driver_neutral
+    s_reach = np.percentile(np.asarray(subject, np.float64), REACH, axis=0) - subject_neutral
+    ok = (d_reach >= MIN_REACH) & (s_reach >= MIN_REACH)
+    gains = np.where(ok, s_reach / np.where(ok, d_reach, 1.0), 1.0)
+    return np.clip(gains, *GAIN_RANGE)
+
+
 def transfer_to_subject(track: ExpressionTrack, subject: Dataset,
-                        driver_neutral_frame: int | None = None) -> ExpressionTrack:
+                        driver_neutral_frame: int | None = None,
+                        mode: str = "relative") -> ExpressionTrack:
     """`track` re-expressed relative to the subject dataset's neutral face
     (`transfer_relative`), with the record of what was used in `transfer`.
 
     The subject's neutral comes from its capture frames, the driver's from the track
-    (`estimate_neutral`) or from video frame `driver_neutral_frame`. The expression models
-    must match (same names)."""
+    (`estimate_neutral`) or from video frame `driver_neutral_frame`. `mode` "range": each
+    control's motion is also scaled from the driver's reach to the subject's
+    (`range_gains`). The expression models must match (same names)."""
     from dataclasses import replace
 
     if subject.expression_names != track.names:
@@ -136,7 +166,8 @@ def transfer_to_subject(track: ExpressionTrack, subject: Dataset,
             f"{subject.expression_dim} values) differs from this track's ({track.kind}, "
             f"{len(track.names)}); use the same --face-model")
     capture = subject.capture()
-    s_neutral, s_used = estimate_neutral(subject.expression_matrix(capture))
+    s_frames = subject.expression_matrix(capture)
+    s_neutral, s_used = estimate_neutral(s_frames)
     if driver_neutral_frame is not None:
         if driver_neutral_frame not in (track.source_frames or []):
             raise UserError(f"{track.source.get('video', 'the track')}: frame "
@@ -148,9 +179,12 @@ def transfer_to_subject(track: ExpressionTrack, subject: Dataset,
     else:
         d_neutral, used = estimate_neutral(track.frames)
         d_used = [track.source_frames[i] for i in used] if track.source_frames else used
+    gains = (range_gains(track.frames, d_neutral, s_frames, s_neutral) if mode == "range"
+             else None)
     return replace(
-        track, frames=transfer_relative(track.frames, d_neutral, s_neutral, track.kind),
-        transfer={"mode": "relative", "subject": str(subject.root),
+        track, frames=transfer_relative(track.frames, d_neutral, s_neutral, track.kind, gains),
+        transfer={"mode": mode, "subject": str(subject.root),
+                  **({} if gains is None else {"gains": np.round(gains, 4).tolist()}),
                   "subject_neutral": np.round(s_neutral, 6).tolist(),
                   "subject_neutral_frames": [capture[i].frame_index for i in s_used],
                   "driver_neutral": np.round(d_neutral, 6).tolist(),
