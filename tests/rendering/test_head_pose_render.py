@@ -117,6 +117,6 @@ def test_train_options_grow_the_head_region(tmp_path):
     run = load_run(out, "cpu")
     assert run.config.model.head.region_scale == 1.3 and run.config.model.head.band == 0.5
     base = head_region(run.dataset(None), 1.0)
-    assert np.allclose(run.model.head_radii.cpu().numpy(), 1.3 * base.radii, rtol=1e-5)
+    assert np.allclose(run.model.head_rig.radii.cpu().numpy(), 1.3 * base.radii, rtol=1e-5)
     assert main(["train", str(ds), "--out", str(tmp_path / "bad"), "--steps", "1",
                  "--head-band", "0"]) == 2

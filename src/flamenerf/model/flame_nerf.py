@@ -26,15 +26,14 @@ from torch import Tensor, nn
 
 from flamenerf.config import ModelConfig
 from flamenerf.data.captured_views import MAX_ANGLE_DEG
-from flamenerf.geometry import ellipsoid_weight
 from flamenerf.data.rays import RayBatch  # noqa: F401 - the model's input, re-exported
 from flamenerf.model.expression import ExpressionConditioner
 from flamenerf.model.field import ProposalField, make_field
+from flamenerf.model.head_rig import HeadRig
 from flamenerf.model.losses import (LossBatch, LossTerms, LossWeights, face_depth_loss,
                                     face_region_loss)
 from flamenerf.model.render import (composite, interlevel_loss, render_weights, sample_pdf,
                                     stratified_samples)
-from flamenerf.model.se3 import apply_se3, exp_se3
 from flamenerf.model.view_directions import captured_direction
 from flamenerf.model.warp import SE3Field
 
@@ -75,9 +74,8 @@ class FlameNeRF(nn.Module):
         if name is not None:
             region = head_region if self.follows_head else warp_region
             self.init_args[name] = _plain_region(region)
-            for k in ("centre", "axes", "radii"):
-                self.register_buffer(f"head_{k}", torch.tensor(region[k]).float(),
-                                     persistent=False)
+        # model/head_rig.py: how points follow the head (or a still head's warp stays in it)
+        self.head_rig = HeadRig(region, cfg.head.band) if name is not None else None
         bmin, bmax = torch.tensor(box_min), torch.tensor(box_max)
         self.register_buffer("center", (bmin + bmax) / 2)
         # isotropic scale, so that rigid warps in normalised space are rigid in the world
@@ -170,22 +168,14 @@ class FlameNeRF(nn.Module):
         return self.deform_codes(frame_index), self.appearance_codes(frame_index)
 
     def head_weight(self, x: Tensor, band: float | None = None) -> Tensor:
-        """How much of the head's motion canonical points x (*bs, 3) (world units) take:
-        1 inside the head's ellipsoid, a smoothstep down to 0 at 1 + band times its radius
-        (the neck and hair blend into the static world; band: `model.head.band` unless
-        given). -> (*bs,)"""
-        return ellipsoid_weight(x, self.head_centre, self.head_axes, self.head_radii,
-                                self.cfg.head.band if band is None else band)
+        """`HeadRig.weight`: how much of the head's motion world points x (*bs, 3) take."""
+        return self.head_rig.weight(x, band)
 
     def head_points(self, x: Tensor, dirs: Tensor, head: Tensor | None
                     ) -> tuple[Tensor, Tensor]:
-        """World samples x (R, S, 3) and ray directions (R, 3) of rays with head twists
-        ξ (R, 6) -> canonical samples (R, S, 3) and directions (R, 3): a sample moves by
-        exp(w ξ) with w = head_weight of where the full motion exp(ξ) takes it, so the head
-        follows its pose and the background stays put. A ray's direction turns with the
-        most head-bound of its samples (the view direction of what it sees when it meets
-        the head; per ray, so that a still head leaves every tensor as without one).
-        Without a head region or twists: x and dirs unchanged."""
+        """World samples x (R, S, 3) and directions (R, 3) in the head's canonical frame for
+        rays with head twists (R, 6) (`HeadRig.points`); unchanged without a followed head
+        or twists."""
         xc, dc, _ = self._head_points(x, dirs, head)
         return xc, dc
 
@@ -195,21 +185,7 @@ class FlameNeRF(nn.Module):
         (None where nothing moves)."""
         if not self.follows_head or head is None:
             return x, dirs, None
-        rot, p = exp_se3(head[:, :3], head[:, 3:])  # the full motion, one matrix per ray
-        full = torch.baddbmm(p[:, None], x, rot.transpose(1, 2))  # (R, S, 3)
-        w = self.head_weight(full)  # (R, S)
-        # inside the head (w = 1) and the still world (w = 0) need no per-point screw, and a
-        # render's samples are mostly one or the other: half the time of the per-point
-        # screw everywhere (4096 rays x 48 samples, one thread; a 128 px frame of the
-        # expressions clip 0.36 -> 0.31 s, 256 px unchanged)
-        xc = torch.where((w >= 1)[..., None], full, x)
-        band = (w > 0) & (w < 1)
-        if bool(band.any()):
-            rows, wb = band.nonzero()[:, 0], w[band][:, None]
-            xc[band] = apply_se3(wb * head[rows, :3], wb * head[rows, 3:], x[band])
-        share = w.amax(1)
-        dc = apply_se3(share[:, None] * head[:, :3], torch.zeros_like(dirs), dirs)
-        return xc, dc, share
+        return self.head_rig.points(x, dirs, head)
 
     def normalize(self, x: Tensor) -> Tensor:
         return (x - self.center) / self.half_extent
