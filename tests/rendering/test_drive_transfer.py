@@ -38,7 +38,7 @@ def test_gains_parse_by_name_and_stem():
     assert parse_gains(["jawOpen=1.5,mouthSmile=0.5"], names) == {
         "jawOpen": 1.5, "mouthSmileLeft": 0.5, "mouthSmileRight": 0.5}
     assert parse_gains(None, names) == {}
-    for bad, words in (("jaw=2", "no control"), ("jawOpen=x", "a number"),
+    for bad, words in (("jaw=2", "unknown control 'jaw'"), ("jawOpen=x", "not a number"),
                        ("jawOpen=20", "0 to 10")):
         with pytest.raises(UserError, match=words):
             parse_gains([bad], names)

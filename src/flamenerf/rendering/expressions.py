@@ -458,23 +458,16 @@ MAX_GAIN = 10.0
 def parse_gains(items: list[str] | None, names: list[str], where: str = "--gain"
                 ) -> dict[str, float]:
     """`name=G[,name=G]` items (a pair's stem sets both sides, as for keyframes) ->
-    {control: gain}; a one-line UserError for a name that is no control or a gain outside
-    0..MAX_GAIN."""
+    {control: gain}; a one-line UserError for a name that is no control (or no pair's
+    stem) or a gain outside 0..MAX_GAIN."""
+    stems = [n[:-4] for n in names if n.endswith("Left") and n[:-4] + "Right" in names]
     out: dict[str, float] = {}
     for item in items or []:
-        for part in filter(None, (p.strip() for p in item.split(","))):
-            name, _, val = part.partition("=")
-            controls = resolve_control(name.strip(), names)
-            if controls is None:
-                raise UserError(f"{where} {part!r}: {name.strip()!r} is no control"
-                                f"{suggest(name.strip(), names)}")
-            try:
-                g = float(val)
-            except ValueError:
-                raise UserError(f"{where} {part!r}: expected name=gain, a number") from None
+        for name, g in parse_assignments(item, names + stems, where, "control").items():
             if not 0 <= g <= MAX_GAIN:
-                raise UserError(f"{where} {part!r}: the gain must be 0 to {MAX_GAIN:g}")
-            out.update({c: g for c in controls})
+                raise UserError(f"{where} {item!r}: the gain of {name} must be 0 to "
+                                f"{MAX_GAIN:g}")
+            out.update({c: g for c in resolve_control(name, names)})
     return out
 
 
