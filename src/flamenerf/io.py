@@ -39,6 +39,20 @@ class NotWritten(OSError):
     written (a full disk or a file-size limit that cut it short): nothing was renamed."""
 
 
+def temporary_beside(path: str | os.PathLike) -> Path:
+    """A new empty temporary file beside `path`, named for it (`temp_prefix`), readable as
+    an ordinary output once renamed (0644); an OSError names `path`, not the temporary.
+    For writers that hand a file name to another program (ffmpeg)."""
+    path = Path(path)
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=temp_prefix(path.name), dir=path.parent)
+    except OSError as e:
+        raise OSError(e.errno, e.strerror, str(path)) from None
+    os.close(fd)
+    os.chmod(tmp, 0o644)  # mkstemp makes 0600
+    return Path(tmp)
+
+
 def atomic_write_bytes(path: str | os.PathLike, write: Callable[[BinaryIO], object],
                        verify: Callable[[Path], str | None] | None = None) -> None:
     """Call `write(f)` on a temporary file in `path`'s directory, check it (its size is what
@@ -46,13 +60,10 @@ def atomic_write_bytes(path: str | os.PathLike, write: Callable[[BinaryIO], obje
     over `path`. Any failure leaves `path` as it was and raises an OSError naming `path`."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    try:
-        fd, tmp = tempfile.mkstemp(prefix=temp_prefix(path.name), dir=path.parent)
-    except OSError as e:  # name the file asked for, not our temporary's name
-        raise OSError(e.errno, e.strerror, str(path)) from None
+    tmp = temporary_beside(path)
     try:
         try:
-            with os.fdopen(fd, "wb") as f:
+            with open(tmp, "wb") as f:
                 write(f)
                 f.flush()
                 os.fsync(f.fileno())
@@ -60,14 +71,13 @@ def atomic_write_bytes(path: str | os.PathLike, write: Callable[[BinaryIO], obje
         except OSError as e:  # a full disk says "No space left" of no file: name ours
             raise OSError(e.errno, e.strerror, str(path)) from None
         why = (f"{os.path.getsize(tmp)} bytes on disk of {size} written"
-               if os.path.getsize(tmp) != size else verify(Path(tmp)) if verify else None)
+               if os.path.getsize(tmp) != size else verify(tmp) if verify else None)
         if why is not None:
             raise NotWritten(errno.EIO, f"not written: the file read back is not whole "
                              f"({why}; is the disk full?)", str(path))
-        os.chmod(tmp, 0o644)  # mkstemp makes 0600; outputs are ordinary files
         os.replace(tmp, path)
     except BaseException:
-        Path(tmp).unlink(missing_ok=True)
+        tmp.unlink(missing_ok=True)
         raise
 
 

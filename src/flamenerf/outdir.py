@@ -140,12 +140,26 @@ def _is_run(path: Path) -> bool:
     return isinstance(meta, dict) and "flamenerf_version" in meta
 
 
-_KINDS = {"dataset": (DATASET_LAYOUT, _is_dataset), "run": (RUN_LAYOUT, _is_run)}
+# `render --frames-dir`'s folder (rendering/frame_folder.py): numbered PNGs, their index
+FRAMES_LAYOUT = re.compile(r"\d{6}\.png|frames\.json|sound\.wav")
+
+
+def _is_frames(path: Path) -> bool:
+    return (path / "frames.json").is_file()
+
+
+_KINDS = {"dataset": (DATASET_LAYOUT, _is_dataset), "run": (RUN_LAYOUT, _is_run),
+          "frames folder": (FRAMES_LAYOUT, _is_frames)}
+
+
+def _in_layout(name: str, layout: set[str] | re.Pattern) -> bool:
+    return (layout.fullmatch(name) is not None if isinstance(layout, re.Pattern)
+            else name in layout)
 
 
 def check_replaceable(path: Path, kind: str) -> None:
-    """Raise unless `path` is absent, an empty folder, or a `kind` ("dataset" or "run")
-    that flamenerf wrote: its signature file parses and nothing else sits beside the
+    """Raise unless `path` is absent, an empty folder, or a `kind` ("dataset", "run" or
+    "frames folder") that flamenerf wrote: its signature file parses and nothing else sits beside the
     known layout. `--overwrite` must never delete a user's own files."""
     path = Path(path)
     if not path.exists() and not path.is_symlink():
@@ -160,7 +174,7 @@ def check_replaceable(path: Path, kind: str) -> None:
     if not signature(path):
         raise UserError(f"{path}: not a {kind} made by flamenerf; refusing to replace it "
                         "(remove it yourself or choose another output)")
-    foreign = [e for e in entries if e not in layout]
+    foreign = [e for e in entries if not _in_layout(e, layout)]
     if foreign:
         shown = ", ".join(foreign[:3]) + (", ..." if len(foreign) > 3 else "")
         raise UserError(f"{path}: holds files flamenerf did not write ({shown}); refusing "

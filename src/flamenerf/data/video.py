@@ -19,7 +19,6 @@ import logging
 import os
 import re
 import subprocess
-import tempfile
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -27,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from flamenerf.errors import UserError, warn
-from flamenerf.io import temp_prefix
+from flamenerf.io import temporary_beside
 from flamenerf.images import to_uint8
 
 
@@ -89,6 +88,12 @@ def _ffmpeg() -> str:
     return imageio_ffmpeg.get_ffmpeg_exe()
 
 
+def _duration(header: str) -> float | None:
+    """The duration ffmpeg's header text states, in seconds (None if it states none)."""
+    m = re.search(r"Duration: (\d+):(\d+):([\d.]+)", header)
+    return None if m is None else int(m[1]) * 3600 + int(m[2]) * 60 + float(m[3])
+
+
 def _header(path: Path) -> str:
     r = subprocess.run([_ffmpeg(), "-hide_banner", "-nostdin", "-i", str(path)],
                        capture_output=True, text=True, errors="replace")
@@ -144,9 +149,8 @@ def probe_video(path: str | os.PathLike) -> VideoInfo:
         fps = nframes / secs if secs > 0 else 30.0
     packets = _packets(path)
     if "partial file" in packets.stderr:  # its index lists frames whose data is not there
-        said = re.search(r"Duration: (\d+):(\d+):([\d.]+)", text)
-        listed = (f" of the {int(said[1]) * 3600 + int(said[2]) * 60 + float(said[3]):.1f} s "
-                  "its header gives" if said else "")
+        said = _duration(text)
+        listed = f" of the {said:.1f} s its header gives" if said is not None else ""
         warn(f"{path}: the file is cut short (a copy or download that did not finish?): only "
              f"its first {int(nframes)} frames ({secs:.1f} s{listed}) can be read; using those")
     times = _frame_times(packets.stdout, int(nframes), fps)
@@ -331,8 +335,7 @@ def sound_duration(path: str | os.PathLike) -> float | None:
     if not any(ln.lstrip().startswith("Stream") and " Audio: " in ln
                for ln in text.splitlines()):
         return None
-    m = re.search(r"Duration: (\d+):(\d+):([\d.]+)", text)
-    return None if m is None else int(m[1]) * 3600 + int(m[2]) * 60 + float(m[3])
+    return _duration(text)
 
 
 def add_sound(video: Path, sound: Soundtrack, duration: float, out: Path) -> str | None:
@@ -356,13 +359,12 @@ def write_wav(path: str | os.PathLike, sound: Soundtrack, duration: float) -> Pa
     16-bit PCM wav at `path`, written to a temporary, read back and renamed. -> path."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=temp_prefix(path.name), dir=path.parent)
-    os.close(fd)
+    tmp = temporary_beside(path)
     try:
         r = subprocess.run(
             [_ffmpeg(), "-hide_banner", "-nostdin", "-y", "-loglevel", "error", "-ss",
              f"{sound.start:.6f}", "-i", str(sound.source), "-map", "0:a:0", "-vn", "-af",
-             "apad", "-t", f"{duration:.6f}", "-c:a", "pcm_s16le", "-f", "wav", tmp],
+             "apad", "-t", f"{duration:.6f}", "-c:a", "pcm_s16le", "-f", "wav", str(tmp)],
             capture_output=True, text=True, errors="replace")
         got = sound_duration(tmp) if r.returncode == 0 else None
         if got is None or abs(got - duration) > 0.05:
@@ -370,10 +372,9 @@ def write_wav(path: str | os.PathLike, sound: Soundtrack, duration: float) -> Pa
             why = lines[-1] if lines else f"{got} s read back of {duration:.3f} s"
             raise UserError(f"{path}: not written: the sound ({sound.source}) could not be "
                             f"written ({why})")
-        os.chmod(tmp, 0o644)
         os.replace(tmp, path)
     except BaseException:
-        Path(tmp).unlink(missing_ok=True)
+        tmp.unlink(missing_ok=True)
         raise
     return path
 
@@ -397,19 +398,11 @@ class VideoWriter:
         self.path.parent.mkdir(parents=True, exist_ok=True)
         # named as every temporary (flamenerf.io.temp_prefix), so that one a kill -9 left is
         # recognised; the container is named to ffmpeg, not read from the extension
-        self.tmp = self._temporary()
+        self.tmp = temporary_beside(self.path)
         self.fps, self.quality, self.preset = float(fps), quality, preset
         self._gen = None
         self._size: tuple[int, int] | None = None
         self.frames = 0
-
-    def _temporary(self) -> Path:
-        try:
-            fd, tmp = tempfile.mkstemp(prefix=temp_prefix(self.path.name), dir=self.path.parent)
-        except OSError as e:
-            raise OSError(e.errno, e.strerror, str(self.path)) from None
-        os.close(fd)
-        return Path(tmp)
 
     def write(self, frame: np.ndarray) -> None:
         import imageio_ffmpeg
@@ -441,7 +434,6 @@ class VideoWriter:
             self._check(self.tmp, sound=False)
             if self.sound is not None:
                 self._add_sound()
-            os.chmod(self.tmp, 0o644)  # mkstemp makes 0600; outputs are ordinary files
             os.replace(self.tmp, self.path)
         except BaseException:  # nothing half written stays, under any name
             self.tmp.unlink(missing_ok=True)
@@ -455,15 +447,13 @@ class VideoWriter:
                             f"({why}; is the disk full?)")
 
     def _add_sound(self) -> None:
-        mixed = self._temporary()
+        mixed = temporary_beside(self.path)
         try:
             why = add_sound(self.tmp, self.sound, self.frames / self.fps, mixed)
             if why is None:
                 self._check(mixed, sound=True)
                 os.replace(mixed, self.tmp)
-            elif not os.path.getsize(self.tmp) or check_video(self.tmp, self.frames):
-                raise UserError(f"{self.path}: not written ({why})")
-            else:
+            else:  # the picture, read back whole already, stays
                 warn(f"{self.path}: written without the sound of {self.sound.source} "
                      f"(ffmpeg: {why})")
         finally:

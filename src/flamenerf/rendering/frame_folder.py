@@ -10,7 +10,6 @@ absent; a DIR that flamenerf wrote before is replaced only with --overwrite.
 
 from __future__ import annotations
 
-import re
 import shutil
 import tempfile
 from pathlib import Path
@@ -20,26 +19,22 @@ import numpy as np
 from flamenerf.data.video import Soundtrack, write_wav
 from flamenerf.errors import UserError
 from flamenerf.io import save_png, temp_prefix, write_json
+from flamenerf.outdir import check_replaceable, replace_dir
 
 INDEX = "frames.json"
 SOUND = "sound.wav"
-_OURS = re.compile(r"\d{6}\.png|frames\.json|sound\.wav")
 
 
 def check_frames_dir(path: Path, overwrite: bool) -> None:
     """Refuse (one line) a DIR that cannot take the frames: a file, a folder of other
-    things, or frames of an earlier render without --overwrite."""
-    if path.exists() and not path.is_dir():
-        raise UserError(f"{path}: is a file; --frames-dir takes a folder")
-    if not path.is_dir():
-        return
-    entries = sorted(p.name for p in path.iterdir())
-    if not entries:
-        return
-    if not (path / INDEX).is_file() or any(not _OURS.fullmatch(e) for e in entries):
+    things (flamenerf.outdir.check_replaceable), or frames of an earlier render without
+    --overwrite."""
+    entries = sorted(p.name for p in path.iterdir()) if path.is_dir() else []
+    if entries and not (path / INDEX).is_file():  # not ours at all: say what is there
         raise UserError(f"{path}: holds other files ({', '.join(entries[:3])}); "
                         "--frames-dir writes a new or empty folder, or one it wrote before")
-    if not overwrite:
+    check_replaceable(path, "frames folder")  # a file; our frames with files added
+    if entries and not overwrite:
         raise UserError(f"{path}: holds the frames of an earlier render (pass --overwrite to "
                         "replace them, or name another --frames-dir)")
 
@@ -74,14 +69,7 @@ class FrameFolder:
             "height": self.size[1], "seconds": seconds,
             "sound": SOUND if self.sound is not None else None,
             "names": "%06d.png"})
-        if self.path.exists():  # checked replaceable before rendering (check_frames_dir)
-            old = Path(tempfile.mkdtemp(prefix=temp_prefix(self.path.name),
-                                        dir=self.path.parent))
-            self.path.replace(old / self.path.name)
-            self.tmp.replace(self.path)
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            self.tmp.replace(self.path)
+        replace_dir(self.tmp, self.path, "frames folder")
         return self.path
 
     def abort(self) -> None:
