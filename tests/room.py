@@ -27,13 +27,16 @@ class Room:
     head_pose: np.ndarray  # (N, 4, 4) world-from-head
     landmarks: np.ndarray  # (N, 478, 3) pixels (+ relative depth), only 468 meaningful
     intr: Intrinsics
+    moving: np.ndarray | None = None  # (N, H, W) bool: the swaying patch, when there is one
 
 
 def _textures() -> dict[str, np.ndarray]:
     from skimage import data
 
-    return {name: np.asarray(getattr(data, name)(), np.float32)[..., :3]
-            for name in {w[2] for w in WALLS}}
+    tex = {name: np.asarray(getattr(data, name)(), np.float32)[..., :3]
+           for name in {w[2] for w in WALLS}}
+    tex["grass"] = np.asarray(data.grass(), np.float32)[..., None]  # the swaying leaves
+    return tex
 
 
 def _yaw_pitch(yaw: float, pitch: float) -> np.ndarray:
@@ -45,10 +48,13 @@ def _yaw_pitch(yaw: float, pitch: float) -> np.ndarray:
 
 def render_room(canonical: np.ndarray, n: int = 16, size: tuple[int, int] = (192, 144),
                 fov: float = 60.0, camera_deg: float = 30.0, head_yaw_deg: float = 20.0,
-                head_shift: float = 0.03, radius: float = 0.1, textured: bool = True) -> Room:
+                head_shift: float = 0.03, radius: float = 0.1, textured: bool = True,
+                shake_deg: float = 0.0, sway: bool = False, seed: int = 0) -> Room:
     """Camera on an arc of `camera_deg` around the head at 0.6 m; the head yaws by
     ±head_yaw_deg, pitches by half that and shifts by head_shift metres, independently.
-    textured=False: plain walls (a smooth shading only)."""
+    textured=False: plain walls (a smooth shading only). shake_deg: a hand's shake on top,
+    the camera turning about its own centre by a smooth random walk of up to about this
+    much. sway: a patch of the back wall whose texture moves by itself (leaves in wind)."""
     W, H = size
     f = 0.5 * W / np.tan(np.radians(fov) / 2)
     intr = Intrinsics(W, H, f, f, W / 2, H / 2)
@@ -64,20 +70,25 @@ def render_room(canonical: np.ndarray, n: int = 16, size: tuple[int, int] = (192
     yy, xx = np.mgrid[0:H, 0:W].astype(np.float64) + 0.5
     dirs_cam = np.stack([(xx - W / 2) / f, -(yy - H / 2) / f, -np.ones_like(xx)], -1)
     frames, c2ws, poses, lms = [], [], [], []
+    shake = _shake(n, shake_deg, seed)
+    masks = []
     for k in range(n):
         eye = centre + 0.6 * np.array([np.sin(az[k]), 0.05, np.cos(az[k])])
         c2w = look_at(eye, centre)
+        c2w[:3, :3] = c2w[:3, :3] @ shake[k]
         pose = np.eye(4)
         pose[:3, :3] = _yaw_pitch(yaw[k], pitch[k])
         pose[:3, 3] = centre + head_shift * np.array([np.sin(3 * t[k]), 0.3 * t[k], 0.0])
         d = dirs_cam.reshape(-1, 3) @ c2w[:3, :3].T
-        img = _trace(eye, d, tex).reshape(H, W, 3)
+        img, moving = _trace(eye, d, tex, t[k] if sway else None)
+        img = img.reshape(H, W, 3)
         # the head: a sphere around the head origin, shaded so it is not a flat disc
         oc = eye - pose[:3, 3]
         b = d @ oc
         disc = b * b - (d * d).sum(-1) * (oc @ oc - radius**2)
         hit = (disc > 0).reshape(H, W)
         img[hit] = 170.0 + 40.0 * dirs_cam[hit][:, 0:1]
+        masks.append(moving.reshape(H, W) & ~hit)
         frames.append(img.clip(0, 255).astype(np.uint8))
         X = canonical @ pose[:3, :3].T + pose[:3, 3]
         uv, z = project_points(X, intr, c2w)
@@ -88,15 +99,36 @@ def render_room(canonical: np.ndarray, n: int = 16, size: tuple[int, int] = (192
         lms.append(L)
         c2ws.append(c2w)
         poses.append(pose)
-    return Room(frames, np.stack(c2ws), np.stack(poses), np.stack(lms), intr)
+    return Room(frames, np.stack(c2ws), np.stack(poses), np.stack(lms), intr,
+                np.stack(masks) if sway else None)
 
 
-def _trace(eye: np.ndarray, d: np.ndarray, tex: dict[str, np.ndarray]) -> np.ndarray:
-    """Colour of the first wall each ray (M, 3) from `eye` hits."""
+def _shake(n: int, deg: float, seed: int) -> np.ndarray:
+    """Rotations (n, 3, 3) of a hand's shake: a smoothed random walk, largest turn ~deg."""
+    from scipy.ndimage import gaussian_filter1d
+    from scipy.spatial.transform import Rotation
+
+    if deg == 0:
+        return np.tile(np.eye(3), (n, 1, 1))
+    w = gaussian_filter1d(np.random.default_rng(seed).normal(0, 1, (n, 3)), 2.0, axis=0)
+    w = np.cumsum(w, 0)
+    w -= w.mean(0)
+    w *= np.radians(deg) / np.abs(w).max()
+    return Rotation.from_rotvec(w).as_matrix()
+
+
+SWAY_BOX = (0.25, 0.85, -0.3, 0.5)  # x0, x1, y0, y1 of the swaying patch on the back wall
+
+
+def _trace(eye: np.ndarray, d: np.ndarray, tex: dict[str, np.ndarray],
+           sway_t: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Colour of the first wall each ray (M, 3) from `eye` hits, and whether it hit the
+    swaying patch (when sway_t, the time in 0..1, is given)."""
     from scipy.ndimage import map_coordinates
 
     best = np.full(len(d), np.inf)
     out = np.zeros((len(d), 3), np.float32)
+    patch = np.zeros(len(d), bool)
     lo = np.array([-0.9, -0.7, -1.6])
     hi = np.array([0.9, 0.7, 1.0])
     for axis, coord, name in WALLS:
@@ -108,9 +140,23 @@ def _trace(eye: np.ndarray, d: np.ndarray, tex: dict[str, np.ndarray]) -> np.nda
         if not ok.any():
             continue
         img = tex[name]
-        u = (p[ok, a] - lo[a]) / (hi[a] - lo[a]) * (img.shape[1] - 1)
-        v = (hi[b] - p[ok, b]) / (hi[b] - lo[b]) * (img.shape[0] - 1)
+        pa, pb = p[ok, a], p[ok, b]
+        u = (pa - lo[a]) / (hi[a] - lo[a]) * (img.shape[1] - 1)
+        v = (hi[b] - pb) / (hi[b] - lo[b]) * (img.shape[0] - 1)
         best[ok] = s[ok]
         out[ok] = np.stack([map_coordinates(img[..., c], [v, u], order=1, mode="reflect")
                             for c in range(3)], -1)
-    return out
+        patch[ok] = False
+        if sway_t is not None and axis == 2 and coord < 0:  # the back wall
+            x0, x1, y0, y1 = SWAY_BOX
+            inside = (pa > x0) & (pa < x1) & (pb > y0) & (pb < y1)
+            # leaves in the wind: their texture slides back and forth, unlike the wall's
+            la = pa[inside] + 0.04 * np.sin(2 * np.pi * (3 * sway_t + 2 * pb[inside]))
+            leaves = tex["grass"]
+            lu = (la - x0) / (x1 - x0) * (leaves.shape[1] - 1)
+            lv = (y1 - pb[inside]) / (y1 - y0) * (leaves.shape[0] - 1)
+            grey = map_coordinates(leaves[..., 0], [lv, lu], order=1, mode="reflect")
+            idx = np.flatnonzero(ok)[inside]
+            out[idx] = grey[:, None] * np.array([0.5, 0.9, 0.4], np.float32)
+            patch[idx] = True
+    return out, patch

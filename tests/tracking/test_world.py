@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from PIL import Image
 from room import render_room
 from scipy.spatial.transform import Rotation
 
@@ -260,3 +261,32 @@ def test_the_report_gives_the_azimuths_the_head_is_seen_from():
     assert got["room_azimuth_range_deg"] == pytest.approx([0.0, 0.0], abs=1e-6)
     assert got["azimuth_range_deg"] == pytest.approx([-15.0, 15.0], abs=1e-4)
     assert azimuth_ranges(c2w, None)["azimuth_range_deg"] == pytest.approx([0.0, 0.0], abs=1e-6)
+
+
+@pytest.mark.slow
+def test_handheld_shake_registers_as_rotations_and_the_sway_is_flagged(canonical_mesh):
+    # a phone turned in the hand about its own centre (no parallax at all), the head moving
+    # on its own, and a patch of the back wall swaying by itself
+    room = render_room(canonical_mesh.vertices, n=N, size=SIZE, camera_deg=0.0,
+                       shake_deg=4.0, sway=True)
+    sol, reg, world = _solve(room, canonical_mesh)
+    assert reg.status == "registered", reg.reason
+    assert reg.camera_model == "rotation", reg.details.get("camera_model_choice")
+    assert reg.registered.all()
+    # rotations against the truth, up to the world's own orientation
+    G = Rotation.from_matrix(np.einsum("nab,ncb->nac", room.c2w[:, :3, :3],
+                                       world.c2w[:, :3, :3])).mean().as_matrix()
+    cam_err = _rot_deg(G @ world.c2w[:, :3, :3], room.c2w[:, :3, :3])
+    assert np.median(cam_err) < 0.3, cam_err
+    head_err = _rot_deg(G @ world.head_pose[:, :3, :3], room.head_pose[:, :3, :3])
+    assert np.median(head_err) < 1.0, head_err
+    assert world.camera_motion["rotation_max_deg"] > 2.0  # the shake is a camera motion
+    # what swayed is flagged, and little else (on the background: the person is masked)
+    person = np.stack([person_mask(lm[:, :2], *SIZE) for lm in room.landmarks])
+    truth = room.moving & ~person
+    est = np.stack([np.asarray(Image.fromarray(m).resize(SIZE, Image.Resampling.NEAREST))
+                    for m in reg.moving.astype(np.uint8) * 255]) > 0
+    hit = (est & truth).sum()
+    assert hit / truth.sum() > 0.5, (hit / truth.sum())
+    assert hit / max(est.sum(), 1) > 0.7, (hit / max(est.sum(), 1))
+    assert 0 < reg.details["moving_background_share"] < 0.5

@@ -2,11 +2,16 @@
 with the person masked out, one shared pinhole camera.
 
     frames + person masks -> SIFT outside the person -> sequential matching (1, 2, 4, 8...
-    frames apart) -> background flow -> [still camera] or incremental mapping
+    frames apart) -> background flow -> [still camera] or incremental mapping, and the
+    rotation-only model (`flamenerf.tracking.rotation_cameras`) on the same matches; the
+    one that explains them better by GRIC is kept (rotation alone when the mapping
+    cannot start) -> what moves by itself (`flamenerf.tracking.moving_background`)
 
 The result is in COLMAP's own world and scale (`flamenerf.tracking.world` makes it metric
 from the face and puts the head in it). Three outcomes, each with a reason for the report:
-  registered    cameras solved for (most of) the frames;
+  registered    cameras solved for (most of) the frames: by structure from motion
+                (`camera_model` "sfm") or as rotations about one centre ("rotation": a
+                handheld clip with little parallax, a far background);
   still         the background does not move in the image (tripod, a selfie held still):
                 the camera is fixed, there is nothing to solve; also a background too
                 plain to register whose pixels do not change over the clip;
@@ -26,6 +31,9 @@ from pathlib import Path
 import numpy as np
 
 from flamenerf.runtime import quiet_native_stderr
+from flamenerf.tracking.moving_background import MovingOptions, PairResidual, detect_moving
+from flamenerf.tracking.rotation_cameras import (Matches, compare_models, sampson,
+                                                 solve_rotations, transfer)
 from flamenerf.tracking.still_head import reconstruction_c2w, still_head_hypothesis
 
 # COLMAP / OpenCV camera axes (x right, y down, z forward) -> OpenGL (x right, y up, -z fwd)
@@ -69,6 +77,14 @@ class BackgroundOptions:
     """Refine the given focal length in a final bundle adjustment."""
     max_focal_change: float = 0.3
     """Keep the given focal length if the refinement moves it by more than this fraction."""
+    rotation_min_inliers: float = 0.5
+    """The rotation-only model is usable when at least this share of the background's
+    verified matches lands within `inlier_px` of where it predicts."""
+    inlier_px: float = 3.0
+    """Matches within this many pixels (COLMAP's downscaled frames) of a model's prediction
+    count as explained by it."""
+    moving: MovingOptions = field(default_factory=MovingOptions)
+    """What counts as background that moves by itself."""
     num_threads: int = 2
     """Threads of the feature extraction. Matching, mapping and bundle adjustment run on
     one: with two, the matches' geometric checks (and, by float sums, the adjustment)
@@ -93,6 +109,9 @@ class Registration:
     flow_p90: float = 0.0  # background flow, fraction of the long side (90th pct of pairs)
     seconds: float = 0.0
     details: dict = field(default_factory=dict)
+    camera_model: str | None = None  # "sfm" | "rotation" when registered
+    moving: np.ndarray | None = None  # (N, h, w) bool: background moving by itself
+    moving_scale: float = 1.0  # the moving masks' pixels per source pixel
 
     def subset(self, ids: np.ndarray) -> "Registration":
         """The same registration restricted to (and ordered as) the frames `ids`."""
@@ -100,6 +119,8 @@ class Registration:
         idx = np.array([pos[int(i)] for i in ids], np.int64)
         out = Registration(**self.__dict__)
         out.ids, out.registered, out.c2w = self.ids[idx], self.registered[idx], self.c2w[idx]
+        if self.moving is not None:
+            out.moving = self.moving[idx]
         return out
 
     def summary(self) -> dict:
@@ -110,7 +131,7 @@ class Registration:
                 "reprojection_error_px_source": self.reprojection_error_px,
                 "points": self.num_points, "features_per_frame_median": self.features_median,
                 "background_flow_p90": self.flow_p90, "seconds": self.seconds,
-                **self.details}
+                "camera_model": self.camera_model, **self.details}
 
 
 def person_mask(landmarks: np.ndarray, width: int, height: int, grow: float = 1.0
@@ -236,9 +257,11 @@ def _register(frames, opts: BackgroundOptions, tmp: Path, focal: float | None,
     extraction.sift.first_octave = (opts.first_octave if opts.first_octave is not None
                                     else -1 if small else 0)
     extraction.use_gpu = False
-    pycolmap.extract_features(db_path, img_dir, image_names=names,
-                              camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
-                              extraction_options=extraction, device=pycolmap.Device.cpu)
+    with quiet_native_stderr():
+        pycolmap.extract_features(db_path, img_dir, image_names=names,
+                                  camera_mode=pycolmap.CameraMode.SINGLE,
+                                  reader_options=reader, extraction_options=extraction,
+                                  device=pycolmap.Device.cpu)
     db = pycolmap.Database.open(db_path)
     try:
         image_ids = {im.name: im.image_id for im in db.read_all_images()}
@@ -269,8 +292,9 @@ def _register(frames, opts: BackgroundOptions, tmp: Path, focal: float | None,
     pairing = pycolmap.SequentialPairingOptions()
     pairing.overlap = opts.overlap
     pairing.quadratic_overlap = True
-    pycolmap.match_sequential(db_path, matching_options=matching, pairing_options=pairing,
-                              device=pycolmap.Device.cpu)
+    with quiet_native_stderr():
+        pycolmap.match_sequential(db_path, matching_options=matching,
+                                  pairing_options=pairing, device=pycolmap.Device.cpu)
     flow, n_pairs = _background_flow(db_path, image_ids, names)
     long_side = max(W, H) * scale
     flow_p90 = float(np.percentile(flow, 90) / long_side) if len(flow) else 0.0
@@ -281,9 +305,39 @@ def _register(frames, opts: BackgroundOptions, tmp: Path, focal: float | None,
               details={"verified_pairs": n_pairs, "image_scale": scale})
     if len(flow) == 0:
         return _empty(ids, "failed", "no frame pairs of the background matched", **kw)
+    ctx = _Context(img_dir, mask_dir, names, scale, np.array([W * scale / 2, H * scale / 2]),
+                   (focal if focal is not None else 1.2 * max(W, H)) * scale)
     if flow_p90 < opts.still_flow:
-        return _empty(ids, "still", f"the background does not move (90% of frame pairs "
-                      f"move < {100 * flow_p90:.2f}% of the image)", **kw)
+        still = _empty(ids, "still", f"the background does not move (90% of frame pairs "
+                       f"move < {100 * flow_p90:.2f}% of the image)", **kw)
+        _add_moving(still, ctx, _still_residual, opts)
+        return still
+
+    matches = _verified_matches(db_path, image_ids, names)
+    rot = solve_rotations(matches, len(names), ctx.focal, ctx.centre)
+    sfm = _structure_from_motion(db_path, img_dir, tmp, opts, focal, scale, names, ids,
+                                 still_head_c2w, kw)
+    return _choose(ctx, ids, matches, rot, sfm, opts, kw)
+
+
+@dataclass
+class _Context:
+    """What the camera models and the moving-background check share: the frames COLMAP
+    saw, their scale against the source, and the face's intrinsics in their pixels."""
+
+    img_dir: Path
+    mask_dir: Path
+    names: list[str]
+    scale: float
+    centre: np.ndarray  # (2,) principal point
+    focal: float  # the face solve's (or a guess), pixels of COLMAP's frames
+
+
+def _structure_from_motion(db_path, img_dir, tmp, opts, focal, scale, names, ids,
+                           still_head_c2w, kw) -> tuple[Registration | None, str, object]:
+    """COLMAP's incremental mapping (with the focal refinement and the still-head check as
+    before) -> (its registration or None, why not, the reconstruction)."""
+    import pycolmap
 
     mapping = pycolmap.IncrementalPipelineOptions()
     # one thread: the multi-threaded mapper is not reproducible, and on short clips its
@@ -302,10 +356,11 @@ def _register(frames, opts: BackgroundOptions, tmp: Path, focal: float | None,
     mapping.mapper.init_min_num_inliers = 50
     mapping.mapper.num_threads = 1
     mapping.mapper.random_seed = opts.seed
-    recs = pycolmap.incremental_mapping(db_path, img_dir, tmp / "sparse", mapping)
+    with quiet_native_stderr():  # "Failed to create any sparse model" is ours to say
+        recs = pycolmap.incremental_mapping(db_path, img_dir, tmp / "sparse", mapping)
     if not recs:
-        return _empty(ids, "failed", "COLMAP found no initial pair to start the "
-                      "reconstruction from (too little parallax or too few matches)", **kw)
+        return None, ("structure from motion found no initial pair to start from (too "
+                      "little parallax or too few matches)"), None
     rec = max(recs.values(), key=lambda r: r.num_reg_images())
     if focal is not None and opts.refine_focal:
         rec = _refine_focal(rec, focal * scale, opts)
@@ -318,21 +373,193 @@ def _register(frames, opts: BackgroundOptions, tmp: Path, focal: float | None,
     c2w = reconstruction_c2w(rec, names) @ CV_TO_GL
     registered = np.isfinite(c2w[:, 0, 0])
     cam = next(iter(rec.cameras.values()))
-    focal = float(cam.params[0]) / scale
+    f_sfm = float(cam.params[0]) / scale
     err = float(rec.compute_mean_reprojection_error()) / scale
-    kw.update(num_points=int(rec.num_points3D()), near_depth=_near_depth(rec))
-    frac = registered.mean()
     out = Registration("registered", f"{registered.sum()} of {len(ids)} frames registered "
-                       f"against the background", ids, registered, c2w, focal, err, **kw)
+                       f"against the background by structure from motion", ids, registered,
+                       c2w, f_sfm, err, num_points=int(rec.num_points3D()),
+                       near_depth=_near_depth(rec), camera_model="sfm",
+                       **{k: v for k, v in kw.items() if k != "details"},
+                       details=dict(kw["details"]))
+    why = ""
+    frac = registered.mean()
     if frac < opts.min_registered:
-        out.status = "failed"
-        out.reason = (f"only {registered.sum()} of {len(ids)} frames registered against the "
-                      f"background (need {100 * opts.min_registered:.0f}%)")
+        why = (f"structure from motion registered only {registered.sum()} of {len(ids)} "
+               f"frames (need {100 * opts.min_registered:.0f}%)")
     elif err > opts.max_reprojection_px:
-        out.status = "failed"
-        out.reason = (f"background reprojection error {err:.2f} px > "
-                      f"{opts.max_reprojection_px} px")
+        why = (f"structure from motion's reprojection error {err:.2f} px > "
+               f"{opts.max_reprojection_px} px")
+    return out, why, rec
+
+
+def _verified_matches(db_path: Path, image_ids: dict[str, int], names: list[str]) -> Matches:
+    """Every geometrically verified background match (COLMAP's two-view geometries'
+    inliers), as frame positions i < j and pixels of COLMAP's frames."""
+    import pycolmap
+
+    pos = {image_ids[n]: k for k, n in enumerate(names)}
+    db = pycolmap.Database.open(db_path)
+    try:
+        kps = {i: db.read_keypoints(i)[:, :2] for i in image_ids.values()}
+        pair_ids, geoms = db.read_two_view_geometries()
+    finally:
+        db.close()
+    first, second = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)]
+    XI, XJ = [np.zeros((0, 2))], [np.zeros((0, 2))]
+    for pid, g in zip(pair_ids, geoms):
+        m = np.asarray(g.inlier_matches)
+        if len(m) < 15:
+            continue
+        a, b = pycolmap.pair_id_to_image_pair(pid)
+        if pos[a] > pos[b]:
+            a, b, m = b, a, m[:, ::-1]
+        first.append(np.full(len(m), pos[a]))
+        second.append(np.full(len(m), pos[b]))
+        XI.append(kps[a][m[:, 0]].astype(np.float64))
+        XJ.append(kps[b][m[:, 1]].astype(np.float64))
+    return Matches(*(np.concatenate(v) for v in (first, second, XI, XJ)))
+
+
+def _rotation_registration(ctx: _Context, ids, rot, opts: BackgroundOptions, kw
+                           ) -> tuple[Registration, str]:
+    """The rotation-only model as a registration (camera centres at the origin) -> (it,
+    why it is not usable or "")."""
+    R = rot.R
+    c2w = np.tile(np.eye(4), (len(ids), 1, 1))
+    c2w[:, :3, :3] = np.transpose(R, (0, 2, 1))
+    c2w = c2w @ CV_TO_GL
+    c2w[~rot.connected] = np.nan
+    fin = np.isfinite(rot.residual)
+    inl = fin & (rot.residual <= opts.inlier_px)
+    share = float(inl.sum() / max(fin.sum(), 1))
+    # per point, as SfM's reprojection errors are: a transfer error holds both points' noise
+    err = float(np.mean(rot.residual[inl]) / np.sqrt(2) / ctx.scale) if inl.any() else None
+    out = Registration("registered", f"{rot.connected.sum()} of {len(ids)} frames registered "
+                       "against the background as rotations about one centre", ids,
+                       rot.connected.copy(), c2w, ctx.focal / ctx.scale, err,
+                       camera_model="rotation",
+                       **{k: v for k, v in kw.items() if k != "details"},
+                       details=dict(kw["details"]))
+    out.details["rotation_inliers"] = share
+    why = ""
+    if rot.connected.mean() < opts.min_registered:
+        why = (f"the rotation model connects only {rot.connected.sum()} of {len(ids)} "
+               f"frames (need {100 * opts.min_registered:.0f}%)")
+    elif share < opts.rotation_min_inliers:
+        why = (f"the rotation model explains only {100 * share:.0f}% of the background's "
+               f"matches (need {100 * opts.rotation_min_inliers:.0f}%): the camera moves "
+               "with parallax")
+    return out, why
+
+
+def _choose(ctx: _Context, ids, matches: Matches, rot, sfm, opts: BackgroundOptions, kw
+            ) -> Registration:
+    """SfM or rotations, by GRIC where both are usable, else whichever is; then what moves
+    by itself, and (for rotations) the solve again without it."""
+    sfm_reg, sfm_why, rec = sfm
+    rot_reg, rot_why = _rotation_registration(ctx, ids, rot, opts, kw)
+    w2c = None
+    if rec is not None:
+        w2c = np.full((len(ids), 3, 4), np.nan)
+        ok = sfm_reg.registered
+        w2c[ok] = np.linalg.inv(sfm_reg.c2w[ok] @ CV_TO_GL)[:, :3]
+    verdict = compare_models(rot.residual, None if w2c is None else
+                             sampson(matches, w2c, sfm_reg.focal * ctx.scale, ctx.centre),
+                             len(ids))
+    verdict = {k: (v / ctx.scale if k.endswith("_px") and v is not None else v)
+               for k, v in verdict.items()}
+    if not sfm_why and not rot_why:
+        more = rot_reg.registered.sum() >= sfm_reg.registered.sum()
+        pick = "rotation" if verdict.get("chosen") == "rotation" and more else "sfm"
+        why = (f"GRIC {verdict['gric_rotation']:.0f} (rotations) against "
+               f"{verdict['gric_sfm']:.0f} (structure from motion) over {verdict['matches']} "
+               f"background matches; median distance {verdict['rotation_median_px']:.2f} "
+               f"against {verdict['sfm_median_px']:.2f} source px")
+        if pick == "rotation":
+            why = "the background shows no parallax that structure from motion needs: " + why
+    elif not rot_why:
+        pick, why = "rotation", f"{sfm_why}; rotations about one centre explain " \
+            f"{100 * rot_reg.details['rotation_inliers']:.0f}% of the background's matches"
+    elif not sfm_why:
+        pick, why = "sfm", f"{rot_why}"
+    else:
+        out = sfm_reg if sfm_reg is not None else rot_reg
+        out.status, out.reason = "failed", f"{sfm_why}; {rot_why}"
+        out.details["camera_model_choice"] = verdict
+        return out
+    out = rot_reg if pick == "rotation" else sfm_reg
+    out.details["camera_model_choice"] = {**verdict, "chosen": pick, "why": why}
+    residual = (_rotation_residual(rot.R, ctx.focal, ctx.centre) if pick == "rotation"
+                else _epipolar_residual(w2c, sfm_reg.focal * ctx.scale, ctx.centre))
+    _add_moving(out, ctx, residual, opts)
+    if pick == "rotation" and out.moving is not None and out.moving.any():
+        # the rotations again, without the matches that moved by themselves
+        still = ~(_in_mask(out.moving, matches.i, matches.xi, ctx)
+                  | _in_mask(out.moving, matches.j, matches.xj, ctx))
+        rot2 = solve_rotations(matches.where(still), len(ids), ctx.focal, ctx.centre)
+        again, again_why = _rotation_registration(ctx, ids, rot2, opts, kw)
+        if not again_why:
+            out.c2w, out.registered = again.c2w, again.registered
+            out.reprojection_error_px = again.reprojection_error_px
+            out.details["rotation_inliers"] = again.details["rotation_inliers"]
     return out
+
+
+def _rotation_residual(R: np.ndarray, f: float, c: np.ndarray) -> PairResidual:
+    """Distance of a flow's end point to where the rotations R (N, 3, 3) take its start."""
+    def residual(a: int, b: int, x0: np.ndarray, x1: np.ndarray) -> np.ndarray:
+        m = Matches(np.full(len(x0), a), np.full(len(x0), b), x0, x1)
+        return np.linalg.norm(transfer(m, R, f, c) - x1, axis=1)
+    return residual
+
+
+def _epipolar_residual(w2c: np.ndarray, f: float, c: np.ndarray) -> PairResidual:
+    """Sampson distance of a flow to the epipolar geometry of the cameras w2c (N, 3, 4)."""
+    def residual(a: int, b: int, x0: np.ndarray, x1: np.ndarray) -> np.ndarray:
+        return sampson(Matches(np.full(len(x0), a), np.full(len(x0), b), x0, x1), w2c, f, c)
+    return residual
+
+
+def _still_residual(a: int, b: int, x0: np.ndarray, x1: np.ndarray) -> np.ndarray:
+    """A still camera predicts no motion at all."""
+    return np.linalg.norm(x1 - x0, axis=1)
+
+
+def _add_moving(reg: Registration, ctx: _Context, residual, opts: BackgroundOptions) -> None:
+    """Detect the background that moves by itself and record it on `reg` (masks, and the
+    share of the background they cover in the report)."""
+    from PIL import Image
+
+    grey, keep = [], []
+    s = min(1.0, opts.moving.side / max(Image.open(ctx.img_dir / ctx.names[0]).size))
+    for name in ctx.names:
+        img = Image.open(ctx.img_dir / name).convert("L")
+        sz = (max(1, round(img.width * s)), max(1, round(img.height * s)))
+        grey.append(np.asarray(img.resize(sz, Image.Resampling.BILINEAR)))
+        m = Image.open(ctx.mask_dir / f"{name}.png").resize(sz, Image.Resampling.NEAREST)
+        keep.append(np.asarray(m) > 0)
+    moving = detect_moving(np.stack(grey), np.stack(keep), residual, s, opts.moving)
+    reg.moving, reg.moving_scale = moving, s * ctx.scale
+    share = float(moving.sum() / max(sum(k.sum() for k in keep), 1))
+    reg.details["moving_background_share"] = share
+    reg.details["moving_background_frames"] = int(moving.any((1, 2)).sum())
+
+
+def _in_mask(masks: np.ndarray, frame: np.ndarray, x: np.ndarray, ctx: _Context
+             ) -> np.ndarray:
+    """Whether points x (M, 2) in COLMAP's pixels of frames `frame` (M,) lie in masks
+    (N, h, w) made at the moving check's scale."""
+    n, h, w = masks.shape
+    ratio = w / _colmap_width(ctx)
+    u = np.clip((x[:, 0] * ratio).astype(int), 0, w - 1)
+    v = np.clip((x[:, 1] * ratio).astype(int), 0, h - 1)
+    return masks[frame, v, u]
+
+
+def _colmap_width(ctx: _Context) -> int:
+    from PIL import Image
+
+    return Image.open(ctx.img_dir / ctx.names[0]).width
 
 
 def _bundle_adjust(rec, refine_focal: bool, opts: BackgroundOptions) -> None:

@@ -12,6 +12,10 @@ clip is:
   head as world (fallback)    no usable background: today's cameras, the head fixed in
                               the world, every head turn taken as a camera motion.
 
+A handheld clip with little parallax registers as rotations about one centre
+(`flamenerf.tracking.rotation_cameras`): its cameras need no scale, the head's pose is
+the rotation times the face's camera-from-head.
+
 Metric scale: COLMAP's world has none. The head's position in it is
     h_i = s c_i + R_i p_i           (camera centre c_i, rotation R_i, head in camera p_i, m)
 and s (metres per COLMAP unit) is the one that makes the head move least: least squares over
@@ -143,6 +147,12 @@ def compose_world(cam_from_head: np.ndarray, reg, head_centre: np.ndarray,
     if reg is not None and reg.status == "still":
         c2w = np.tile(np.eye(4), (n, 1, 1))  # the camera's own frame, for now
         head = cam_from_head.copy()
+    elif (reg is not None and reg.status == "registered"
+          and getattr(reg, "camera_model", None) == "rotation"):
+        # turns about one centre: metric already, the hand's few centimetres of travel go
+        # to the head's pose (the far background cannot tell them apart)
+        c2w = reg.c2w.copy()
+        head = c2w @ cam_from_head
     elif reg is not None and reg.status == "registered":
         c2w = reg.c2w.copy()
         scale = metric_scale(c2w, cam_from_head)
