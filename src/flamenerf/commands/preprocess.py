@@ -39,10 +39,14 @@ def preprocess(
         video: Input video (anything ffmpeg reads: mp4, mov, ...).
         out: Output dataset directory (written atomically).
     """
+    import os
+
     from flamenerf.tracking.pipeline import preprocess_video
     from flamenerf.tracking.clip import crowded_note
     from flamenerf.tracking.report import scene_lines
 
+    if opts.verbose:  # read by runtime.quiet_native_stderr, wherever native code logs
+        os.environ["FLAMENERF_VERBOSE"] = "1"
     rep = preprocess_video(video, out, opts)
     err = rep["reprojection_error_px"]
     print(f"wrote {out}: {rep['kept_frames']} frames ({rep['splits']}), tracked "

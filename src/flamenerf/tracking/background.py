@@ -77,6 +77,8 @@ class BackgroundOptions:
     """Refine the given focal length in a final bundle adjustment."""
     max_focal_change: float = 0.3
     """Keep the given focal length if the refinement moves it by more than this fraction."""
+    camera_models: tuple[str, ...] = ("sfm", "rotation")
+    """The camera models tried: structure from motion, rotations about one centre."""
     rotation_min_inliers: float = 0.5
     """The rotation-only model is usable when at least this share of the background's
     verified matches lands within `inlier_px` of where it predicts."""
@@ -315,8 +317,9 @@ def _register(frames, opts: BackgroundOptions, tmp: Path, focal: float | None,
 
     matches = _verified_matches(db_path, image_ids, names)
     rot = solve_rotations(matches, len(names), ctx.focal, ctx.centre)
-    sfm = _structure_from_motion(db_path, img_dir, tmp, opts, focal, scale, names, ids,
-                                 still_head_c2w, kw)
+    sfm = (_structure_from_motion(db_path, img_dir, tmp, opts, focal, scale, names, ids,
+                                  still_head_c2w, kw)
+           if "sfm" in opts.camera_models else (None, "structure from motion not tried", None))
     return _choose(ctx, ids, matches, rot, sfm, opts, kw)
 
 
@@ -439,7 +442,9 @@ def _rotation_registration(ctx: _Context, ids, rot, opts: BackgroundOptions, kw
                        rot.connected.copy(), c2w, ctx.focal / ctx.scale, err,
                        camera_model="rotation",
                        **{k: v for k, v in kw.items() if k != "details"},
-                       details=dict(kw["details"]))
+                       # the still-head check weighs SfM's world, not this one
+                       details={k: v for k, v in kw["details"].items()
+                                if k != "still_head_hypothesis"})
     out.details["rotation_inliers"] = share
     why = ""
     if rot.connected.mean() < opts.min_registered:
@@ -458,6 +463,8 @@ def _choose(ctx: _Context, ids, matches: Matches, rot, sfm, opts: BackgroundOpti
     by itself, and (for rotations) the solve again without it."""
     sfm_reg, sfm_why, rec = sfm
     rot_reg, rot_why = _rotation_registration(ctx, ids, rot, opts, kw)
+    if "rotation" not in opts.camera_models:
+        rot_why = "rotations about one centre not tried"
     w2c = None
     if rec is not None:
         w2c = np.full((len(ids), 3, 4), np.nan)
@@ -499,6 +506,7 @@ def _choose(ctx: _Context, ids, matches: Matches, rot, sfm, opts: BackgroundOpti
         rot2 = solve_rotations(matches.where(still), len(ids), ctx.focal, ctx.centre)
         again, again_why = _rotation_registration(ctx, ids, rot2, opts, kw)
         if not again_why:
+            out.details["moving_left_out_of_solve"] = True
             out.c2w, out.registered = again.c2w, again.registered
             out.reprojection_error_px = again.reprojection_error_px
             out.details["rotation_inliers"] = again.details["rotation_inliers"]

@@ -49,6 +49,15 @@ class Crop:
         return np.asarray(img.resize((self.out_size, self.out_size), Image.Resampling.LANCZOS))
 
 
+    def mask(self, mask: np.ndarray, scale: float) -> np.ndarray:
+        """A mask (h, w) bool made at `scale` of the source's pixels -> (out, out) bool:
+        the crop's pixels, each the mask's nearest sample at its centre."""
+        c = (np.arange(self.out_size) + 0.5) / self.scale
+        xs = np.clip(((c + self.x0) * scale).astype(int), 0, mask.shape[1] - 1)
+        ys = np.clip(((c + self.y0) * scale).astype(int), 0, mask.shape[0] - 1)
+        return mask[np.ix_(ys, xs)]
+
+
 def face_boxes(landmarks: np.ndarray) -> np.ndarray:
     """(N, L, ≥2) pixel landmarks -> (N, 4) boxes x0, y0, x1, y1."""
     lo, hi = landmarks[..., :2].min(1), landmarks[..., :2].max(1)

@@ -72,6 +72,9 @@ class PreprocessOptions:
             from frame to frame).
         max_error: Drop frames whose median reprojection error exceeds this fraction of
             the face size (and 3x the clip's median).
+        verbose: Let the native libraries' own log lines (COLMAP, MediaPipe, glog)
+            through to the terminal; without it their failures are said in one line of
+            flamenerf's.
         qa: Write OUT/qa's overlay video, contact sheet and plots (the report,
             qa/tracking_report.json, is always written).
         consistent_expressions: Also fit the β -> mesh model so that each control commanded
@@ -101,6 +104,7 @@ class PreprocessOptions:
     min_tracked: float = 0.5
     face: Literal["largest", "left", "right"] = "largest"
     max_error: float = MAX_ERROR
+    verbose: bool = False
     qa: bool = True
     consistent_expressions: bool = False
     overwrite: bool = False
@@ -249,6 +253,16 @@ def assign_splits(n: int, val_every: int) -> list[str]:
             for k in range(n)] if val_every > 1 else ["train"] * n
 
 
+def moving_masks(reg, crop):
+    """The background registration's masks of what moves by itself, cut like the frames:
+    -> a function of the source frame's id giving (out, out) bool, or None without masks
+    (the background was not registered, or was too plain to look)."""
+    if reg is None or getattr(reg, "moving", None) is None:
+        return None
+    pos = {int(i): k for k, i in enumerate(reg.ids)}
+    return lambda i: crop.mask(reg.moving[pos[int(i)]], reg.moving_scale)
+
+
 def write_dataset(video: Path, out: Path, opts: PreprocessOptions, clip, sol, scene,
                   face: FaceFit, crop, crop_facts: dict, intr, near: float, far: float,
                   cam_dist: np.ndarray,
@@ -287,14 +301,17 @@ def write_dataset(video: Path, out: Path, opts: PreprocessOptions, clip, sol, sc
 
         seen = R.cameras_in_head(sol.c2w, head_pose)
         pos_of = {int(s): k for k, s in enumerate(clip.frames)}
+        moving = moving_masks(scene.registration, crop)
         it = iter_frames(info, clip.frames)
         for i, rgb in progress_bar(it, N, "writing", opts.progress):
             k = pos_of[i]
             img = crop.apply(rgb)
             mask = rasterize_silhouette(verts_world[k], faces, intr, sol.c2w[k], opts.dilate)
+            moves = None if moving is None else moving(i)
             writer.add_frame(
                 img, mask, sol.c2w[k], expressions[k], frame_index=k, split=splits[k],
                 verts=verts_world[k], head_pose=None if head_pose is None else head_pose[k],
+                moving=moves,
                 extra={"source_frame": i, "time": round(float(clip.times[k]), 6),
                        "reprojection_error_px": round(float(sol.rigid_error[k] * crop.scale),
                                                       4)})
@@ -303,7 +320,8 @@ def write_dataset(video: Path, out: Path, opts: PreprocessOptions, clip, sol, sc
             if opts.qa:
                 label = f"{k:04d} src {i} {splits[k]} err {sol.rigid_error[k] * crop.scale:.2f}px"
                 # head axes: the camera seen from the head
-                ov = qa.overlay_frame(img, mask, lm_out[k, :468], intr, seen[k], label)
+                shown = img if moves is None else qa.tint(img, moves, (40, 120, 255))
+                ov = qa.overlay_frame(shown, mask, lm_out[k, :468], intr, seen[k], label)
                 video_out.write(ov)
                 if k in sheet_pos:
                     sheet_frames.append(ov)

@@ -48,6 +48,14 @@ def overlay_frame(rgb: np.ndarray, mask: np.ndarray, landmarks_px: np.ndarray | 
     return np.asarray(img)
 
 
+def tint(rgb: np.ndarray, where: np.ndarray, colour: tuple[int, int, int],
+         amount: float = 0.45) -> np.ndarray:
+    """rgb (H, W, 3) uint8 with the pixels `where` (H, W) bool blended towards colour."""
+    out = rgb.copy()
+    out[where] = ((1 - amount) * rgb[where] + amount * np.asarray(colour)).astype(np.uint8)
+    return out
+
+
 def _erode(mask: np.ndarray) -> np.ndarray:
     m = mask.copy()
     m[1:] &= mask[:-1]

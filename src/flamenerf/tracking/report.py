@@ -42,12 +42,38 @@ DISAGREE_DEG = 3.0
 which `preprocess` points to the field of view."""
 
 
+MODEL_NAMES = {"sfm": "structure from motion (the camera travels; parallax)",
+               "rotation": "rotations about one centre (a handheld camera that mostly "
+                           "turns; little parallax)"}
+
+
+def camera_model_lines(bg: dict) -> list[str]:
+    """Which camera model the background registered with and why, its error, and how much
+    of the background moved by itself (a `Registration.summary()`)."""
+    lines = []
+    model, choice = bg.get("camera_model"), bg.get("camera_model_choice") or {}
+    if bg.get("status") == "registered" and model in MODEL_NAMES:
+        err = bg.get("reprojection_error_px_source")
+        at = f", {err:.2f} px registration error (source pixels)" if err is not None else ""
+        lines.append(f"  camera model: {MODEL_NAMES[model]}{at}"
+                     + (f"; {choice['why']}" if choice.get("why") else ""))
+    share = bg.get("moving_background_share")
+    if share:
+        lines.append(
+            f"  background moving by itself: {100 * share:.1f}% of the background's pixels "
+            f"(in {bg.get('moving_background_frames', 0)} frames; leaves, water, passers-by): "
+            + ("left out of the camera solve, " if bg.get("moving_left_out_of_solve") else "")
+            + "weighed down in training (masks in moving/)")
+    return lines
+
+
 def scene_lines(scene: dict) -> list[str]:
     """What preprocess tells the user about the scene (a `scene_report`): the case, where
     the cameras came from, the still-head check, and every warning."""
     bg = scene.get("background") or {}
     lines = [f"scene: {scene['case']}; cameras from {scene['cameras_from']}"
              + (f" ({bg['reason']})" if bg.get("reason") else "")]
+    lines += camera_model_lines(bg)
     hyp = bg.get("still_head_hypothesis")
     if hyp and "still_head_error_px" in hyp:
         verdict = "kept" if hyp["chosen"] == "still head" else "not kept"

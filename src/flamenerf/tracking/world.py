@@ -184,7 +184,9 @@ def compose_world(cam_from_head: np.ndarray, reg, head_centre: np.ndarray,
     # the special cases are exactly special: their fixed part is its mean
     if case in (CASES[0], CASES[3]):
         head = np.repeat(mean_pose(head)[None], n, axis=0)
-    if case == CASES[1] and reg.status != "still":
+    # a shake measured as rotations stays: snapped still, the background would move
+    if (case == CASES[1] and reg.status != "still"
+            and getattr(reg, "camera_model", None) != "rotation"):
         fixed = mean_pose(c2w)
         head = fixed @ np.linalg.inv(c2w) @ head
         c2w = np.repeat(fixed[None], n, axis=0)
