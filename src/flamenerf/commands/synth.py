@@ -22,6 +22,8 @@ def synth(
     frames: int = 300,
     sway: float | None = None,
     head_motion: bool = False,
+    handheld: bool = False,
+    video: Path | None = None,
     reanimate: int | None = None,
     leakage_steps: int = 3,
     workers: int = 0,
@@ -37,10 +39,13 @@ def synth(
     from a fixed camera). With --head-motion the head also turns (+-25 deg yaw, +-10 deg
     pitch) and shifts (a few cm) independently of the camera against a static room; each
     frame records its head pose, and a novel_pose split (novel head poses x cameras x
-    expressions) is added. The same seed always gives the same bytes. See
-    docs/synthetic_scene.md.
+    expressions) is added. --handheld films that moving head as a phone held in the hand
+    would (a few degrees of shake, a few cm of drift, little parallax) against a far
+    skyline, with leaves swaying by themselves beside the head. The same seed always gives
+    the same bytes. See docs/synthetic_scene.md.
 
     Example: flamenerf synth scenes/portrait --size 128 --frames 120
+             flamenerf synth scenes/phone --handheld --video scenes/phone.mp4
 
     Args:
         out: Output dataset directory.
@@ -48,25 +53,31 @@ def synth(
         size: Image width and height in pixels.
         frames: Number of capture frames (train + val; val is every 10th).
         sway: Body/background sway amplitude (about this many degrees, 3x this many mm);
-            0 makes everything but the face static (default 1; 0 with --head-motion,
-            which needs the room static).
+            0 makes everything but the face static (default 1; 0 with --head-motion or
+            --handheld, which need the room static).
         head_motion: The head turns and shifts independently of the camera (ground-truth
             head poses in transforms.json as head_pose).
+        handheld: A phone's shaky capture of the moving head (implies --head-motion)
+            against a far skyline and swaying leaves.
+        video: Also write the capture frames (train and val, in time order) to this mp4
+            at 30 fps, e.g. for `flamenerf preprocess`.
         reanimate: Number of re-animation frames (default: frames / 10, at least 3).
         leakage_steps: Values per control in the leakage sweep (1/steps .. 1).
         workers: Render processes (0: one per CPU core, at most 4).
-        overwrite: Replace OUT if it exists.
+        overwrite: Replace OUT (and the --video file) if it exists.
     """
     from tqdm import tqdm
 
     from flamenerf.data.dataset import MAX_SIZE
     from flamenerf.errors import UserError
-    from flamenerf.synthetic.scene import frame_specs, make_scene
+    from flamenerf.outdir import writable_dir
+    from flamenerf.synthetic.scene import frame_specs, make_scene, write_capture_video
 
     if sway is None:
-        sway = 0.0 if head_motion else 1.0
-    elif head_motion and sway != 0:
-        raise UserError(f"--sway {sway}: with --head-motion the room is the static world; "
+        sway = 0.0 if head_motion or handheld else 1.0
+    elif (head_motion or handheld) and sway != 0:
+        flag = "--handheld" if handheld else "--head-motion"
+        raise UserError(f"--sway {sway}: with {flag} the room is the static world; "
                         "leave --sway out (or give 0)")
     if not 0 <= sway <= 10:  # a few degrees is the scene's idea; 90 turns the room away
         raise UserError(f"--sway {sway:g}: must be in 0..10 (degrees)")
@@ -84,10 +95,24 @@ def synth(
         raise UserError(f"--leakage-steps {leakage_steps}: must be from 0 to 100")
     if out.exists() and not overwrite:
         raise UserError(f"{out}: already exists (pass --overwrite to replace it)")
-    total = len(frame_specs(seed, frames, sway, reanimate, leakage_steps, head_motion))
+    if video is not None:
+        if video.suffix.lower() != ".mp4":
+            raise UserError(f"{video}: the video must be an .mp4 file")
+        if video.is_dir():
+            raise UserError(f"{video}: is a folder, not a video file")
+        if video.exists() and not overwrite:
+            raise UserError(f"{video}: already exists (pass --overwrite to replace it)")
+        # the dataset folder is replaced whole when it is written
+        if video.absolute().is_relative_to(out.absolute()):
+            raise UserError(f"--video {video}: must be outside the dataset folder {out}")
+        writable_dir(video.absolute().parent, "video")
+    total = len(frame_specs(seed, frames, sway, reanimate, leakage_steps, head_motion,
+                            handheld))
     with tqdm(total=total, desc="synth", unit="frame") as bar:
         path = make_scene(out, seed=seed, size=size, frames=frames, sway=sway,
                           reanimate=reanimate, leakage_steps=leakage_steps,
                           overwrite=overwrite, workers=workers, head_motion=head_motion,
-                          progress=lambda n: bar.update(n - bar.n))
+                          handheld=handheld, progress=lambda n: bar.update(n - bar.n))
     print(f"wrote {path} ({total} frames)")
+    if video is not None:
+        print(f"wrote {write_capture_video(path, video)} ({frames} frames at 30 fps)")

@@ -5,6 +5,11 @@ sways in reality, here the body and the room move instead: `sway_pose` gives the
 world-from-body rigid motion of each frame (identity when the sway amplitude is 0).
 All intersections are analytic (planes, ellipsoids, vertical cylinders, boxes) and the
 textures are procedural images sampled bilinearly.
+
+The handheld variant (`Backdrop(..., handheld=True)`) keeps the torso and neck but puts
+the room far away: a city skyline on a plane FAR_Z behind the head, and in front of it, to
+one side of the head, a panel of leaves whose texture sways in the wind by itself (a
+smooth displacement of its texture coordinates over time; `Leaves.wind`).
 """
 
 from __future__ import annotations
@@ -20,6 +25,13 @@ from flamenerf.synthetic.noise import Noise, upsample
 
 WALL_Z = -0.55
 NECK_PIVOT = np.array([0.0, -0.10, -0.03])  # the body sways about this point
+# the handheld variant: the skyline 4 m behind the head (4.6 m from the camera), wide and
+# tall enough for the novel cameras too; the leaves 2 m from the camera, right of the
+# head in the image (+x), beyond the head's reach under the camera's and the head's motion
+FAR_Z = -4.0
+FAR_EXTENT = (-7.5, 7.5, -4.0, 4.5)
+LEAVES_Z = -1.4
+LEAVES_RECT = (0.47, 1.05, -0.36, 1.25)  # x0, x1, y0, y1
 
 
 def _grid(h: int, w: int, x0: float, x1: float, y0: float, y1: float):
@@ -53,8 +65,13 @@ class Primitive:
     def texture_coords(self, x, y, z, n) -> tuple[torch.Tensor, torch.Tensor]:
         raise NotImplementedError
 
+    moves: bool = False  # its texture changes over time (albedo takes a time)
+
     def albedo(self, x, y, z, n) -> torch.Tensor:
-        a, b = self.texture_coords(x, y, z, n)
+        return self.sample(*self.texture_coords(x, y, z, n))
+
+    def sample(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+        """The texture at texture coordinates a, b (n,) -> (3, n)."""
         a0, a1, b0, b1 = self.extent
         gx = (a - a0) * (2 / (a1 - a0)) - 1
         gy = (b1 - b) * (2 / (b1 - b0)) - 1
@@ -64,12 +81,22 @@ class Primitive:
         return out.reshape(3, -1)
 
 
-class Wall(Primitive):
-    """The plane z = WALL_Z facing +z."""
+class Plane(Primitive):
+    """The plane z = `z` facing +z; with `rect` = (x0, x1, y0, y1) only that rectangle."""
+
+    def __init__(self, z: float, rect: tuple[float, float, float, float] | None = None):
+        self.z, self.rect = float(z), rect
+        if rect is not None:
+            self.bounds = ((rect[0], rect[2], self.z - 1e-3), (rect[1], rect[3], self.z + 1e-3))
 
     def intersect(self, o, dx, dy, dz):
-        t = (WALL_Z - o[2]) / _safe(dz)
-        return torch.where(t > 0, t, torch.full_like(t, math.inf)), None
+        t = (self.z - o[2]) / _safe(dz)
+        ok = t > 0
+        if self.rect is not None:
+            x0, x1, y0, y1 = self.rect
+            x, y = o[0] + t * dx, o[1] + t * dy
+            ok = ok & (x >= x0) & (x <= x1) & (y >= y0) & (y <= y1)
+        return torch.where(ok, t, torch.full_like(t, math.inf)), None
 
     def normal(self, x, y, z, kind, dx, dy, dz):
         n = torch.zeros(3, x.shape[0])
@@ -78,6 +105,49 @@ class Wall(Primitive):
 
     def texture_coords(self, x, y, z, n):
         return x, y
+
+
+class Leaves(Plane):
+    """A rectangle of leaves swaying in the wind: its texture is displaced over time by a
+    smooth field (`wind`), so its pixels change although nothing in the scene moves."""
+
+    moves = True
+
+    def __init__(self, z: float, rect, rng: np.random.Generator):
+        super().__init__(z, rect)
+        # three waves per axis, from a gust (~0.5 s at 30 fps) swaying the branch as a whole
+        # to a flutter (~5 frames) over half a metre: together ~3.5 px per frame at 128 px and
+        # 2 m (0.035 m); the wavelengths are long against the amplitudes (strain ~0.25 rms),
+        # so the leaves move and bend but never fold over
+        self.amp = np.array([0.06, 0.036, 0.012])[None, :] * rng.uniform(0.8, 1.2, (2, 3))
+        self.period = np.array([[16.0, 9.0, 5.0]]) * rng.uniform(0.85, 1.15, (2, 3))
+        ang = rng.uniform(0, 2 * np.pi, (2, 3))
+        k = 2 * np.pi / (np.array([[2.5, 1.3, 0.45]]) * rng.uniform(0.8, 1.2, (2, 3)))
+        self.kx, self.ky = k * np.cos(ang), k * np.sin(ang)
+        self.phase = rng.uniform(0, 2 * np.pi, (2, 3))
+        m = float(2 * self.amp.sum(1).max())  # the largest displacement the waves reach
+        self.extent = (rect[0] - m, rect[1] + m, rect[2] - m, rect[3] + m)
+
+    def wind(self, a: torch.Tensor, b: torch.Tensor, time: float | None):
+        """Texture displacement (du, dv) (n,) each, metres, at texture coordinates a, b (n,)
+        at capture frame `time`; zero at time 0 (and for None)."""
+        if not time:
+            return torch.zeros_like(a), torch.zeros_like(b)
+        out = []
+        for axis in range(2):
+            d = torch.zeros_like(a)
+            for j in range(self.amp.shape[1]):
+                arg = a * float(self.kx[axis, j]) + b * float(self.ky[axis, j]) + float(
+                    self.phase[axis, j])
+                shift = 2 * math.pi * float(time) / float(self.period[axis, j])
+                d = d + float(self.amp[axis, j]) * (torch.sin(arg + shift) - torch.sin(arg))
+            out.append(d)
+        return out[0], out[1]
+
+    def albedo(self, x, y, z, n, time: float | None = None) -> torch.Tensor:
+        a, b = self.texture_coords(x, y, z, n)
+        du, dv = self.wind(a, b, time)
+        return self.sample(a - du, b - dv)
 
 
 class Ellipsoid(Primitive):
@@ -177,20 +247,31 @@ class Box(Primitive):
 
 
 class Backdrop:
-    """Torso, neck and room, with textures chosen by `seed`."""
+    """Torso, neck and room, with textures chosen by `seed`. `person` and `moving` are the
+    indices (into `prims`) of the person's primitives and of those that move by themselves."""
 
-    def __init__(self, seed: int, skin: tuple[float, float, float], coarse: int = 1):
-        """`coarse` divides every texture's resolution (for small images)."""
+    def __init__(self, seed: int, skin: tuple[float, float, float], coarse: int = 1,
+                 handheld: bool = False):
+        """`coarse` divides every texture's resolution (for small images); `handheld`: the
+        far skyline and the swaying leaves instead of the room."""
         self.seed = int(seed)
         c = int(coarse)
         rng = np.random.Generator(np.random.PCG64(np.random.SeedSequence([self.seed, 202])))
         nz = Noise(self.seed * 7 + 2)
         self.prims: list[Primitive] = []
+        self.moving: tuple[int, ...] = ()
 
-        wall = Wall()
-        wall.extent = (-1.2, 1.2, -1.2, 1.2)
-        wall.tex = _bricks(nz, rng, wall.extent, 1200 // c)
-        self.prims.append(wall)
+        if handheld:
+            far = Plane(FAR_Z)  # first: every ray is tested against it (see trace)
+            far.extent = FAR_EXTENT
+            far.tex = _skyline(nz, _stream(self.seed, 212), far.extent, c)
+            self.prims.append(far)
+            _brick_base(rng)  # drawn, unused: a seed dresses the person alike in both variants
+        else:
+            wall = Plane(WALL_Z)
+            wall.extent = (-1.2, 1.2, -1.2, 1.2)
+            wall.tex = _bricks(nz, rng, wall.extent, 1200 // c)
+            self.prims.append(wall)
 
         torso = Ellipsoid((0.0, -0.31, -0.035), (0.21, 0.15, 0.11))
         torso.extent = (-math.pi, math.pi, -0.50, -0.12)
@@ -201,6 +282,14 @@ class Backdrop:
         neck.extent = (-math.pi, math.pi, -0.40, 0.0)
         neck.tex = _neck(nz, neck.extent, skin, c)
         self.prims.append(neck)
+        self.person: tuple[int, ...] = (1, 2)
+
+        if handheld:
+            leaves = Leaves(LEAVES_Z, LEAVES_RECT, _stream(self.seed, 213))
+            leaves.tex = _leaves(nz, leaves.extent, c)
+            self.prims.append(leaves)
+            self.moving = (len(self.prims) - 1,)
+            return
 
         vase = CylinderY(-0.25, -0.22, 0.055, -0.9, -0.05)
         vase.extent = (-math.pi, math.pi, -0.9, -0.05)
@@ -262,8 +351,10 @@ class Backdrop:
             kinds.append(kind)
         return Trace(t=t, which=which, kinds=kinds, origin=ob, dirs=(bx, by, bz), rotation=R)
 
-    def surface(self, tr: "Trace", idx: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Albedo (3, n) and world-frame normal (3, n) where rays `idx` (n,) hit."""
+    def surface(self, tr: "Trace", idx: torch.Tensor, time: float | None = None
+                ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Albedo (3, n) and world-frame normal (3, n) where rays `idx` (n,) hit, at capture
+        frame `time` (for the primitives that move by themselves)."""
         n = len(idx)
         albedo, normal = torch.zeros(3, n), torch.zeros(3, n)
         which = tr.which.index_select(0, idx)
@@ -278,7 +369,8 @@ class Backdrop:
             x, y, z = ob[0] + tk * sx, ob[1] + tk * sy, ob[2] + tk * sz
             kind = None if tr.kinds[k] is None else tr.kinds[k].index_select(0, ids)
             nb = prim.normal(x, y, z, kind, sx, sy, sz)
-            albedo.index_copy_(1, pos, prim.albedo(x, y, z, nb))
+            alb = prim.albedo(x, y, z, nb, time) if prim.moves else prim.albedo(x, y, z, nb)
+            albedo.index_copy_(1, pos, alb)
             normal.index_copy_(1, pos, torch.stack([
                 float(R[i, 0]) * nb[0] + float(R[i, 1]) * nb[1] + float(R[i, 2]) * nb[2]
                 for i in range(3)]))
@@ -336,6 +428,17 @@ def _rgb(c) -> torch.Tensor:
     return torch.tensor(c, dtype=torch.float32).view(3, 1, 1)
 
 
+def _stream(seed: int, key: int) -> np.random.Generator:
+    """An independent random stream of `seed` (its own key, so adding one changes no other)."""
+    return np.random.Generator(np.random.PCG64(np.random.SeedSequence([int(seed), key])))
+
+
+def _brick_base(rng) -> np.ndarray:
+    """The wall's brick colour (3,)."""
+    bases = [(0.62, 0.33, 0.25), (0.70, 0.62, 0.52), (0.55, 0.45, 0.42), (0.80, 0.76, 0.70)]
+    return np.array(bases[rng.integers(len(bases))]) * rng.uniform(0.95, 1.05, 3)
+
+
 def _bricks(nz: Noise, rng, extent, res: int) -> torch.Tensor:
     x, y = _grid(res, res, *extent)
     bw, bh, mortar = 0.21, 0.07, 0.010
@@ -348,8 +451,7 @@ def _bricks(nz: Noise, rng, extent, res: int) -> torch.Tensor:
     m = 1 - torch.clamp((edge - mortar / 2) / 0.0025 + 0.5, 0, 1)  # 1 in the mortar
     ri, ci = row.to(torch.int32), col.to(torch.int32)
     h1, h2 = nz.hash(ri, ci), nz.hash(ri + 7919, ci)
-    bases = [(0.62, 0.33, 0.25), (0.70, 0.62, 0.52), (0.55, 0.45, 0.42), (0.80, 0.76, 0.70)]
-    base = np.array(bases[rng.integers(len(bases))]) * rng.uniform(0.95, 1.05, 3)
+    base = _brick_base(rng)
     p = torch.stack([x, y], -1)
     grain = nz.fbm(p / 0.006, 2)
     xc, yc = _grid(res // 8, res // 8, *extent)
@@ -447,3 +549,105 @@ def _painting(nz: Noise, rng, extent, c: int = 1) -> torch.Tensor:
     border = ((x - x0 < 0.02) | (x1 - x < 0.02) | (y - y0 < 0.02) | (y1 - y < 0.02)).float()
     frame = _rgb((0.25, 0.17, 0.10)) * (1 + 0.2 * nz.fbm(p / 0.004 + 40.0, 2))
     return (art * (1 - border) + frame * border).clamp(0, 1).contiguous()
+
+
+def _skyline(nz: Noise, rng, extent, c: int = 1) -> torch.Tensor:
+    """A street of buildings with windows under a cloudy sky, for the far plane: 8 mm
+    texels (16 mm coarse), so that at 4.6 m windows are a few pixels at 128-256 px and their
+    corners (lit, dark, with blinds, each chosen by a hash) give a feature detector plenty."""
+    x0, x1, y0, y1 = extent
+    step = 0.008 * c
+    w, h = round((x1 - x0) / step), round((y1 - y0) / step)
+    x, y = _grid(h, w, *extent)
+    edges = [x0]
+    while edges[-1] < x1:
+        edges.append(edges[-1] + float(rng.uniform(0.5, 1.4)))
+    nb = len(edges) - 1
+    e = torch.tensor(edges, dtype=torch.float32)
+    b = (torch.bucketize(x.contiguous(), e) - 1).clamp(0, nb - 1)  # building of each texel
+    par = lambda lo, hi: torch.from_numpy(rng.uniform(lo, hi, nb)).float()[b]  # noqa: E731
+    top, sx, sy = par(0.3, 3.2), par(0.14, 0.26), par(0.20, 0.32)
+    fw, fh = par(0.45, 0.7), par(0.45, 0.65)
+    palette = torch.tensor([(0.62, 0.60, 0.56), (0.58, 0.32, 0.24), (0.78, 0.70, 0.55),
+                            (0.86, 0.85, 0.82), (0.30, 0.33, 0.38)])
+    base = (palette[torch.from_numpy(rng.integers(len(palette), size=nb))]
+            * torch.from_numpy(rng.uniform(0.85, 1.1, (nb, 1))).float())[b].permute(2, 0, 1)
+    lx, ly = x - e[b], top - y  # from the building's left edge; down from its roof
+    width = e[b + 1] - e[b]
+    col = torch.floor((lx - 0.06) / sx)
+    row = torch.floor((ly - 0.12) / sy)
+    fx, fy = (lx - 0.06) / sx - col, (ly - 0.12) / sy - row
+    inside = (lx > 0.06) & (lx < width - 0.06) & (ly > 0.12)
+    window = inside & (fx < fw) & (fy < fh)
+    bi, ci, ri = b.to(torch.int32), col.to(torch.int32), row.to(torch.int32)
+    lit, tint, blind = nz.hash(bi, ci, ri), nz.hash(bi + 101, ci, ri), nz.hash(bi + 202, ci, ri)
+    glass = torch.stack([0.14 + 0.10 * tint, 0.18 + 0.10 * tint, 0.25 + 0.12 * tint])
+    glass = glass + 0.12 * (fy / fh)  # the sky's reflection, brighter low in the pane
+    warm = _rgb((0.95, 0.83, 0.52)) * (0.85 + 0.15 * tint)
+    pane = torch.where((lit > 0.4)[None], warm, glass)
+    shade_b = (blind > 0.1) & (fy / fh < 0.25 + 0.5 * (blind - 0.1))  # blinds half-drawn
+    pane = torch.where(shade_b[None], _rgb((0.82, 0.78, 0.68)) * (0.9 + 0.1 * tint), pane)
+    mullion = ((fx / fw - 0.5).abs() < 0.04) & window
+    p = torch.stack([x, y], -1)
+    xc, yc = _grid(h // 4, w // 4, *extent)
+    blot = upsample(nz.fbm(torch.stack([xc, yc], -1) / 0.4 + 11.0, 3), (h, w))
+    grain = nz.value(p / 0.02 + 13.0)
+    storey = (fy > 0.97).float() * inside.float()  # a ledge under each row of windows
+    facade = base * (1 + 0.10 * blot + 0.06 * grain - 0.25 * storey)
+    facade = facade * (1 - 0.3 * ((ly < 0.05) & (ly > 0)).float())  # the roof's cornice
+    bldg = torch.where(window[None] & ~mullion[None], pane, facade)
+    bldg = torch.where(mullion[None], _rgb((0.2, 0.2, 0.2)), bldg)
+    cloud = upsample(nz.fbm(torch.stack([xc * 0.6, yc * 1.5], -1) + 21.0, 4), (h, w))
+    sky = (_rgb((0.55, 0.70, 0.90)) + 0.25 * ((y - 1.0) / 3.5).clamp(0, 1) * _rgb((-0.2, -0.15, 0))
+           + 0.35 * (cloud - 0.1).clamp(0, 1))
+    img = torch.where((ly > 0)[None], bldg, sky)
+    haze = _rgb((0.75, 0.80, 0.88))
+    return (0.88 * img + 0.12 * haze).clamp(0, 1).contiguous()
+
+
+def _leaves(nz: Noise, extent, c: int = 1) -> torch.Tensor:
+    """Two layers of pointed leaves (one per cell of a jittered grid, at random angles and
+    sizes, the nearest leaf on top) over dark foliage: 3 mm texels (6 mm coarse), i.e. a
+    leaf is a few pixels to a dozen at 2 m and 128-256 px."""
+    x0, x1, y0, y1 = extent
+    step = 0.003 * c
+    w, h = round((x1 - x0) / step), round((y1 - y0) / step)
+    x, y = _grid(h, w, *extent)
+    img = _rgb((0.05, 0.09, 0.04)) * (1 + 0.3 * nz.value(torch.stack([x, y], -1) / 0.02 + 31.0))
+    for layer, (s, green) in enumerate(((0.06, (0.16, 0.32, 0.10)), (0.045, (0.26, 0.48, 0.14)))):
+        leaf, rel_v, depth = _leaf_cells(nz, x, y, s, layer)
+        tone = nz.hash(*(torch.floor(v / s).to(torch.int32) + 3 * layer for v in (x, y)))
+        colour = _rgb(green) * (1 + 0.25 * tone) * (0.75 + 0.25 * rel_v) * (0.9 + 0.2 * depth)
+        colour = torch.where((rel_v.abs() < 0.08)[None], colour * 1.35, colour)  # midrib
+        img = torch.where(leaf[None], colour, img)
+    return img.clamp(0, 1).contiguous()
+
+
+def _leaf_cells(nz: Noise, x: torch.Tensor, y: torch.Tensor, s: float, layer: int):
+    """One layer of leaves on a grid of cell size `s` at texel positions x, y (h, w): each
+    cell's leaf has a hashed centre, angle, length and width; where leaves overlap the one
+    with the largest hashed depth wins. -> inside (h, w) bool, the position across the leaf
+    in [-1, 1] and its depth in [-1, 1]."""
+    ci, cj = torch.floor(x / s).to(torch.int32), torch.floor(y / s).to(torch.int32)
+    best = torch.full(x.shape, -2.0)
+    across = torch.zeros(x.shape)
+    for di in (-1, 0, 1):
+        for dj in (-1, 0, 1):
+            i, j = ci + di, cj + dj
+            hv = [nz.hash(i + 7717 * k + 50021 * layer, j) for k in range(6)]
+            cx = (i.float() + 0.5 + 0.45 * hv[0]) * s
+            cy = (j.float() + 0.5 + 0.45 * hv[1]) * s
+            ang = math.pi * hv[2]
+            half_len = s * (0.85 + 0.3 * hv[3])
+            half_w = half_len * (0.32 + 0.08 * hv[4])
+            px, py = x - cx, y - cy
+            u = px * torch.cos(ang) + py * torch.sin(ang)
+            v = -px * torch.sin(ang) + py * torch.cos(ang)
+            t = (u / half_len).clamp(-1, 1)
+            # pointed at the tip (u = +half_len), rounder towards the stem
+            wu = half_w * (1 - t * t) * (1 - 0.35 * t)
+            inside = (u.abs() < half_len) & (v.abs() < wu)
+            win = inside & (hv[5] > best)
+            best = torch.where(win, hv[5], best)
+            across = torch.where(win, v / wu.clamp(min=1e-6), across)
+    return best > -2.0, across, best.clamp(min=-1.0)

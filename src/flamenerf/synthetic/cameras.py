@@ -1,4 +1,5 @@
-"""Cameras of the synthetic capture: a hand-held arc around the still head.
+"""Cameras of the synthetic capture: a hand-held arc around the still head, or (the
+handheld variant) a phone held in front of the face, shaking in the hand.
 
 Conventions (those of the dataset): camera-to-world 4x4 with OpenGL camera axes (x right,
 y up, the camera looks down -z). A camera at (0, 0, d) looking at the origin has the
@@ -10,12 +11,18 @@ from __future__ import annotations
 import numpy as np
 
 from flamenerf.data.dataset import Intrinsics
-from flamenerf.geometry import look_at
+from flamenerf.geometry import euler_head, look_at
 
 DISTANCE = 0.60  # metres from the head centre
 TARGET = np.array([0.0, -0.035, 0.0])  # where the camera aims (between nose and mouth)
 FOCAL = 1.55  # focal length in units of the image size (vertical field of view ~36 deg)
 YAW_DEG, PITCH_DEG = 25.0, 10.0
+# the handheld phone: peak drift (yaw, pitch, roll) in degrees and (x, y, z) in metres, and
+# the tremor's standard deviation on top; drift is smooth over HANDHELD_DRIFT_FRAMES
+HANDHELD_ROT_DEG = np.array([2.7, 2.7, 1.8])
+HANDHELD_SHIFT_M = np.array([0.025, 0.02, 0.015])
+HANDHELD_TREMOR_DEG, HANDHELD_TREMOR_M = 0.2, 0.001
+HANDHELD_DRIFT_FRAMES, HANDHELD_TREMOR_FRAMES = 25.0, 1.5
 
 
 def intrinsics(size: int) -> Intrinsics:
@@ -74,3 +81,27 @@ def novel_path(k: int, seed: int) -> np.ndarray:
     dist = DISTANCE + 0.08 * np.sin(2 * s + rng.uniform(0, 2 * np.pi))
     roll = rng.uniform(-2, 2, k)
     return np.stack([orbit(yaw[i], pitch[i], dist[i], TARGET, roll[i]) for i in range(k)])
+
+
+def handheld_path(n: int, seed: int) -> np.ndarray:
+    """A phone held in the hand in front of the face: camera-to-world (n, 4, 4).
+
+    At rest the camera is frontal at DISTANCE from TARGET (the identity rotation). It
+    shakes as a hand does: a slow drift (smooth over ~HANDHELD_DRIFT_FRAMES frames, peak
+    HANDHELD_ROT_DEG of yaw/pitch/roll and HANDHELD_SHIFT_M of translation) plus a tremor
+    (a few frames, HANDHELD_TREMOR_DEG / _M). Rotation and translation are drawn
+    independently and the camera turns about its own centre, so the orientation changes
+    far more than aiming at the head from the shifted positions would (a few cm at 0.6 m
+    subtend ~2 deg; at the far background, tenths of a degree)."""
+    rng = np.random.Generator(np.random.PCG64(np.random.SeedSequence([int(seed), 808])))
+    drift = np.clip(_smooth_noise(rng, n, 6, corr=HANDHELD_DRIFT_FRAMES), -1.5, 1.5) / 1.5
+    tremor = _smooth_noise(rng, n, 6, corr=HANDHELD_TREMOR_FRAMES)
+    ang = HANDHELD_ROT_DEG * drift[:, :3] + HANDHELD_TREMOR_DEG * tremor[:, :3]
+    shift = HANDHELD_SHIFT_M * drift[:, 3:] + HANDHELD_TREMOR_M * tremor[:, 3:]
+    c2ws = np.tile(np.eye(4), (n, 1, 1))
+    for i in range(n):
+        # euler_head's axes are the camera's at rest: yaw about y, pitch about x, roll
+        # about the optical axis (head_euler reads them back)
+        c2ws[i, :3, :3] = euler_head(*ang[i])
+        c2ws[i, :3, 3] = TARGET + np.array([0.0, 0.0, DISTANCE]) + shift[i]
+    return c2ws

@@ -51,6 +51,10 @@ class View:
     depth: np.ndarray  # (H, W) float32 z-depth (metres) of the pixel-centre ray
     mask: np.ndarray  # (H, W) bool: the face mesh's silhouette (dilated)
     face_vertices: np.ndarray  # (V, 3) float32, world (posed by the head pose)
+    # (H, W) bool, from what any of a pixel's rays hit: the person (head, neck, torso), and
+    # what moves by itself (the handheld scene's leaves; all False in the others)
+    person: np.ndarray | None = None
+    moving: np.ndarray | None = None
 
 
 def shade(albedo: torch.Tensor, normal: torch.Tensor) -> torch.Tensor:
@@ -61,14 +65,18 @@ def shade(albedo: torch.Tensor, normal: torch.Tensor) -> torch.Tensor:
 
 class SyntheticScene:
     """The built-in portrait scene: one seed fixes appearance, camera path, sway and
-    expressions. `render` gives ground truth for any camera, expression and body pose."""
+    expressions. `render` gives ground truth for any camera, expression and body pose.
+    `handheld`: the far skyline and swaying leaves instead of the room (background.py)."""
 
     names: tuple[str, ...] = CONTROLS
 
-    def __init__(self, seed: int = 0, size: int = 256, sway: float = 1.0):
+    def __init__(self, seed: int = 0, size: int = 256, sway: float = 1.0,
+                 handheld: bool = False):
         self.seed, self.size, self.sway = int(seed), int(size), float(sway)
+        self.handheld = bool(handheld)
         # small images get coarser textures (faster to build; finer detail would alias)
-        self.head, self.backdrop = _parts(self.seed, 1 if self.size >= 160 else 2)
+        self.head, self.backdrop = _parts(self.seed, 1 if self.size >= 160 else 2,
+                                          self.handheld)
         self.intr: Intrinsics = intrinsics(self.size)
         self.mask_dilate = mask_dilation(self.intr)
 
@@ -92,11 +100,14 @@ class SyntheticScene:
     # ------------------------------------------------------------------ rendering
 
     def render(self, c2w: np.ndarray, expression, body_pose: np.ndarray | None = None,
-               intr: Intrinsics | None = None, head_pose: np.ndarray | None = None) -> View:
+               intr: Intrinsics | None = None, head_pose: np.ndarray | None = None,
+               time: float | None = None) -> View:
         """Render one frame: camera-to-world c2w (4, 4, OpenGL axes), expression
         (num_controls,) in [0, 1], world-from-body pose (default identity), intrinsics
         (default the scene's), world-from-head pose (default identity: the head is the
-        world, as in the paper's capture).
+        world, as in the paper's capture), time in capture frames (30 per second: capture
+        frame t is time t) for what moves by itself (the handheld scene's leaves; None is
+        time 0; the other scenes do not depend on it).
 
         The head is ray-marched in its own frame (the camera taken there by the inverse
         head pose) and shaded with its own-frame normals: its light turns with it, so a
@@ -137,13 +148,31 @@ class SyntheticScene:
                 pz = o_h[2] + th * hz.index_select(0, ids)
                 alb, n = self.head.surface(st, px, py, pz)
             else:
-                alb, n = self.backdrop.surface(tr, ids)
+                alb, n = self.backdrop.surface(tr, ids, time)
             colour.index_copy_(1, pos, shade(alb, n))
         rgb = colour.clamp(0, 1).reshape(3, K - 1, intr.h, intr.w).mean(1).permute(1, 2, 0)
         dilate = self.mask_dilate if intr is self.intr else mask_dilation(intr)
         mask = rasterize_silhouette(verts, self.faces, intr, c2w, dilate)
+        person, moving = self._seen(t_head < tr.t, tr.which, K, intr)
         return View(rgb=rgb.contiguous().numpy(), depth=depth.numpy().astype(np.float32),
-                    mask=mask, face_vertices=verts)
+                    mask=mask, face_vertices=verts, person=person, moving=moving)
+
+    def _seen(self, head: torch.Tensor, which: torch.Tensor, K: int, intr: Intrinsics):
+        """Pixels where any of their K rays sees the person, and where any sees what moves
+        by itself, from whether each ray (K * H * W,) hits the head first and which
+        background primitive it hits -> two (H, W) bool arrays. Any ray rather than the
+        centre one: a pixel outside `moving` takes no colour from the leaves at all."""
+        def on(prims) -> torch.Tensor:
+            hit = torch.zeros_like(head)
+            for k in prims:
+                hit |= which == k
+            return hit
+
+        def pixels(rays: torch.Tensor) -> np.ndarray:
+            return rays.reshape(K, intr.h, intr.w).any(0).numpy()
+
+        return (pixels(head | on(self.backdrop.person)),
+                pixels(~head & on(self.backdrop.moving)))
 
     # ------------------------------------------------------------------ head marching
 
@@ -317,10 +346,16 @@ def mask_dilation(intr: Intrinsics) -> int:
 
 
 @functools.lru_cache(maxsize=4)
-def _parts(seed: int, coarse: int) -> tuple[Head, Backdrop]:
+def _parts(seed: int, coarse: int, handheld: bool = False) -> tuple[Head, Backdrop]:
     """Head and backdrop of a seed (read-only after construction, so scenes share them)."""
-    head = Head(seed, TEX_STEP * coarse)
-    return head, Backdrop(seed, head.palette["skin"], coarse)
+    head = _head(seed, coarse)
+    return head, Backdrop(seed, head.palette["skin"], coarse, handheld)
+
+
+@functools.lru_cache(maxsize=4)
+def _head(seed: int, coarse: int) -> Head:
+    """The head of a seed, the slow part, shared by the scene's variants."""
+    return Head(seed, TEX_STEP * coarse)
 
 
 def _box_culler(intr: Intrinsics, c2w: np.ndarray, pose: np.ndarray, K: int):
