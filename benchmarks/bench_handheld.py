@@ -16,7 +16,14 @@ solved world onto the true one:
 
     python benchmarks/bench_handheld.py --size 128 --frames 60 --json docs/bench/handheld.json
 
-Prints the figures next to the targets and writes JSON.
+Prints the figures next to the targets and writes JSON. With `--dataset DIR` it also writes
+the handheld scene (`make_scene(handheld=True)`) with the cameras and head poses replaced by
+the solved ones (both models; the world put onto the true one by the head's mean pose), to
+train and evaluate on as a preprocessed clip would be:
+
+    python benchmarks/bench_handheld.py --size 128 --frames 60 --dataset scenes/handheld_solved
+    python benchmarks/bench_head_pose.py --scene scenes/handheld_solved --size 128 \
+        --variants "weighted:;unweighted:loss.moving_weight=1.0" --json docs/bench/handheld_train.json
 """
 
 from __future__ import annotations
@@ -25,6 +32,7 @@ import argparse
 import json
 import platform
 import time
+from pathlib import Path
 
 import numpy as np
 from PIL import Image
@@ -50,7 +58,7 @@ def grow(mask: np.ndarray, px: int) -> np.ndarray:
     return cv2.dilate(mask.astype(np.uint8), k) > 0
 
 
-def run(frames: list, models: tuple[str, ...]) -> dict:
+def run(frames: list, models: tuple[str, ...], keep: dict | None = None) -> dict:
     size = frames[0].rgb.shape[1]
     person = [grow(f.person, max(2, size // 40)) for f in frames]
     truth_c2w = np.stack([f.c2w for f in frames])
@@ -68,6 +76,8 @@ def run(frames: list, models: tuple[str, ...]) -> dict:
         return out
     ok = reg.registered
     world = compose_world(cam_from_head[ok], reg.subset(reg.ids[ok]), np.zeros(3))
+    if keep is not None:
+        keep.update(world=world, registered=ok)
     gt_c, gt_h = truth_c2w[ok], truth_head[ok]
     G = Rotation.from_matrix(np.einsum("nab,ncb->nac", gt_c[:, :3, :3],
                                        world.c2w[:, :3, :3])).mean().as_matrix()
@@ -93,17 +103,49 @@ def run(frames: list, models: tuple[str, ...]) -> dict:
     return out
 
 
+def write_solved(out: Path, frames: list, world, registered: np.ndarray, seed: int) -> None:
+    """The handheld scene with the capture's cameras, head poses and face meshes replaced
+    by the solved world's (put onto the true world by the head's mean pose)."""
+    from flamenerf.synthetic.scene import make_scene
+    from flamenerf.tracking.world import mean_pose
+
+    if not registered.all():
+        raise SystemExit("not every frame registered: nothing to write")
+    size = frames[0].rgb.shape[1]
+    make_scene(out, seed=seed, size=size, frames=len(frames), handheld=True, overwrite=True)
+    truth = np.stack([f.head_pose for f in frames])
+    align = mean_pose(truth) @ np.linalg.inv(mean_pose(world.head_pose))
+    c2w, head = align @ world.c2w, align @ world.head_pose
+    tj = out / "transforms.json"
+    meta = json.loads(tj.read_text())
+    mesh = dict(np.load(out / "face_mesh.npz"))
+    for pos, fr in enumerate(meta["frames"]):
+        k = fr.get("frame_index")
+        if k is None:
+            continue
+        fr["transform_matrix"] = c2w[k].tolist()
+        fr["head_pose"] = head[k].tolist()
+        move = head[k] @ np.linalg.inv(truth[k])
+        v = mesh["vertices"][pos]
+        mesh["vertices"][pos] = (v @ move[:3, :3].T + move[:3, 3]).astype(v.dtype)
+    meta.setdefault("source", {})["cameras"] = "solved (bench_handheld.py)"
+    tj.write_text(json.dumps(meta, indent=1))
+    np.savez(out / "face_mesh.npz", **mesh)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--size", type=int, default=128)
     ap.add_argument("--frames", type=int, default=60)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--json", default=None)
+    ap.add_argument("--dataset", type=Path, default=None)
     a = ap.parse_args()
     t0 = time.perf_counter()
     frames = list(handheld_capture(a.seed, a.size, a.frames, workers=0))
     render_s = time.perf_counter() - t0
-    results = {"both models": run(frames, ("sfm", "rotation")),
+    solved: dict = {}
+    results = {"both models": run(frames, ("sfm", "rotation"), solved),
                "structure from motion alone": run(frames, ("sfm",))}
     for name, r in results.items():
         print(f"{name}: {r['status']} ({r['camera_model']}): {r['reason']}")
@@ -118,6 +160,9 @@ def main() -> None:
             print(f"  moving background: precision {m['precision']:.2f}, recall "
                   f"{m['recall']:.2f}; flagged {100 * (m['share_flagged'] or 0):.1f}% of the "
                   f"background (true {100 * m['share_true']:.1f}%)")
+    if a.dataset is not None:
+        write_solved(a.dataset, frames, solved["world"], solved["registered"], a.seed)
+        print(f"wrote {a.dataset} (the solved cameras)")
     if a.json:
         doc = {"command": f"python benchmarks/bench_handheld.py --size {a.size} --frames "
                           f"{a.frames} --seed {a.seed}",

@@ -539,7 +539,8 @@ def _add_moving(reg: Registration, ctx: _Context, residual, opts: BackgroundOpti
     from PIL import Image
 
     grey, keep = [], []
-    s = min(1.0, opts.moving.side / max(Image.open(ctx.img_dir / ctx.names[0]).size))
+    # small frames are upsampled: the flow needs a few pixels of texture either side
+    s = opts.moving.side / max(Image.open(ctx.img_dir / ctx.names[0]).size)
     for name in ctx.names:
         img = Image.open(ctx.img_dir / name).convert("L")
         sz = (max(1, round(img.width * s)), max(1, round(img.height * s)))

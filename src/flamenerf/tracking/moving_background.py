@@ -29,8 +29,8 @@ distance of each end point to the static scene's prediction, in the frames' pixe
 @dataclass
 class MovingOptions:
     side: int = 320
-    """Flow is computed on frames downscaled to at most this many pixels on their long
-    side."""
+    """Flow is computed on frames resized to this many pixels on their long side (smaller
+    ones upsampled: the flow needs a few pixels of texture either side)."""
     threshold_px: float = 1.5
     """A flow end point this far (pixels of the matched frames, as the camera model sees
     them) or further from the static prediction moves by itself..."""
@@ -61,25 +61,32 @@ def detect_moving(frames: np.ndarray, background: np.ndarray, residual: PairResi
     grid = np.stack([xx, yy], -1) + 0.5  # pixel centres, as COLMAP counts them
     raw = np.zeros((n, h, w), bool)
     for k in range(n):
-        b = k + 1 if k + 1 < n else k - 1  # the last frame looks back
-        flow = dis.calc(frames[k], frames[b], None)
         texture = cv2.cornerMinEigenVal(frames[k].astype(np.float32) / 255, 5) > opts.min_texture
         use = background[k] & texture
         if not use.any():
             continue
-        x0 = grid[use] / scale
-        x1 = (grid[use] + flow[use]) / scale
-        e = residual(k, b, x0, x1)
-        ok = np.isfinite(e)
-        if not ok.any():
-            continue
+        # against both neighbours: a sway slows to a stop and turns, so one pair of frames
+        # may see it still where the other does not
+        for b in (k - 1, k + 1):
+            if 0 <= b < n:
+                raw[k] |= _flagged(dis.calc(frames[k], frames[b], None), use, grid, k, b,
+                                   residual, scale, opts)
+    return _clean(raw, background, opts)
+
+
+def _flagged(flow: np.ndarray, use: np.ndarray, grid: np.ndarray, a: int, b: int,
+             residual: PairResidual, scale: float, opts: MovingOptions) -> np.ndarray:
+    """Pixels `use` (H, W) of frame a whose flow (H, W, 2) to frame b the static scene
+    does not explain: -> (H, W) bool."""
+    x0 = grid[use] / scale
+    e = residual(a, b, x0, (grid[use] + flow[use]) / scale)
+    ok = np.isfinite(e)
+    flag = np.zeros(use.shape, bool)
+    if ok.any():
         med = float(np.median(e[ok]))
         mad = 1.4826 * float(np.median(np.abs(e[ok] - med)))
-        limit = max(opts.threshold_px, med + opts.threshold_mads * mad)
-        flag = np.zeros((h, w), bool)
-        flag[use] = ok & (e > limit)
-        raw[k] = flag
-    return _clean(raw, background, opts)
+        flag[use] = ok & (e > max(opts.threshold_px, med + opts.threshold_mads * mad))
+    return flag
 
 
 def _clean(raw: np.ndarray, background: np.ndarray, opts: MovingOptions) -> np.ndarray:
