@@ -45,7 +45,8 @@ def synth(
     the same bytes. See docs/synthetic_scene.md.
 
     Example: flamenerf synth scenes/portrait --size 128 --frames 120
-             flamenerf synth scenes/phone --handheld --video scenes/phone.mp4
+
+    Example: flamenerf synth scenes/phone --handheld --video scenes/phone.mp4
 
     Args:
         out: Output dataset directory.

@@ -314,7 +314,8 @@ class Backdrop:
     def trace(self, o, dx: torch.Tensor, dy: torch.Tensor, dz: torch.Tensor,
               pose: np.ndarray, candidates=None) -> "Trace":
         """Nearest hits of world rays from o (3 floats) along (dx, dy, dz) (N,) each, with
-        the body at world-from-body `pose` (4, 4). Every capture ray hits the wall.
+        the body at world-from-body `pose` (4, 4). Every capture ray hits the wall (the far
+        plane in the handheld variant), prims[0].
 
         `candidates(lo, hi)`, if given, returns the indices of the rays that may hit a
         body-frame box (or None for all); primitives are only tested against those.
