@@ -45,6 +45,9 @@ class MotionThresholds:
     """The head moves when it turns more than this..."""
     head_m: float = 0.015
     """... or moves more than this (metres) from its mean position."""
+    shake_deg: float = 0.5
+    """A camera registered as rotations about one centre moves when it turns more than
+    this: a hand's shake, measured to about a tenth of a degree."""
     small_baseline_deg: float = 5.0
     """Warn when the camera centres span less than this angle seen from the head: views
     away from the captured ones extrapolate."""
@@ -108,8 +111,10 @@ def motion_stats(c2w: np.ndarray, head_pose: np.ndarray | None, head_centre: np.
     return cam, head
 
 
-def classify(cam: dict, head: dict, th: MotionThresholds) -> str:
-    cam_moves = cam["rotation_max_deg"] > th.camera_deg or cam["baseline_deg"] > th.camera_deg
+def classify(cam: dict, head: dict, th: MotionThresholds, shake: bool = False) -> str:
+    """The case; shake: the camera was registered as rotations (its own threshold)."""
+    turn = th.shake_deg if shake else th.camera_deg
+    cam_moves = cam["rotation_max_deg"] > turn or cam["baseline_deg"] > th.camera_deg
     head_moves = head["rotation_max_deg"] > th.head_deg or head["translation_max_m"] > th.head_m
     return CASES[{(True, False): 0, (False, True): 1, (True, True): 2,
                   (False, False): 3}[(cam_moves, head_moves)]]
@@ -180,13 +185,13 @@ def compose_world(cam_from_head: np.ndarray, reg, head_centre: np.ndarray,
         return _fallback(cam_from_head, head_centre, th, warnings)
 
     cam, hm = motion_stats(c2w, head, head_centre)
-    case = classify(cam, hm, th)
+    shake = reg.status == "registered" and getattr(reg, "camera_model", None) == "rotation"
+    case = classify(cam, hm, th, shake)
     # the special cases are exactly special: their fixed part is its mean
     if case in (CASES[0], CASES[3]):
         head = np.repeat(mean_pose(head)[None], n, axis=0)
-    # a shake measured as rotations stays: snapped still, the background would move
-    if (case == CASES[1] and reg.status != "still"
-            and getattr(reg, "camera_model", None) != "rotation"):
+    # a shake measured as rotations stays: snapped still, the background would slide
+    if case == CASES[1] and reg.status != "still" and not shake:
         fixed = mean_pose(c2w)
         head = fixed @ np.linalg.inv(c2w) @ head
         c2w = np.repeat(fixed[None], n, axis=0)
