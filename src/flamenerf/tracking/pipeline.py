@@ -256,8 +256,9 @@ def assign_splits(n: int, val_every: int) -> list[str]:
 def moving_masks(reg, crop):
     """The background registration's masks of what moves by itself, cut like the frames:
     -> a function of the source frame's id giving (out, out) bool, or None without masks
-    (the background was not registered, or was too plain to look)."""
-    if reg is None or getattr(reg, "moving", None) is None:
+    (the background was not registered, or was too plain to look, or nothing in it moved:
+    the dataset is then as one made before such masks existed)."""
+    if reg is None or getattr(reg, "moving", None) is None or not reg.moving.any():
         return None
     pos = {int(i): k for k, i in enumerate(reg.ids)}
     return lambda i: crop.mask(reg.moving[pos[int(i)]], reg.moving_scale)
