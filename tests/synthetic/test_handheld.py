@@ -163,12 +163,14 @@ def test_handheld_dataset_loads_with_head_poses_and_rerenders(handheld_dataset):
         stored = (ds.load_image(f) * 255 + 0.5).astype(np.uint8)
         assert np.abs(rgb8.astype(int) - stored).max() <= 1
         np.testing.assert_array_equal(v.depth, ds.load_depth(f))
+    assert ds.load_moving(ds.split("novel_pose")[0]) is None  # only the capture's are stored
     # the ground-truth capture is the dataset's capture
     frames = list(handheld_capture(seed=3, size=32, frames=4))
     assert [f.index for f in frames] == [0, 1, 2, 3]
     for f, g in zip(cap, frames):
         np.testing.assert_array_equal(g.rgb, (ds.load_image(f) * 255 + 0.5).astype(np.uint8))
         np.testing.assert_array_equal(g.mask, ds.load_mask(f) > 0)
+        np.testing.assert_array_equal(g.moving, ds.load_moving(f))
         np.testing.assert_allclose(g.head_pose, f.head_pose, atol=1e-12)
         assert set(g.landmarks) == {"eye_left", "eye_right", "mouth"}
         for px in g.landmarks.values():

@@ -222,15 +222,18 @@ def make_scene(out: str | os.PathLike, seed: int = 0, size: int = 256, frames: i
                            prior_dilation_px=mask_dilation(intr))
     try:
         lo, hi = np.inf, 0.0
-        for i, (spec, (rgb, depth, mask, verts, _, _)) in enumerate(
+        for i, (spec, (rgb, depth, mask, verts, _, moving)) in enumerate(
                 zip(specs, render_frames(seed, size, sway, specs, workers, handheld))):
             fin = depth[np.isfinite(depth)]
             if fin.size != depth.size:
                 raise RuntimeError(f"frame {i}: some rays see nothing (infinite depth)")
             lo, hi = min(lo, float(fin.min())), max(hi, float(fin.max()))
+            # the handheld capture's leaves, for training to weigh down; no mask for the
+            # other splits and scenes (so the default scene's files stay as they were)
+            capture_moving = moving if handheld and spec.frame_index is not None else None
             writer.add_frame(rgb, mask, spec.c2w, spec.expression, spec.frame_index, spec.split,
                              verts=verts, depth=depth, extra=spec.extra,
-                             head_pose=spec.head_pose)
+                             head_pose=spec.head_pose, moving=capture_moving)
             if progress is not None:
                 progress(i + 1)
         writer.set_faces(SyntheticScene.mesh_faces())
