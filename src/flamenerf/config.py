@@ -336,6 +336,11 @@ class TrainConfig:
     face_depth_start: float = 0.0
     """Share of the training steps after which the face-depth prior acts (it pulls density
     down along whole rays, which early in training thins the background too)."""
+    moving_weight: float = 0.1
+    """Weight in the photometric loss of pixels that the dataset marks as background moving
+    by itself (`moving_path`: leaves, water, passers-by; 1: as any other pixel, 0: left
+    out); such pixels feed no depth prior either. Datasets without the masks train as
+    before (docs/decisions/moving-background.md)."""
     bf16: bool = False
     """Train the MLPs' layers in bfloat16 (float32 weights, outputs and everything else: the
     hash grids, compositing, losses) where that pays: a new run on a CPU settles this to
@@ -668,7 +673,8 @@ _AT_LEAST_ONE = frozenset({
 _POSITIVE = frozenset({"model.expression_scale", "model.head.region_scale",
                        "train.downscale"})
 _FRACTION = frozenset({"model.sampler.refine_below", "model.expression_regions.threshold",
-                       "train.face_ray_fraction", "train.face_depth_start"})
+                       "train.face_ray_fraction", "train.face_depth_start",
+                       "train.moving_weight"})
 
 
 def _check_ranges(obj: Any, key: str = "") -> None:

@@ -27,6 +27,7 @@ def train(
     accumulate: int | None = None,
     face_reg_weight: float | None = None,
     face_depth_weight: float | None = None,
+    moving_weight: float | None = None,
     expression_mode: Literal["masked", "none", "everywhere"] | None = None,
     head_region_scale: float | None = None,
     head_band: float | None = None,
@@ -69,6 +70,10 @@ def train(
         face_depth_weight: Weight of the face-depth prior: rendering weight on rays through
             the tracked face mesh kept near its surface (0: off; docs/presets.md). Default:
             the preset's.
+        moving_weight: Weight in the photometric loss of the pixels a dataset marks as
+            background moving by itself (its `moving_path` masks: leaves, water,
+            passers-by), between 0 (left out) and 1 (as any other pixel); they feed no
+            depth prior either. Datasets without the masks are not affected. Default: 0.1.
         expression_mode: The ablations of any preset: `masked` (β through the spatial prior,
             FLAME-in-NeRF), `none` (no β: the Nerfies variant), `everywhere` (β at every
             point: no prior). Default: the preset's.
@@ -147,8 +152,11 @@ def train(
         raise UserError(f"--face-reg-weight {face_reg_weight}: must be 0 or more")
     if face_depth_weight is not None and not face_depth_weight >= 0:
         raise UserError(f"--face-depth-weight {face_depth_weight}: must be 0 or more")
+    if moving_weight is not None and not 0 <= moving_weight <= 1:
+        raise UserError(f"--moving-weight {moving_weight}: must be between 0 and 1")
     override(cfg, {"train.batch_rays": batch_rays, "train.face_reg_weight": face_reg_weight,
                    "train.face_depth_weight": face_depth_weight,
+                   "train.moving_weight": moving_weight,
                    "model.expression_mode": expression_mode, "train.num_threads": threads,
                    "train.accumulate": accumulate, "model.head.region_scale": head_region_scale,
                    "model.head.band": head_band, "model.field.detail_levels": detail_levels,
@@ -165,7 +173,8 @@ def train(
         _note_ignored(out, preset, {
             "--size": size, "--downscale": downscale, "--batch-rays": batch_rays,
             "--accumulate": accumulate, "--face-reg-weight": face_reg_weight,
-            "--face-depth-weight": face_depth_weight, "--expression-mode": expression_mode,
+            "--face-depth-weight": face_depth_weight, "--moving-weight": moving_weight,
+            "--expression-mode": expression_mode,
             "--head-region-scale": head_region_scale, "--head-band": head_band,
             "--detail-levels": detail_levels, "--random-background": random_background,
             "--view-dependent": view_dependent, "--bf16": bf16, "--seed": seed})

@@ -7,6 +7,8 @@ Layout (see docs/dataset_format.md)::
       images/000000.png        RGB frames
       masks/000000.png         face-model silhouette = the spatial prior (255 = face)
       depth/000000.npy         optional ground-truth z-depth (float32, metres), synthetic only
+      moving/000000.png        optional: background that moves by itself (nonzero = moving:
+                               leaves, water, passers-by); training weighs it down
       face_mesh.npz            faces (F, 3) int32; vertices (num_frames, V, 3) float32, world
       expression_model.npz     optional (`preprocess --consistent-expressions`): the β -> mesh
                                model fitted to mean what the tracker means by each control
@@ -89,6 +91,14 @@ class Frame:
     depth_path: str | None = None
     extra: dict[str, Any] = field(default_factory=dict)
     head_pose: np.ndarray | None = None  # (4, 4) float64 world-from-head, or None
+    moving_path: str | None = None  # background that moves by itself, or None: not known
+
+    @property
+    def paths(self) -> tuple[str, ...]:
+        """The frame's files, relative to the dataset's folder: image, mask and, where it
+        has them, depth and moving-background mask."""
+        return tuple(p for p in (self.file_path, self.mask_path, self.depth_path,
+                                 self.moving_path) if p is not None)
 
     @property
     def in_capture(self) -> bool:
@@ -261,6 +271,21 @@ class Dataset:
                 f"{(self.intrinsics.h, self.intrinsics.w)}"
             )
         return d.astype(np.float32)
+
+    def load_moving(self, frame: Frame) -> np.ndarray | None:
+        """(H, W) bool, True on background that moves by itself (nonzero in the stored
+        mask), or None when the frame has no such mask (nothing is known to move)."""
+        if frame.moving_path is None:
+            return None
+        m = _read_png(self.root / frame.moving_path, self.intrinsics)
+        if m.ndim == 3:
+            m = m[..., 0]
+        return m > 0
+
+    @property
+    def has_moving(self) -> bool:
+        """Whether any frame carries a moving-background mask."""
+        return any(f.moving_path is not None for f in self.frames)
 
     def expression_matrix(self, frames: list[Frame]) -> np.ndarray:
         """(len(frames), dim_expr) float32."""
@@ -530,8 +555,8 @@ def load_dataset(root: str | os.PathLike, check_files: bool = True) -> Dataset:
         if fi is not None and fi >= len(raw_frames):  # it sizes the per-frame code tables
             raise DatasetError(f"{w}: frame_index {fi} must be below the number of frames "
                                f"({len(raw_frames)})")
-        known = {"file_path", "mask_path", "depth_path", "transform_matrix", "expression",
-                 "frame_index", "head_pose"}
+        known = {"file_path", "mask_path", "depth_path", "moving_path", "transform_matrix",
+                 "expression", "frame_index", "head_pose"}
         frames.append(
             Frame(
                 position=i,
@@ -543,6 +568,7 @@ def load_dataset(root: str | os.PathLike, check_files: bool = True) -> Dataset:
                 depth_path=_optional(fr, "depth_path", w, str),
                 extra={k: v for k, v in fr.items() if k not in known},
                 head_pose=_head_pose(fr, w),
+                moving_path=_optional(fr, "moving_path", w, str),
             )
         )
     posed = [f.head_pose is not None for f in frames]
@@ -610,27 +636,27 @@ def load_dataset(root: str | os.PathLike, check_files: bool = True) -> Dataset:
         mesh_model=_read_mesh_model(root / MESH_MODEL_FILE, verts.shape[1], len(names)),
     )
     for fr in frames:
-        for rel in (fr.file_path, fr.mask_path, fr.depth_path):
+        for rel in fr.paths:
             # a dataset reads only its own files, not whatever path it names
-            if rel is not None and (Path(rel).is_absolute() or ".." in Path(rel).parts):
+            if Path(rel).is_absolute() or ".." in Path(rel).parts:
                 raise DatasetError(f"{tj}: frames[{fr.position}]: {rel!r} is outside the "
                                    "dataset (paths are relative to its folder)")
-            if check_files and rel is not None and not (root / rel).exists():
+            if check_files and not (root / rel).exists():
                 raise DatasetError(f"{root / rel}: file is missing")
     return ds
 
 
 def fingerprint(ds: Dataset) -> str:
     """A hash of what a dataset holds, wherever it lies: transforms.json's bytes and each
-    frame's image, mask and depth files by name and size (not their pixels: hashing every
-    image would cost a resume seconds on a long clip, and a dataset made again changes
-    transforms.json). What a run records to tell on --resume that it is its dataset."""
+    frame's image, mask, depth and moving-background files by name and size (not their
+    pixels: hashing every image would cost a resume seconds on a long clip, and a dataset
+    made again changes transforms.json). What a run records to tell on --resume that it is
+    its dataset."""
     h = hashlib.sha256((ds.root / "transforms.json").read_bytes())
     for fr in ds.frames:
-        for rel in (fr.file_path, fr.mask_path, fr.depth_path):
-            if rel is not None:
-                p = ds.root / rel
-                h.update(f"\0{rel}\0{p.stat().st_size if p.exists() else -1}".encode())
+        for rel in fr.paths:
+            p = ds.root / rel
+            h.update(f"\0{rel}\0{p.stat().st_size if p.exists() else -1}".encode())
     return "sha256:" + h.hexdigest()
 
 
@@ -713,10 +739,14 @@ class DatasetWriter:
         depth: np.ndarray | None = None,
         extra: dict[str, Any] | None = None,
         head_pose: np.ndarray | None = None,
+        moving: np.ndarray | None = None,
     ) -> int:
         """Add one frame. rgb (H, W, 3) uint8 or float in [0, 1]; mask (H, W) bool;
         verts (V, 3) world-space face-mesh vertices; head_pose (4, 4) world-from-head or
-        None (give it for every frame or for none). Returns the frame's position."""
+        None (give it for every frame or for none); moving (H, W) bool (or any array:
+        nonzero = background that moves by itself) or None. A given `moving` is written
+        even where nothing in it is set, so that "looked, none moves" is recorded apart
+        from "not known" (None: no `moving_path`). Returns the frame's position."""
         import imageio.v3 as iio
 
         pos = len(self.meta["frames"])
@@ -736,6 +766,8 @@ class DatasetWriter:
             (self.tmp / "depth").mkdir(exist_ok=True)
             np.save(self.tmp / "depth" / f"{name}.npy", depth.astype(np.float32))
             entry["depth_path"] = f"depth/{name}.npy"
+        if moving is not None:
+            entry["moving_path"] = self._write_moving(name, moving, rgb.shape[:2])
         if extra:
             entry.update(extra)
         if head_pose is not None:
@@ -744,6 +776,17 @@ class DatasetWriter:
         self.meta["splits"].setdefault(split, []).append(pos)
         self.verts.append(np.asarray(verts, np.float32))
         return pos
+
+    def _write_moving(self, name: str, moving: np.ndarray, size: tuple[int, int]) -> str:
+        """Store a frame's moving-background mask (H, W) as a 0/255 PNG -> its path."""
+        import imageio.v3 as iio
+
+        moving = np.asarray(moving)
+        if moving.shape != tuple(size):
+            raise ValueError(f"moving mask has shape {moving.shape}, the frame is {size}")
+        (self.tmp / "moving").mkdir(exist_ok=True)
+        iio.imwrite(self.tmp / "moving" / f"{name}.png", (moving != 0).astype(np.uint8) * 255)
+        return f"moving/{name}.png"
 
     def set_faces(self, faces: np.ndarray) -> None:
         self.faces = np.asarray(faces, np.int32)

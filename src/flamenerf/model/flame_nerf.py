@@ -31,7 +31,8 @@ from flamenerf.model.expression import ExpressionConditioner
 from flamenerf.model.field import ProposalField, make_field
 from flamenerf.model.head_rig import HeadRig
 from flamenerf.model.losses import (LossBatch, LossTerms, LossWeights, face_depth_loss,
-                                    face_region_loss)
+                                    face_region_loss, photometric_loss, ray_weights,
+                                    still_depth)
 from flamenerf.model.render import (composite, interlevel_loss, render_weights, sample_pdf,
                                     stratified_samples)
 from flamenerf.model.view_directions import captured_direction
@@ -306,17 +307,21 @@ class FlameNeRF(nn.Module):
         weights = weights or LossWeights()  # the photometric terms alone
         terms = LossTerms()
         raw, target = terms.raw, batch.rgb
-        raw["photo"] = torch.mean((out["rgb"] - target) ** 2)
+        # background that moves by itself counts less: a static scene cannot explain it,
+        # and fitting it anyway spends the warp and the per-frame codes on it
+        ray_w = ray_weights(batch.moving, weights.moving)
+        raw["photo"] = photometric_loss(out["rgb"], target, ray_w)
         photometric = raw["photo"]
         if "rgb_coarse" in out:
-            raw["photo_coarse"] = torch.mean((out["rgb_coarse"] - target) ** 2)
+            raw["photo_coarse"] = photometric_loss(out["rgb_coarse"], target, ray_w)
             photometric = photometric + raw["photo_coarse"]
         if "interlevel" in out:
             raw["interlevel"] = out["interlevel"]
             photometric = photometric + weights.interlevel * out["interlevel"]
         terms.weighted["photometric"] = photometric
         if batch.mesh_depth is not None and weights.face_depth > 0:
-            raw["face_depth"] = face_depth_loss(out["weights"], out["t"], batch.mesh_depth,
+            raw["face_depth"] = face_depth_loss(out["weights"], out["t"],
+                                                still_depth(batch.mesh_depth, batch.moving),
                                                 weights.face_depth_margin)
             terms.weighted["face_depth"] = weights.face_depth * raw["face_depth"]
         if batch.reg_points is not None and weights.face_reg > 0 and self.warp is not None:

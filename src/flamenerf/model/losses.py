@@ -25,17 +25,23 @@ class LossBatch:
     (`FlameNeRF.face_reg_points`), or None: no regulariser this step."""
     reg_codes: Tensor | None = None
     """(P, code_dim) the ω of each point's frame."""
+    moving: Tensor | None = None
+    """(R,) the share in [0, 1] of each ray's pixel that is background moving by itself
+    (the dataset's `moving_path` masks at the training resolution), or None: nothing is
+    known to move (no per-ray weights at all: the loss is the plain mean)."""
 
 
 @dataclass(frozen=True)
 class LossWeights:
     """The loss terms' weights (TrainConfig's `interlevel_weight`, `face_depth_weight`,
-    `face_depth_margin`, `face_reg_weight`)."""
+    `face_depth_margin`, `face_reg_weight`, `moving_weight`)."""
 
     interlevel: float = 1.0
     face_depth: float = 0.0
     face_depth_margin: float = 0.01
     face_reg: float = 0.0
+    moving: float = 1.0
+    """A moving pixel's weight in the photometric terms (1: as any other)."""
 
 
 PER_POINT = frozenset({"face_reg"})
@@ -51,6 +57,33 @@ class LossTerms:
 
     weighted: dict[str, Tensor] = field(default_factory=dict)
     raw: dict[str, Tensor] = field(default_factory=dict)
+
+
+def ray_weights(moving: Tensor | None, weight: float) -> Tensor | None:
+    """Each ray's weight in the photometric terms: 1 − (1 − weight) · share, from the
+    share (R,) of its pixel that moves by itself -> (R,), or None where `moving` is None
+    (every ray 1)."""
+    if moving is None:
+        return None
+    return 1.0 - (1.0 - weight) * moving
+
+
+def photometric_loss(rgb: Tensor, target: Tensor, weight: Tensor | None = None) -> Tensor:
+    """Mean squared error of colours rgb (R, 3) against target (R, 3); with `weight` (R,)
+    each ray's error scaled by its weight, still divided by all R rays (not by the weights'
+    sum): a ray that is not weighed down pulls exactly as without weights, and a shard's
+    loss stays its share of the batch's. -> scalar."""
+    err = (rgb - target) ** 2
+    return torch.mean(err) if weight is None else torch.mean(err * weight[:, None])
+
+
+def still_depth(depth: Tensor, moving: Tensor | None) -> Tensor:
+    """The mesh's depths (R,) with the rays through moving background made inf, which the
+    face-depth prior skips: what moves in front of the face is not at the mesh's depth.
+    -> (R,), `depth` itself where `moving` is None."""
+    if moving is None:
+        return depth
+    return torch.where(moving > 0, torch.full_like(depth, math.inf), depth)
 
 
 def face_region_loss(warped: Tensor, points: Tensor) -> Tensor:

@@ -11,17 +11,19 @@ from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from flamenerf import __version__
 from flamenerf.config import Config
-from flamenerf.data.dataset import Dataset, fingerprint, load_dataset
+from flamenerf.data.dataset import Dataset, Frame, Intrinsics, fingerprint, load_dataset
 from flamenerf.data.expression_range import training_expressions
 from flamenerf.data.face_parts import applies, has_parts
 from flamenerf.data.mesh_model import expression_model_residual, fit_dataset_expression_model
 from flamenerf.data.scene import (FrameSet, face_pixel_resolution, model_detail_region,
                                   model_head_region, model_warp_region, scene_box)
 from flamenerf.errors import Interrupted, UserError, warn
+from flamenerf.images import resize_image
 from flamenerf.io import TEMP_NAME, atomic_write_text, read_json, save_png
 from flamenerf.lock import folder_lock
 from flamenerf.model.flame_nerf import FlameNeRF
@@ -69,6 +71,21 @@ def param_groups(model: FlameNeRF, cfg) -> list[dict]:
 
 def train_resolution(ds: Dataset, cfg: Config):
     return ds.intrinsics.scaled(1.0 / cfg.train.downscale)
+
+
+def moving_shares(ds: Dataset, frames: list[Frame], intr: Intrinsics) -> torch.Tensor | None:
+    """The share of each training pixel that is background moving by itself: the frames'
+    `moving_path` masks area-averaged to `intr`'s size -> (N, H, W) float32 (0 for a
+    frame without a mask), or None where no frame flags a pixel, so that such a dataset's
+    steps carry no per-ray weights at all (the same training as before the masks)."""
+    if not any(f.moving_path is not None for f in frames):
+        return None
+    out = np.zeros((len(frames), intr.h, intr.w), np.float32)
+    for i, fr in enumerate(frames):
+        m = ds.load_moving(fr)
+        if m is not None and m.any():
+            out[i] = resize_image(m.astype(np.float32)[..., None], intr.w, intr.h)[..., 0]
+    return torch.from_numpy(out) if out.any() else None
 
 
 def over_random_background(out: dict, colour: torch.Tensor) -> dict:
@@ -265,6 +282,7 @@ class Trainer:
         torch.manual_seed(cfg.train.seed)
         self.model = build_for_dataset(cfg, self.ds).to(self.device)
         self.train_set = FrameSet(self.ds, self.ds.split("train"), self.intr)
+        self.moving = moving_shares(self.ds, self.train_set.frames, self.intr)
         if cfg.train.face_depth_weight > 0:  # before the progress bar starts
             self.train_set.mesh_depths()
         fused = self.device.type in ("cpu", "cuda")
@@ -467,6 +485,8 @@ class Trainer:
             out = over_random_background(out, torch.rand(len(target), 3, generator=gen)
                                          .to(self.device))
         batch = LossBatch(target)
+        if self.moving is not None:
+            batch.moving = self.moving[fi, ys, xs].to(self.device)
         if cfg.face_depth_weight > 0 and self.step >= cfg.face_depth_start * cfg.steps:
             depth = ts.mesh_depths()[fi, ys, xs].to(self.device)
             batch.mesh_depth = torch.where(rays.face_ray, depth,
@@ -481,7 +501,7 @@ class Trainer:
             p_share = sh.points / cfg.face_reg_points
         losses = model.get_loss_dict(out, batch, LossWeights(
             cfg.interlevel_weight, cfg.face_depth_weight, cfg.face_depth_margin,
-            cfg.face_reg_weight))
+            cfg.face_reg_weight, cfg.moving_weight))
         # rays' terms by this shard's share of the rays, the regulariser's by its points'
         terms = [(t, p_share if k in PER_POINT else share) for k, t in losses.weighted.items()]
         logs = {f"loss/{k}": v.item() * (p_share if k in PER_POINT else share)
