@@ -18,8 +18,9 @@ solved world onto the true one:
 
 Prints the figures next to the targets and writes JSON. With `--dataset DIR` it also writes
 the handheld scene (`make_scene(handheld=True)`) with the cameras and head poses replaced by
-the solved ones (both models; the world put onto the true one by the head's mean pose), to
-train and evaluate on as a preprocessed clip would be:
+the solved ones (both models; the world put onto the true one by the head's mean pose) and
+its moving masks by the detected ones, to train and evaluate on as a preprocessed clip
+would be:
 
     python benchmarks/bench_handheld.py --size 128 --frames 60 --dataset scenes/handheld_solved
     python benchmarks/bench_head_pose.py --scene scenes/handheld_solved --size 128 \
@@ -77,7 +78,7 @@ def run(frames: list, models: tuple[str, ...], keep: dict | None = None) -> dict
     ok = reg.registered
     world = compose_world(cam_from_head[ok], reg.subset(reg.ids[ok]), np.zeros(3))
     if keep is not None:
-        keep.update(world=world, registered=ok)
+        keep.update(world=world, registered=ok, moving=reg.moving)
     gt_c, gt_h = truth_c2w[ok], truth_head[ok]
     G = Rotation.from_matrix(np.einsum("nab,ncb->nac", gt_c[:, :3, :3],
                                        world.c2w[:, :3, :3])).mean().as_matrix()
@@ -103,9 +104,13 @@ def run(frames: list, models: tuple[str, ...], keep: dict | None = None) -> dict
     return out
 
 
-def write_solved(out: Path, frames: list, world, registered: np.ndarray, seed: int) -> None:
+def write_solved(out: Path, frames: list, world, registered: np.ndarray, seed: int,
+                 moving: np.ndarray | None) -> None:
     """The handheld scene with the capture's cameras, head poses and face meshes replaced
-    by the solved world's (put onto the true world by the head's mean pose)."""
+    by the solved world's (put onto the true world by the head's mean pose), and its
+    moving masks by the detected ones (none where nothing was detected)."""
+    import imageio.v3 as iio
+
     from flamenerf.synthetic.scene import make_scene
     from flamenerf.tracking.world import mean_pose
 
@@ -124,6 +129,10 @@ def write_solved(out: Path, frames: list, world, registered: np.ndarray, seed: i
         if k is None:
             continue
         fr["transform_matrix"] = c2w[k].tolist()
+        if moving is not None and fr.get("moving_path"):
+            m = Image.fromarray(moving[k].astype(np.uint8) * 255).resize(
+                (size, size), Image.Resampling.NEAREST)
+            iio.imwrite(out / fr["moving_path"], np.asarray(m))
         fr["head_pose"] = head[k].tolist()
         move = head[k] @ np.linalg.inv(truth[k])
         v = mesh["vertices"][pos]
@@ -161,7 +170,8 @@ def main() -> None:
                   f"{m['recall']:.2f}; flagged {100 * (m['share_flagged'] or 0):.1f}% of the "
                   f"background (true {100 * m['share_true']:.1f}%)")
     if a.dataset is not None:
-        write_solved(a.dataset, frames, solved["world"], solved["registered"], a.seed)
+        write_solved(a.dataset, frames, solved["world"], solved["registered"], a.seed,
+                     solved.get("moving"))
         print(f"wrote {a.dataset} (the solved cameras)")
     if a.json:
         doc = {"command": f"python benchmarks/bench_handheld.py --size {a.size} --frames "
