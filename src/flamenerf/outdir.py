@@ -22,8 +22,8 @@ from flamenerf.io import TEMP_NAME, temp_prefix
 
 # What `flamenerf synth` / `preprocess` write at the top of a dataset, and `train` (plus
 # eval/render/bench, which write inside it) in a run folder.
-DATASET_LAYOUT = {"transforms.json", "images", "masks", "depth", "face_mesh.npz", "qa",
-                  "expression_model.npz"}
+DATASET_LAYOUT = {"transforms.json", "images", "masks", "depth", "moving", "face_mesh.npz",
+                  "qa", "expression_model.npz"}
 LOCK_NAME = ".flamenerf.lock"  # the lock of the process writing a folder (flamenerf.lock)
 RUN_LAYOUT = {"config.json", "checkpoints", "tb", "images", "eval", "renders",
               "bench_timing.json", LOCK_NAME}

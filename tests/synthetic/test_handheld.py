@@ -200,3 +200,13 @@ def test_cli_synth_handheld_with_video(tmp_path):
     assert main(["synth", str(tmp_path / "y"), "--video", str(tmp_path / "y.avi")]) == 2
     assert main(["synth", str(tmp_path / "z"), "--video", str(tmp_path / "z" / "c.mp4")]) == 2
     assert not any((tmp_path / n).exists() for n in ("x", "y", "z"))
+
+
+def test_a_dataset_with_moving_masks_can_be_written_over(tmp_path):
+    out = tmp_path / "phone"
+    make_scene(out, seed=3, size=32, frames=2, reanimate=0, leakage_steps=0, handheld=True,
+               workers=1)
+    assert (out / "moving").is_dir()  # its own folder, which it may replace
+    make_scene(out, seed=4, size=32, frames=2, reanimate=0, leakage_steps=0, handheld=True,
+               workers=1, overwrite=True)
+    assert load_dataset(out).source["seed"] == 4
