@@ -199,20 +199,27 @@ def _write_frames(frames, opts: BackgroundOptions, img_dir: Path, mask_dir: Path
     return np.asarray(ids, np.int64), names, size, scale
 
 
+def _load_grey(img_dir: Path, mask_dir: Path, name: str, side: int
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """One frame as COLMAP saw it, resized to `side` pixels on its long side: grey (h, w)
+    uint8 and where the background is (h, w) bool (outside the person mask)."""
+    from PIL import Image
+
+    img = Image.open(img_dir / name).convert("L")
+    s = side / max(img.size)
+    sz = (max(1, round(img.width * s)), max(1, round(img.height * s)))
+    keep = Image.open(mask_dir / f"{name}.png").resize(sz, Image.Resampling.NEAREST)
+    return np.asarray(img.resize(sz, Image.Resampling.BILINEAR)), np.asarray(keep) > 0
+
+
 def _background_change(img_dir: Path, mask_dir: Path, names: list[str], side: int = 160,
                        max_frames: int = 40) -> float | None:
     """How much the background's pixels change over the clip: mean |Δ| (0-255, grey) over
     the pixels outside the person in both frames, each frame against the first, 90th
     percentile over up to `max_frames` frames; None when too little background is seen."""
-    from PIL import Image
-
     def load(name):
-        img = Image.open(img_dir / name).convert("L")
-        s = side / max(img.size)
-        sz = (max(1, round(img.width * s)), max(1, round(img.height * s)))
-        keep = Image.open(mask_dir / f"{name}.png").resize(sz, Image.Resampling.NEAREST)
-        return (np.asarray(img.resize(sz, Image.Resampling.BILINEAR), np.float32),
-                np.asarray(keep) > 0)
+        img, keep = _load_grey(img_dir, mask_dir, name, side)
+        return img.astype(np.float32), keep
 
     pick = np.unique(np.linspace(0, len(names) - 1, min(max_frames, len(names))).astype(int))
     ref, ref_keep = load(names[pick[0]])
@@ -307,7 +314,8 @@ def _register(frames, opts: BackgroundOptions, tmp: Path, focal: float | None,
               details={"verified_pairs": n_pairs, "image_scale": scale})
     if len(flow) == 0:
         return _empty(ids, "failed", "no frame pairs of the background matched", **kw)
-    ctx = _Context(img_dir, mask_dir, names, scale, np.array([W * scale / 2, H * scale / 2]),
+    ctx = _Context(img_dir, mask_dir, names, scale, max(W, H) * scale,
+                   np.array([W * scale / 2, H * scale / 2]),
                    (focal if focal is not None else 1.2 * max(W, H)) * scale)
     if flow_p90 < opts.still_flow:
         still = _empty(ids, "still", f"the background does not move (90% of frame pairs "
@@ -332,6 +340,7 @@ class _Context:
     mask_dir: Path
     names: list[str]
     scale: float
+    long_side: float  # of COLMAP's frames, pixels
     centre: np.ndarray  # (2,) principal point
     focal: float  # the face solve's (or a guess), pixels of COLMAP's frames
 
@@ -501,8 +510,9 @@ def _choose(ctx: _Context, ids, matches: Matches, rot, sfm, opts: BackgroundOpti
     _add_moving(out, ctx, residual, opts)
     if pick == "rotation" and out.moving is not None and out.moving.any():
         # the rotations again, without the matches that moved by themselves
-        still = ~(_in_mask(out.moving, matches.i, matches.xi, ctx)
-                  | _in_mask(out.moving, matches.j, matches.xj, ctx))
+        ratio = out.moving_scale / ctx.scale
+        still = ~(_in_mask(out.moving, matches.i, matches.xi, ratio)
+                  | _in_mask(out.moving, matches.j, matches.xj, ratio))
         rot2 = solve_rotations(matches.where(still), len(ids), ctx.focal, ctx.centre)
         again, again_why = _rotation_registration(ctx, ids, rot2, opts, kw)
         if not again_why:
@@ -536,17 +546,10 @@ def _still_residual(a: int, b: int, x0: np.ndarray, x1: np.ndarray) -> np.ndarra
 def _add_moving(reg: Registration, ctx: _Context, residual, opts: BackgroundOptions) -> None:
     """Detect the background that moves by itself and record it on `reg` (masks, and the
     share of the background they cover in the report)."""
-    from PIL import Image
-
-    grey, keep = [], []
     # small frames are upsampled: the flow needs a few pixels of texture either side
-    s = opts.moving.side / max(Image.open(ctx.img_dir / ctx.names[0]).size)
-    for name in ctx.names:
-        img = Image.open(ctx.img_dir / name).convert("L")
-        sz = (max(1, round(img.width * s)), max(1, round(img.height * s)))
-        grey.append(np.asarray(img.resize(sz, Image.Resampling.BILINEAR)))
-        m = Image.open(ctx.mask_dir / f"{name}.png").resize(sz, Image.Resampling.NEAREST)
-        keep.append(np.asarray(m) > 0)
+    grey, keep = zip(*(_load_grey(ctx.img_dir, ctx.mask_dir, name, opts.moving.side)
+                       for name in ctx.names))
+    s = opts.moving.side / ctx.long_side
     moving = detect_moving(np.stack(grey), np.stack(keep), residual, s, opts.moving)
     reg.moving, reg.moving_scale = moving, s * ctx.scale
     share = float(moving.sum() / max(sum(k.sum() for k in keep), 1))
@@ -554,21 +557,14 @@ def _add_moving(reg: Registration, ctx: _Context, residual, opts: BackgroundOpti
     reg.details["moving_background_frames"] = int(moving.any((1, 2)).sum())
 
 
-def _in_mask(masks: np.ndarray, frame: np.ndarray, x: np.ndarray, ctx: _Context
+def _in_mask(masks: np.ndarray, frame: np.ndarray, x: np.ndarray, ratio: float
              ) -> np.ndarray:
     """Whether points x (M, 2) in COLMAP's pixels of frames `frame` (M,) lie in masks
-    (N, h, w) made at the moving check's scale."""
+    (N, h, w) made at `ratio` of those pixels."""
     n, h, w = masks.shape
-    ratio = w / _colmap_width(ctx)
     u = np.clip((x[:, 0] * ratio).astype(int), 0, w - 1)
     v = np.clip((x[:, 1] * ratio).astype(int), 0, h - 1)
     return masks[frame, v, u]
-
-
-def _colmap_width(ctx: _Context) -> int:
-    from PIL import Image
-
-    return Image.open(ctx.img_dir / ctx.names[0]).width
 
 
 def _bundle_adjust(rec, refine_focal: bool, opts: BackgroundOptions) -> None:

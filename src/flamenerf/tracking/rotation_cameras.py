@@ -33,6 +33,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from flamenerf.geometry import skew
+
 # GRIC's constants for matches in two images (r = 4 data dimensions)
 _R = 4
 _LAMBDA1, _LAMBDA3 = np.log(_R), 2.0
@@ -84,13 +86,6 @@ def transfer(m: Matches, R: np.ndarray, f: float, c: np.ndarray) -> np.ndarray:
     return project(np.einsum("mab,mb->ma", rel, bearings(m.xi, f, c)), f, c)
 
 
-def procrustes(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """The rotation R minimising Σ |b − R a|² over unit rays a, b (M, 3) -> (3, 3)."""
-    u, _, vt = np.linalg.svd(b.T @ a)
-    d = np.sign(np.linalg.det(u @ vt))
-    return u @ np.diag([1.0, 1.0, d]) @ vt
-
-
 def _chain(m: Matches, n: int, f: float, c: np.ndarray, min_matches: int
            ) -> tuple[np.ndarray, np.ndarray]:
     """Starting rotations: each frame from the nearest earlier frame it shares enough
@@ -102,8 +97,10 @@ def _chain(m: Matches, n: int, f: float, c: np.ndarray, min_matches: int
         for i in range(j - 1, -1, -1):
             sel = (m.i == i) & (m.j == j)
             if ok[i] and sel.sum() >= min_matches:
-                rel = procrustes(bearings(m.xi[sel], f, c), bearings(m.xj[sel], f, c))
-                R[j], ok[j] = rel @ R[i], True
+                # Kabsch: the rotation taking frame i's rays onto frame j's
+                rel, _ = Rotation.align_vectors(bearings(m.xj[sel], f, c),
+                                                bearings(m.xi[sel], f, c))
+                R[j], ok[j] = rel.as_matrix() @ R[i], True
                 break
     return R, ok
 
@@ -134,14 +131,6 @@ def solve_rotations(m: Matches, n: int, f: float, c: np.ndarray, robust_px: floa
     return RotationSolve(R, connected, residual, time.perf_counter() - t0)
 
 
-def _skew(v: np.ndarray) -> np.ndarray:
-    """(M, 3) -> (M, 3, 3) cross-product matrices."""
-    out = np.zeros((len(v), 3, 3))
-    out[:, 0, 1], out[:, 0, 2], out[:, 1, 2] = -v[:, 2], v[:, 1], -v[:, 0]
-    out[:, 1, 0], out[:, 2, 0], out[:, 2, 1] = v[:, 2], -v[:, 1], v[:, 0]
-    return out
-
-
 def _gauss_newton_step(m: Matches, b_i: np.ndarray, R: np.ndarray, f: float, c: np.ndarray,
                        col: np.ndarray, dim: int, robust_px: float) -> np.ndarray:
     """One reweighted Gauss-Newton step for increments δ_k (R_k <- exp([δ_k]) R_k) of the
@@ -154,7 +143,7 @@ def _gauss_newton_step(m: Matches, b_i: np.ndarray, R: np.ndarray, f: float, c: 
     dpi = np.zeros((len(m), 2, 3))
     dpi[:, 0, 0] = dpi[:, 1, 1] = f / z
     dpi[:, :, 2] = -f * p[:, :2] / z[:, None] ** 2
-    blocks = ((m.i, dpi @ rel @ _skew(b_i)), (m.j, -dpi @ _skew(p)))
+    blocks = ((m.i, dpi @ rel @ skew(b_i)), (m.j, -dpi @ skew(p)))
     w = 1.0 / (1.0 + (r ** 2).sum(1) / robust_px ** 2)  # Cauchy's IRLS weights
     A, g = np.zeros((dim, dim)), np.zeros(dim)
     for fa, Ja in blocks:
@@ -182,7 +171,7 @@ def sampson(m: Matches, w2c: np.ndarray, f: float, c: np.ndarray) -> np.ndarray:
     Ri, ti, Rj, tj = w2c[m.i, :, :3], w2c[m.i, :, 3], w2c[m.j, :, :3], w2c[m.j, :, 3]
     rel = np.einsum("mab,mcb->mac", Rj, Ri)
     t = tj - np.einsum("mab,mb->ma", rel, ti)
-    F = Ki.T @ np.einsum("mab,mbc->mac", _skew(t), rel) @ Ki
+    F = Ki.T @ np.einsum("mab,mbc->mac", skew(t), rel) @ Ki
     a = np.concatenate([m.xi, np.ones((len(m), 1))], 1)
     b = np.concatenate([m.xj, np.ones((len(m), 1))], 1)
     Fa, Ftb = np.einsum("mab,mb->ma", F, a), np.einsum("mba,mb->ma", F, b)
