@@ -376,23 +376,22 @@ def _structure_from_motion(db_path, img_dir, tmp, opts, focal, scale, names, ids
     rec = max(recs.values(), key=lambda r: r.num_reg_images())
     if focal is not None and opts.refine_focal:
         rec = _refine_focal(rec, focal * scale, opts)
+    details = {}
     if still_head_c2w is not None:
         rec, hyp = still_head_hypothesis(rec, np.linalg.inv(still_head_c2w @ CV_TO_GL)[:, :3],
                                          names)
         # the report's errors are in source pixels, COLMAP's in its downscaled frames'
-        kw["details"]["still_head_hypothesis"] = {
+        details["still_head_hypothesis"] = {
             k: v / scale if k.endswith("_px") else v for k, v in hyp.items()}
     c2w = reconstruction_c2w(rec, names) @ CV_TO_GL
     registered = np.isfinite(c2w[:, 0, 0])
     cam = next(iter(rec.cameras.values()))
     f_sfm = float(cam.params[0]) / scale
     err = float(rec.compute_mean_reprojection_error()) / scale
-    out = Registration("registered", f"{registered.sum()} of {len(ids)} frames registered "
-                       f"against the background by structure from motion", ids, registered,
-                       c2w, f_sfm, err, num_points=int(rec.num_points3D()),
-                       near_depth=_near_depth(rec), camera_model="sfm",
-                       **{k: v for k, v in kw.items() if k != "details"},
-                       details=dict(kw["details"]))
+    out = _registered(f"{registered.sum()} of {len(ids)} frames registered against the "
+                      "background by structure from motion", ids, registered, c2w, f_sfm,
+                      err, "sfm", kw, details, num_points=int(rec.num_points3D()),
+                      near_depth=_near_depth(rec))
     why = ""
     frac = registered.mean()
     if frac < opts.min_registered:
@@ -402,6 +401,16 @@ def _structure_from_motion(db_path, img_dir, tmp, opts, focal, scale, names, ids
         why = (f"structure from motion's reprojection error {err:.2f} px > "
                f"{opts.max_reprojection_px} px")
     return out, why, rec
+
+
+def _registered(reason: str, ids, registered, c2w, focal: float, err: float | None,
+                model: str, kw: dict, details: dict, **more) -> Registration:
+    """A registration by `model`, with the clip's shared figures (kw: features, flow and
+    their details) and the model's own details added to a copy of them."""
+    shared = {k: v for k, v in kw.items() if k != "details"}
+    return Registration("registered", reason, ids, registered, c2w, focal, err,
+                        camera_model=model, details={**kw["details"], **details},
+                        **shared, **more)
 
 
 def _verified_matches(db_path: Path, image_ids: dict[str, int], names: list[str]) -> Matches:
@@ -446,15 +455,10 @@ def _rotation_registration(ctx: _Context, ids, rot, opts: BackgroundOptions, kw
     share = float(inl.sum() / max(fin.sum(), 1))
     # per point, as SfM's reprojection errors are: a transfer error holds both points' noise
     err = float(np.mean(rot.residual[inl]) / np.sqrt(2) / ctx.scale) if inl.any() else None
-    out = Registration("registered", f"{rot.connected.sum()} of {len(ids)} frames registered "
-                       "against the background as rotations about one centre", ids,
-                       rot.connected.copy(), c2w, ctx.focal / ctx.scale, err,
-                       camera_model="rotation",
-                       **{k: v for k, v in kw.items() if k != "details"},
-                       # the still-head check weighs SfM's world, not this one
-                       details={k: v for k, v in kw["details"].items()
-                                if k != "still_head_hypothesis"})
-    out.details["rotation_inliers"] = share
+    out = _registered(f"{rot.connected.sum()} of {len(ids)} frames registered against the "
+                      "background as rotations about one centre", ids, rot.connected.copy(),
+                      c2w, ctx.focal / ctx.scale, err, "rotation", kw,
+                      {"rotation_inliers": share})
     why = ""
     if rot.connected.mean() < opts.min_registered:
         why = (f"the rotation model connects only {rot.connected.sum()} of {len(ids)} "
