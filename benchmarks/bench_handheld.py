@@ -39,6 +39,7 @@ import numpy as np
 from PIL import Image
 from scipy.spatial.transform import Rotation
 
+from flamenerf.geometry import rotation_angle_deg
 from flamenerf.synthetic.scene import handheld_capture
 from flamenerf.tracking.background import BackgroundOptions, register_background
 from flamenerf.tracking.world import compose_world
@@ -46,9 +47,6 @@ from flamenerf.tracking.world import compose_world
 CV_GL = np.diag([1.0, -1.0, -1.0, 1.0])
 
 
-def rot_deg(A: np.ndarray, B: np.ndarray) -> np.ndarray:
-    """Angles (deg) between rotations A, B (N, 3, 3)."""
-    return np.degrees(Rotation.from_matrix(np.einsum("nab,ncb->nac", A, B)).magnitude())
 
 
 def grow(mask: np.ndarray, px: int) -> np.ndarray:
@@ -82,14 +80,14 @@ def run(frames: list, models: tuple[str, ...], keep: dict | None = None) -> dict
     gt_c, gt_h = truth_c2w[ok], truth_head[ok]
     G = Rotation.from_matrix(np.einsum("nab,ncb->nac", gt_c[:, :3, :3],
                                        world.c2w[:, :3, :3])).mean().as_matrix()
-    cam_err = rot_deg(G @ world.c2w[:, :3, :3], gt_c[:, :3, :3])
+    cam_err = rotation_angle_deg(G @ world.c2w[:, :3, :3], gt_c[:, :3, :3])
     out.update(registered=int(ok.sum()), frames=len(frames), case=world.case,
                camera_rotation_error_deg={"median": float(np.median(cam_err)),
                                           "max": float(cam_err.max())},
-               true_camera_rotation_max_deg=float(rot_deg(
+               true_camera_rotation_max_deg=float(rotation_angle_deg(
                    gt_c[:, :3, :3], np.repeat(gt_c[:1, :3, :3], len(gt_c), 0)).max()))
     if world.head_pose is not None:
-        head_err = rot_deg(G @ world.head_pose[:, :3, :3], gt_h[:, :3, :3])
+        head_err = rotation_angle_deg(G @ world.head_pose[:, :3, :3], gt_h[:, :3, :3])
         out["head_rotation_error_deg"] = {"median": float(np.median(head_err)),
                                           "max": float(head_err.max())}
     if reg.moving is not None:

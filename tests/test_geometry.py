@@ -101,3 +101,15 @@ def test_relative_head_pose_of_the_landmarker_matrices():
     rows = relative_head_pose(np.stack(poses))
     np.testing.assert_allclose(rows[:, :3], [[0, 0, 0], [20, -5, 3], [-15, 8, 0]], atol=1e-4)
     assert (rows[:, 3:] == 0).all()
+
+
+def test_rotation_angle_is_the_relative_rotations_magnitude_and_broadcasts():
+    from scipy.spatial.transform import Rotation
+
+    from flamenerf.geometry import rotation_angle_deg
+
+    A = Rotation.from_rotvec([[0.0, 0.3, 0.0], [0.1, 0.0, 0.0]]).as_matrix()
+    B = Rotation.from_rotvec([0.0, 0.1, 0.0]).as_matrix()
+    np.testing.assert_allclose(rotation_angle_deg(A, B)[0], np.degrees(0.2), rtol=1e-9)
+    assert rotation_angle_deg(A, B).shape == (2,)
+    assert rotation_angle_deg(B, B) == pytest.approx(0.0, abs=1e-9)

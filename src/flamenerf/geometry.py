@@ -100,6 +100,16 @@ def matrix_to_rotvec(R: np.ndarray) -> np.ndarray:
     return Rotation.from_matrix(R).as_rotvec()
 
 
+def rotation_angle_deg(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """The angle (degrees) of the rotation between A and B, rotation matrices
+    (*bs, 3, 3) broadcast together -> (*bs,)."""
+    from scipy.spatial.transform import Rotation
+
+    rel = np.einsum("...ab,...cb->...ac", A, B)
+    angle = Rotation.from_matrix(rel.reshape(-1, 3, 3)).magnitude()
+    return np.degrees(angle).reshape(rel.shape[:-2])
+
+
 def se3_log(T: np.ndarray) -> np.ndarray:
     """Rigid transforms (*bs, 4, 4) -> twists (*bs, 6): rotation vector ω then v, such that
     T = exp([ω, v]) (MR eq. 3.88: p = G(ω) v with G = I + b W + c W²), so that exp(s·ξ)

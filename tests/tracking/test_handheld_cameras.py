@@ -8,13 +8,12 @@ import pytest
 from PIL import Image
 from scipy.spatial.transform import Rotation
 
+from flamenerf.geometry import rotation_angle_deg
 from flamenerf.synthetic.scene import handheld_capture
 from flamenerf.tracking.background import BackgroundOptions, register_background
 from flamenerf.tracking.world import compose_world
 
 
-def _deg(A: np.ndarray, B: np.ndarray) -> np.ndarray:
-    return np.degrees(Rotation.from_matrix(np.einsum("nab,ncb->nac", A, B)).magnitude())
 
 
 @pytest.mark.slow
@@ -30,10 +29,11 @@ def test_the_shake_is_recovered_the_head_separated_and_the_leaves_flagged():
     assert world.case == "both moving"
     G = Rotation.from_matrix(np.einsum("nab,ncb->nac", c2w[:, :3, :3],
                                        world.c2w[:, :3, :3])).mean().as_matrix()
-    assert np.median(_deg(G @ world.c2w[:, :3, :3], c2w[:, :3, :3])) < 0.3
-    assert np.median(_deg(G @ world.head_pose[:, :3, :3], head[:, :3, :3])) < 1.0
+    assert np.median(rotation_angle_deg(G @ world.c2w[:, :3, :3], c2w[:, :3, :3])) < 0.3
+    assert np.median(rotation_angle_deg(G @ world.head_pose[:, :3, :3],
+                                        head[:, :3, :3])) < 1.0
     # the head turned on its own by far more than that
-    assert _deg(head[:, :3, :3], np.repeat(head[:1, :3, :3], len(head), 0)).max() > 3.0
+    assert rotation_angle_deg(head[:, :3, :3], head[:1, :3, :3]).max() > 3.0
     est = np.stack([np.asarray(Image.fromarray(m.astype(np.uint8) * 255).resize(
         (96, 96), Image.Resampling.NEAREST)) > 0 for m in reg.moving])
     truth = np.stack([f.moving for f in frames])

@@ -11,6 +11,7 @@ from PIL import Image
 from room import render_room
 from scipy.spatial.transform import Rotation
 
+from flamenerf.geometry import rotation_angle_deg
 from flamenerf.tracking.background import (BackgroundOptions, person_mask,
                                            register_background)
 from flamenerf.tracking.cameras import SolveConfig, solve_cameras
@@ -42,8 +43,6 @@ def _solve(room, mesh):
     return sol, reg, compose_world(sol.w2c, reg, mesh.vertices.mean(0))
 
 
-def _rot_deg(A: np.ndarray, B: np.ndarray) -> np.ndarray:
-    return np.degrees(Rotation.from_matrix(np.einsum("nab,ncb->nac", A, B)).magnitude())
 
 
 def _align(est: np.ndarray, gt: np.ndarray):
@@ -71,10 +70,11 @@ def test_cameras_and_head_poses_of_a_moving_head(canonical_mesh):
     assert s == pytest.approx(1.0, abs=0.05)  # metric scale from the face
     centres = s * world.c2w[:, :3, 3] @ R.T + t
     assert np.linalg.norm(centres - room.c2w[:, :3, 3], axis=1).max() < 0.015
-    assert _rot_deg(R @ world.c2w[:, :3, :3], room.c2w[:, :3, :3]).max() < 0.5
+    assert rotation_angle_deg(R @ world.c2w[:, :3, :3], room.c2w[:, :3, :3]).max() < 0.5
     heads = s * world.head_pose[:, :3, 3] @ R.T + t
     assert np.linalg.norm(heads - room.head_pose[:, :3, 3], axis=1).max() < 0.025
-    assert _rot_deg(R @ world.head_pose[:, :3, :3], room.head_pose[:, :3, :3]).max() < 1.0
+    assert rotation_angle_deg(R @ world.head_pose[:, :3, :3],
+                              room.head_pose[:, :3, :3]).max() < 1.0
     assert world.head_motion["rotation_max_deg"] > 15  # the head turned ±20 deg
     assert reg.details["still_head_hypothesis"]["chosen"] == "sfm"
     assert world.warnings == []
@@ -92,7 +92,7 @@ def test_still_head_gets_one_pose_and_metric_cameras(canonical_mesh):
     # the world is the head's frame, in metres: the cameras are the true ones seen from it
     gt = np.linalg.inv(room.head_pose) @ room.c2w
     assert np.linalg.norm(world.c2w[:, :3, 3] - gt[:, :3, 3], axis=1).max() < 0.02
-    assert _rot_deg(world.c2w[:, :3, :3], gt[:, :3, :3]).max() < 1.0
+    assert rotation_angle_deg(world.c2w[:, :3, :3], gt[:, :3, :3]).max() < 1.0
 
 
 @pytest.mark.slow
@@ -279,9 +279,10 @@ def test_handheld_shake_registers_as_rotations_and_the_sway_is_flagged(canonical
     # rotations against the truth, up to the world's own orientation
     G = Rotation.from_matrix(np.einsum("nab,ncb->nac", room.c2w[:, :3, :3],
                                        world.c2w[:, :3, :3])).mean().as_matrix()
-    cam_err = _rot_deg(G @ world.c2w[:, :3, :3], room.c2w[:, :3, :3])
+    cam_err = rotation_angle_deg(G @ world.c2w[:, :3, :3], room.c2w[:, :3, :3])
     assert np.median(cam_err) < 0.3, cam_err
-    head_err = _rot_deg(G @ world.head_pose[:, :3, :3], room.head_pose[:, :3, :3])
+    head_err = rotation_angle_deg(G @ world.head_pose[:, :3, :3],
+                                  room.head_pose[:, :3, :3])
     assert np.median(head_err) < 1.0, head_err
     assert world.camera_motion["rotation_max_deg"] > 2.0  # the shake is a camera motion
     # what swayed is flagged, and little else (on the background: the person is masked)

@@ -30,6 +30,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from flamenerf.geometry import rotation_angle_deg
+
 CASES = ("moving camera, still head", "still camera, moving head", "both moving",
          "both still", "head as world (fallback)")
 
@@ -77,11 +79,9 @@ def mean_pose(T: np.ndarray) -> np.ndarray:
 def pose_spread(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Each pose's rotation angle (deg) and distance (same units) from the mean pose:
     T (N, 4, 4) -> (N,), (N,)."""
-    from scipy.spatial.transform import Rotation
-
     M = mean_pose(T)
-    rel = Rotation.from_matrix(np.einsum("nab,cb->nac", T[:, :3, :3], M[:3, :3]))
-    return np.degrees(rel.magnitude()), np.linalg.norm(T[:, :3, 3] - M[:3, 3], axis=1)
+    return (rotation_angle_deg(T[:, :3, :3], M[:3, :3]),
+            np.linalg.norm(T[:, :3, 3] - M[:3, 3], axis=1))
 
 
 def motion_stats(c2w: np.ndarray, head_pose: np.ndarray | None, head_centre: np.ndarray
