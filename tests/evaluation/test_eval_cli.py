@@ -51,6 +51,7 @@ def test_eval_writes_the_documented_schema(evaluated):
     lk = res["leakage"]
     assert lk["num_frames"] == 3 and len(lk["frames"]) == 2
     assert lk["mean"] == 0.0  # the spatial prior
+    assert res["separation"] is None  # the toy's quad has no eyes or mouth: no face parts
     assert (evaluated / "metrics.md").read_text().startswith("# Evaluation")
     for rel in res["images"]:
         img = iio.imread(evaluated / rel)

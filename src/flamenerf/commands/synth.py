@@ -23,6 +23,8 @@ def synth(
     sway: float | None = None,
     head_motion: bool = False,
     handheld: bool = False,
+    entangled: bool = False,
+    never: tuple[str, ...] = (),
     video: Path | None = None,
     reanimate: int | None = None,
     leakage_steps: int = 3,
@@ -41,12 +43,17 @@ def synth(
     frame records its head pose, and a novel_pose split (novel head poses x cameras x
     expressions) is added. --handheld films that moving head as a phone held in the hand
     would (a few degrees of shake, a few cm of drift, little parallax) against a far
-    skyline, with leaves swaying by themselves beside the head. The same seed always gives
-    the same bytes. See docs/synthetic_scene.md.
+    skyline, with leaves swaying by themselves beside the head. --entangled moves the
+    controls only in fixed groups, as people do (a surprise raises the brows, widens the
+    eyes and opens the jaw together), and adds a pairs split; --never leaves controls out
+    of the capture altogether; the leakage and pairs splits then command what the capture
+    never showed. The same seed always gives the same bytes. See docs/synthetic_scene.md.
 
     Example: flamenerf synth scenes/portrait --size 128 --frames 120
 
     Example: flamenerf synth scenes/phone --handheld --video scenes/phone.mp4
+
+    Example: flamenerf synth scenes/groups --entangled --never eyeBlinkLeft eyeBlinkRight
 
     Args:
         out: Output dataset directory.
@@ -60,6 +67,9 @@ def synth(
             head poses in transforms.json as head_pose).
         handheld: A phone's shaky capture of the moving head (implies --head-motion)
             against a far skyline and swaying leaves.
+        entangled: The capture moves the controls only in fixed groups (surprise, smile,
+            speech, anger, blinks of both eyes).
+        never: Controls the capture never moves (e.g. eyeBlinkLeft eyeBlinkRight).
         video: Also write the capture frames (train and val, in time order) to this mp4
             at 30 fps, e.g. for `flamenerf preprocess`.
         reanimate: Number of re-animation frames (default: frames / 10, at least 3).
@@ -94,6 +104,12 @@ def synth(
         raise UserError(f"--reanimate {reanimate}: must be from 0 to {MAX_FRAMES}")
     if not 0 <= leakage_steps <= 100:
         raise UserError(f"--leakage-steps {leakage_steps}: must be from 0 to 100")
+    from flamenerf.synthetic.head import CONTROLS
+
+    unknown = [name for name in never if name not in CONTROLS]
+    if unknown:
+        raise UserError(f"--never {unknown[0]}: no such control (the scene's: "
+                        f"{', '.join(CONTROLS)})")
     if out.exists() and not overwrite:
         raise UserError(f"{out}: already exists (pass --overwrite to replace it)")
     if video is not None:
@@ -108,12 +124,13 @@ def synth(
             raise UserError(f"--video {video}: must be outside the dataset folder {out}")
         writable_dir(video.absolute().parent, "video")
     total = len(frame_specs(seed, frames, sway, reanimate, leakage_steps, head_motion,
-                            handheld))
+                            handheld, entangled, never))
     with tqdm(total=total, desc="synth", unit="frame") as bar:
         path = make_scene(out, seed=seed, size=size, frames=frames, sway=sway,
                           reanimate=reanimate, leakage_steps=leakage_steps,
                           overwrite=overwrite, workers=workers, head_motion=head_motion,
-                          handheld=handheld, progress=lambda n: bar.update(n - bar.n))
+                          handheld=handheld, entangled=entangled, never=never,
+                          progress=lambda n: bar.update(n - bar.n))
     print(f"wrote {path} ({total} frames)")
     if video is not None:
         print(f"wrote {write_capture_video(path, video)} ({frames} frames at 30 fps)")

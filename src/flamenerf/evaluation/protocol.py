@@ -24,6 +24,10 @@ leakage           the built-in scene only: frame 0's camera and codes while the 
                   sweeps one control at a time. Leakage = mean absolute per-pixel change
                   (0-255) outside the dilated union of the sweep's face masks, relative to
                   the sweep's first (neutral) frame, averaged over the other frames.
+separation        the built-in scene only: on the same sweep (and `synth --entangled`'s
+                  pairs split), the share of each control's true effect that the render
+                  reproduces and how much of its change falls outside its own part of the
+                  face (evaluation/separation.py).
 """
 
 from __future__ import annotations
@@ -50,6 +54,7 @@ from flamenerf.data.companions import dataset_companions
 from flamenerf.data.expression_range import training_range
 from flamenerf.errors import UserError
 from flamenerf.evaluation.heldout import fit_deformation_codes
+from flamenerf.evaluation.separation import separation
 from flamenerf.images import abs_diff, hstack, resize_to_height, vstack
 from flamenerf.io import atomic_write_text, save_png, write_json
 from flamenerf.rendering.expressions import from_video
@@ -255,7 +260,7 @@ def evaluate_run(run, ds: Dataset, opts: EvalOptions, out_dir: Path | None = Non
         "device": str(run.device),
         "protocol": asdict(opts),
         "heldout": None, "driven": None, "reanimate": None, "novel_pose": None,
-        "leakage": None, "control": None, "drive": None,
+        "leakage": None, "separation": None, "control": None, "drive": None,
     }
     images: dict[str, np.ndarray] = {}
     frames = ds.split(opts.split)
@@ -308,6 +313,13 @@ def evaluate_run(run, ds: Dataset, opts: EvalOptions, out_dir: Path | None = Non
                                         opts.chunk)
         images["leakage.png"] = _sweep_figure(fs, preds, opts.leakage_dilate_px)
         leak_preds = (fs, preds)
+        pairs = pair_preds = None
+        if ds.splits.get("pairs"):
+            pairs = FrameSet(ds, ds.split("pairs"), intr)
+            log(f"pairs: {pairs.n} frames (two controls the capture never combined)")
+            pair_preds = render_frames(model, pairs, omega0.expand(pairs.n, -1),
+                                       phi0.expand(pairs.n, -1), opts.chunk)
+        res["separation"] = separation(fs, preds, pairs, pair_preds)
     if opts.control:
         log("control response: re-tracking renders with the face landmarker")
         res["control"] = control_section(run, ds, intr, omega0, phi0, opts, leak_preds,

@@ -86,9 +86,12 @@ COLUMNS = [
     Column("Controls following ↑", ("driven", "retracked", "responding"), lambda x: fmt(x, 0),
            True, _frames_respond),
     Column("Leakage ↓", ("leakage", "mean"), fmt, False),
+    Column("Controls alone ↑", ("separation", "mean_reproduced"), fmt, True),
 ]
 """Table columns: the paper's two first (held-out MSE and PSNR), then ours. Leakage is
-the mean absolute background change on the 0-255 scale. Controls following: of the controls
+the mean absolute background change on the 0-255 scale. Controls alone: the mean share of a
+control's true effect that a render of it alone reproduces (evaluation/separation.py).
+Controls following: of the controls
 the driven held-out renders are re-tracked for, how many meet the bar of `metrics.RESPONDS` (`driven` →
 `retracked`), where the frames themselves show any."""
 
@@ -346,6 +349,28 @@ def eval_markdown(res: dict[str, Any]) -> str:
                   "|---|" + "--:|" * len(lk["per_control"]),
                   "| leakage | " + " | ".join(fmt(v) for v in lk["per_control"].values())
                   + " |"]
+    sp = res.get("separation")
+    if sp:
+        L += ["", "**Controls alone** (the leakage sweep against the scene's own renders of "
+              "each control alone from neutral): *reproduced* = 1 − MSE(render, truth) / "
+              "MSE(neutral truth, truth) inside the face masks (1 exact, 0 no better than not "
+              "moving); *change* the same on the changes from neutral; *outside* the share "
+              "of the render's change beyond the control's own part of the face (the "
+              "truth's beside it).", "",
+              "| control | reproduced | change | outside | truth outside |",
+              "|---|--:|--:|--:|--:|"]
+        rows = list(sp["controls"].items()) + list(sp.get("pairs", {}).items())
+        L += [f"| {n} | {fmt(r['reproduced'])} | {fmt(r['change'])} | {fmt(r['outside'])} "
+              f"| {fmt(r['truth_outside'])} |" for n, r in rows]
+        L += [f"| **mean** | **{fmt(sp['mean_reproduced'])}** | {fmt(sp['mean_change'])} | "
+              f"{fmt(sp['mean_outside'])} | |", "",
+              f"Reproduced ≥ {sp['target']}: **{sp['reaching_target']}** of "
+              f"{len(sp['controls'])} controls"
+              + (f"; pairs (two controls the capture never combined) "
+                 f"{fmt(sp['mean_pair_reproduced'])} on average"
+                 if sp.get("mean_pair_reproduced") is not None else "") + "."]
+        if sp.get("never_trained"):
+            L.append(f"\nNever moved in the training frames: {', '.join(sp['never_trained'])}.")
     if res.get("images"):
         L += ["", "Images (`images/`): GT | render | |diff| x4 per frame; `leakage.png`: the "
               "sweep's renders and |render - neutral| x4 (blue: the face region, not counted)."]

@@ -77,6 +77,70 @@ def speech_trajectory(n: int, seed: int, stream: int = 0) -> np.ndarray:
     return np.clip(e, 0.0, 1.0).astype(np.float32)
 
 
+GROUPS: dict[str, tuple[str, ...]] = {
+    "surprise": ("browInnerUp", "eyeWideLeft", "eyeWideRight", "jawOpen"),
+    "smile": ("mouthSmileLeft", "mouthSmileRight", "cheekPuff"),
+    "speech": ("jawOpen", "mouthPucker"),
+    "anger": ("browDownLeft", "browDownRight", "mouthFrownLeft", "mouthFrownRight"),
+    "blink": ("eyeBlinkLeft", "eyeBlinkRight"),
+}
+"""What the entangled capture moves together, each member by the same amount, as people
+do: the brows rise only in a surprise, the smile comes with the cheeks, the jaw speaks with
+the lips, both eyes blink. Every control is in a group; jawOpen is in two."""
+
+PAIRS: tuple[tuple[str, str], ...] = (
+    ("jawOpen", "browDownLeft"),
+    ("mouthSmileLeft", "browInnerUp"),
+    ("mouthPucker", "eyeWideRight"),
+    ("cheekPuff", "mouthFrownRight"),
+    ("mouthSmileRight", "eyeWideLeft"),
+)
+"""Pairs of controls from groups that the entangled capture never shows together."""
+
+
+def entangled_trajectory(n: int, seed: int) -> np.ndarray:
+    """A capture that moves the controls only in `GROUPS` (n, num_controls): one
+    expression at a time (surprise, smile, a phrase of speech, anger, in a random order,
+    each group's members by the same amount; every group at full strength the first time
+    it comes, and all four within about the first 150 frames), with both eyes blinking over
+    any of them. So no control ever moves alone and the groups never meet, except the
+    blinks."""
+    rng = np.random.Generator(np.random.PCG64(np.random.SeedSequence([int(seed), 707])))
+    t = np.arange(n, dtype=np.float64)
+    e = np.zeros((n, len(CONTROLS)))
+
+    def add(group: str, centre: float, hw: float, amp: float) -> None:
+        for name in GROUPS[group]:
+            e[:, CONTROL_INDEX[name]] += amp * _bump(t, centre, hw)
+
+    pos, seen, order = rng.uniform(0, 6), set(), []
+    while pos < n + 10:
+        if not order:  # each cycle shows every group once, in a new order
+            order = [str(g) for g in rng.permutation(["surprise", "smile", "speech", "anger"])]
+        group = order.pop()
+        # the first time a group appears it is at full strength
+        amp = (lambda lo: 1.0 if group not in seen else rng.uniform(lo, 1.0))
+        if group == "speech":  # syllables: the jaw and the lips together
+            end = pos + rng.uniform(25, 50)
+            while pos < end:
+                gap = rng.uniform(6, 9)
+                add("speech", pos + gap * 0.75, gap * 0.75, amp(0.3))
+                seen.add(group)
+                pos += gap
+            pos += gap * 0.75
+        else:
+            hw = rng.uniform(8, 16)
+            add(group, pos + hw, hw, amp(0.5))
+            pos += 2 * hw
+        seen.add(group)
+        pos += rng.uniform(2, 8)
+    pos = rng.uniform(5, 30)
+    while pos < n + 4:
+        add("blink", pos, rng.uniform(2.5, 4.0), 1.0)
+        pos += rng.uniform(40, 90)
+    return np.clip(e, 0.0, 1.0).astype(np.float32)
+
+
 def leakage_sweep(steps: int = 3) -> tuple[np.ndarray, list[tuple[str, float]]]:
     """Neutral, then each control alone at 1/steps, 2/steps, ..., 1.
 

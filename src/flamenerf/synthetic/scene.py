@@ -9,6 +9,8 @@ Splits (positions in the one frame list, in this order):
   leakage      frame 0's camera and body pose; neutral, then each control alone at
                1/steps .. 1; frame_index null; each frame records `leakage_control` and
                `leakage_value`.
+  pairs        with `entangled` only: as leakage, two controls at 1 that the capture never
+               shows together (expressions.PAIRS); each frame records `pair`.
   novel_pose   with --head-motion only: novel head poses x novel cameras x novel
                expressions (independent draws); frame_index null.
 Every frame records its world-from-body pose (`body_pose`), so `scene_from_dataset(ds)`
@@ -26,6 +28,12 @@ away: a skyline 4 m behind the head and a panel of leaves beside it whose textur
 itself (background.py). Capture frame t is rendered at time t (the leaves' motion); the
 other splits at time 0. `handheld_capture` gives the capture with its ground truth (the
 person and moving masks, true cameras, head poses, landmarks) for testing camera solvers.
+
+With `entangled`, the capture moves the controls only in fixed groups, as people do
+(expressions.GROUPS: a surprise raises the brows, widens the eyes and opens the jaw
+together), so the leakage split's controls alone and the pairs split are what it never
+showed; `never` names controls the capture leaves at 0 (e.g. no blink). Both change only
+the capture's expressions; the re-animation splits keep their independent trajectories.
 """
 
 from __future__ import annotations
@@ -38,8 +46,9 @@ from typing import Any, Callable, Iterator
 import numpy as np
 
 from flamenerf.synthetic.cameras import capture_path, handheld_path, intrinsics, novel_path
-from flamenerf.synthetic.expressions import leakage_sweep, speech_trajectory
-from flamenerf.synthetic.head import CONTROLS, mesh_landmarks
+from flamenerf.synthetic.expressions import (PAIRS, entangled_trajectory, leakage_sweep,
+                                             speech_trajectory)
+from flamenerf.synthetic.head import CONTROL_INDEX, CONTROLS, mesh_landmarks
 from flamenerf import __version__
 from flamenerf.data.dataset import DatasetError, DatasetWriter, Intrinsics, load_dataset
 from flamenerf.data.video import VideoWriter
@@ -80,13 +89,18 @@ def default_reanimate(frames: int) -> int:
 
 def frame_specs(seed: int, frames: int, sway: float, reanimate: int | None = None,
                 leakage_steps: int = 3, head_motion: bool = False,
-                handheld: bool = False) -> list[FrameSpec]:
-    """Every frame of the scene, in dataset order (train/val, reanimate, leakage, and with
-    head_motion novel_pose). `handheld` implies head_motion."""
+                handheld: bool = False, entangled: bool = False,
+                never: tuple[str, ...] = ()) -> list[FrameSpec]:
+    """Every frame of the scene, in dataset order (train/val, reanimate, leakage, with
+    entangled pairs, and with head_motion novel_pose). `handheld` implies head_motion;
+    `entangled`: the capture moves the controls in fixed groups (expressions.GROUPS);
+    `never`: controls the capture never moves (the other splits still command them)."""
     head_motion = head_motion or handheld
     specs: list[FrameSpec] = []
     c2ws = handheld_path(frames, seed) if handheld else capture_path(frames, seed)[0]
-    exprs = speech_trajectory(frames, seed, stream=0)
+    exprs = (entangled_trajectory(frames, seed) if entangled
+             else speech_trajectory(frames, seed, stream=0))
+    exprs[:, [CONTROL_INDEX[name] for name in never]] = 0.0
     heads = head_motion_path(frames, seed) if head_motion else [None] * frames
     for t in range(frames):
         pose = sway_pose(t, sway, seed)
@@ -107,6 +121,12 @@ def frame_specs(seed: int, frames: int, sway: float, reanimate: int | None = Non
             specs.append(FrameSpec("leakage", None, c2ws[0], x, pose0,
                                    {"body_pose": pose0.tolist(), "leakage_control": name,
                                     "leakage_value": float(value)}, head0))
+    if entangled and leakage_steps > 0:
+        for pair in PAIRS:
+            x = np.zeros(len(CONTROLS), np.float32)
+            x[[CONTROL_INDEX[name] for name in pair]] = 1.0
+            specs.append(FrameSpec("pairs", None, c2ws[0], x, pose0,
+                                   {"body_pose": pose0.tolist(), "pair": list(pair)}, head0))
     if head_motion and n_re > 0:
         # novel cameras (the re-animation loop, shifted by half a step), expressions (a
         # third independent trajectory) and head poses
@@ -179,7 +199,8 @@ def make_scene(out: str | os.PathLike, seed: int = 0, size: int = 256, frames: i
                sway: float | None = None, reanimate: int | None = None, leakage_steps: int = 3,
                overwrite: bool = False, workers: int = 0,
                progress: Callable[[int], None] | None = None, head_motion: bool = False,
-               handheld: bool = False) -> Path:
+               handheld: bool = False, entangled: bool = False,
+               never: tuple[str, ...] = ()) -> Path:
     """Render the synthetic portrait scene into a dataset directory `out`.
 
     seed: appearance, camera path, sway and expressions; size: image width = height;
@@ -191,8 +212,9 @@ def make_scene(out: str | os.PathLike, seed: int = 0, size: int = 256, frames: i
     progress(n): called after each frame is written; head_motion: the head turns and
     shifts independently of the camera against a static room (needs sway = 0; adds the
     novel_pose split); handheld: a phone's shaky capture of that moving head against a far
-    skyline and swaying leaves (implies head_motion; needs sway = 0). Returns the dataset
-    path."""
+    skyline and swaying leaves (implies head_motion; needs sway = 0); entangled: the
+    capture moves the controls only in fixed groups (adds the pairs split); never: controls
+    the capture leaves at 0. Returns the dataset path."""
     if size < 16:
         raise DatasetError(f"{out}: size must be at least 16 pixels, got {size}")
     if frames < 1:
@@ -205,15 +227,23 @@ def make_scene(out: str | os.PathLike, seed: int = 0, size: int = 256, frames: i
     if head_motion and sway != 0:
         raise DatasetError(f"{out}: with head motion the room is the static world; sway must "
                            f"be 0, got {sway}")
+    unknown = [name for name in never if name not in CONTROLS]
+    if unknown:
+        raise DatasetError(f"{out}: no control named {unknown[0]!r} (the scene's controls: "
+                           f"{', '.join(CONTROLS)})")
+    never = tuple(dict.fromkeys(never))
     head_motion = head_motion or handheld
-    specs = frame_specs(seed, frames, sway, reanimate, leakage_steps, head_motion, handheld)
+    specs = frame_specs(seed, frames, sway, reanimate, leakage_steps, head_motion, handheld,
+                        entangled, never)
     intr = intrinsics(size)
     source = {"name": SOURCE_NAME, "version": __version__, "seed": int(seed), "size": int(size),
               "frames": int(frames), "sway": float(sway),
               "reanimate": sum(s.split == "reanimate" for s in specs),
               "leakage_steps": int(leakage_steps),
               **({"head_motion": True} if head_motion else {}),
-              **({"handheld": True} if handheld else {})}
+              **({"handheld": True} if handheld else {}),
+              **({"entangled": True} if entangled else {}),
+              **({"never": list(never)} if never else {})}
     info = {"description": "synthetic face rig; controls named after ARKit blendshapes, "
                            "each in [0, 1] ('Left' = the subject's left, +x)"}
 

@@ -59,6 +59,8 @@ class BenchOptions:
         scene_size: Width and height of the built-in scene in pixels.
         frames: Capture frames of the scene (val is every 10th).
         seed: Scene seed (also the ω fit's).
+        entangled: Make the scene whose capture moves the controls only in fixed groups
+            (`synth --entangled`), to measure controls alone.
         train_size: Train (and evaluate) at this width (default: 64 on CPU, the scene's on
             CUDA).
         steps: Training steps of every method (default: the preset's, `fast`: 1800; 20000
@@ -79,6 +81,7 @@ class BenchOptions:
     scene_size: int = 128
     frames: int = 120
     seed: int = 0
+    entangled: bool = False
     train_size: int | None = None
     steps: int | None = None
     batch_rays: int | None = None
@@ -160,8 +163,10 @@ def _prepare_scene(o: BenchOptions, log) -> tuple[Path, float, bool]:
     if scene.exists() and not o.overwrite:
         ds = load_dataset(scene, check_files=False)
         src = ds.source or {}
-        want = {"name": SOURCE_NAME, "size": o.scene_size, "frames": o.frames, "seed": o.seed}
+        want = {"name": SOURCE_NAME, "size": o.scene_size, "frames": o.frames, "seed": o.seed,
+                "entangled": o.entangled}
         have = {k: src.get(k) for k in want}
+        have["entangled"] = bool(have["entangled"])
         if have != want:
             raise UserError(f"{scene}: holds another scene ({have}, want {want}); pass "
                             "--overwrite to re-make it, or another --work")
@@ -169,7 +174,8 @@ def _prepare_scene(o: BenchOptions, log) -> tuple[Path, float, bool]:
         return scene, 0.0, True
     log(f"scene: making the built-in scene at {o.scene_size} px, {o.frames} frames -> {scene}")
     t0 = time.perf_counter()
-    make_scene(scene, seed=o.seed, size=o.scene_size, frames=o.frames, overwrite=True)
+    make_scene(scene, seed=o.seed, size=o.scene_size, frames=o.frames, overwrite=True,
+               entangled=o.entangled)
     return scene, time.perf_counter() - t0, False
 
 
