@@ -211,6 +211,13 @@ class MeshGuideConfig:
     to the blinks, and a commanded blink opened the mouth (data/face_parts.py). Used by
     every preset that fits the model (per-control prior, mesh guide, driven silhouettes)."""
 
+    generic_shapes: bool = False
+    """Eye and brow controls that the training frames leave still (largest value under 0.1:
+    a subject who never blinks on camera) take a generic shape in the β -> mesh model (the
+    upper lid shut onto the lower one, the brows raised or lowered, in the face's own
+    proportions; data/generic_shapes.py) and act through the mesh guide alone, where the
+    fitted model gives them nothing and a commanded blink did nothing. Needs the mesh guide
+    and the per-control regions. `fast`: on (docs/decisions/generic-shapes.md)."""
     stored: bool = True
     """Use the β -> mesh model a dataset carries (`preprocess --consistent-expressions` fits
     one that reads back through the tracker as each control commanded alone:
@@ -419,6 +426,9 @@ def _fast() -> Config:
     cfg.model.mesh_guide.enabled = None
     # ... less the vertices the linear β -> mesh model cannot follow (the built-in lips)
     cfg.model.mesh_guide.max_residual = 0.0015
+    # ... and generic shapes for the eye and brow controls the clip never moves
+    # (docs/decisions/generic-shapes.md)
+    cfg.model.mesh_guide.generic_shapes = True
     cfg.model.sampler = SamplerConfig(kind="proposal", num_proposal=48, num_main=32,
                                       proposal_levels=5, proposal_max_res=128)
     # the per-frame deformation codes at a tenth of the learning rate: extra steps then

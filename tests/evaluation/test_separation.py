@@ -61,4 +61,6 @@ def test_a_change_the_wrong_way_scores_below_zero():
     assert reproduced_share([0.5 * (ref + truth)], [truth], ref, [mask]) == pytest.approx(0.75)
     own = np.zeros((8, 8), bool)
     own[2:4] = True
-    assert outside_share(ref, truth, own) == pytest.approx(1 / 3)
+    assert outside_share(ref, truth, own, power=1) == pytest.approx(1 / 3)
+    truth[4, 2:5] += 0.1  # the last row changes twice as much: 4x the squared change
+    assert outside_share(ref, truth, own) == pytest.approx(4 / 6)

@@ -22,6 +22,8 @@ components get no weights: they are the model's own basis.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 # MediaPipe's canonical face mesh (468 landmarks; 478 with the irises): the eye corners,
@@ -112,6 +114,45 @@ def mesh_landmarks(num_vertices: int, given: dict | None = None
     return MEDIAPIPE_LANDMARKS if num_vertices in MEDIAPIPE_VERTEX_COUNTS else None
 
 
+@dataclass(frozen=True)
+class FaceFrame:
+    """Where each vertex of a face mesh lies on the face, in units of the distance `scale`
+    from the mouth to the eyes' midpoint (`face_frame`)."""
+
+    scale: float
+    """The mouth-to-eyes distance, the mesh's units."""
+    up: np.ndarray
+    """(3,) unit vector from the mouth to the eyes' midpoint."""
+    across: np.ndarray
+    """(3,) unit vector towards the subject's left, orthogonal to `up`."""
+    h: np.ndarray
+    """(V,) height: 0 at the mouth, 1 at the eyes."""
+    s: np.ndarray
+    """(V,) across: > 0 on the subject's left."""
+    d_eye: np.ndarray
+    """(V,) distance to the nearer eye."""
+    eyes: dict[str, np.ndarray]
+    """"Left" / "Right" -> (3,) the eye's centre."""
+
+
+def face_frame(vertices: np.ndarray, marks: dict[str, tuple[int, ...]]) -> FaceFrame:
+    """The frame of a face mesh (V, 3) from its eyes' and mouth's vertices (`mesh_landmarks`)."""
+    v = np.asarray(vertices, np.float64)
+    eye_l = v[list(marks["eye_left"])].mean(0)
+    eye_r = v[list(marks["eye_right"])].mean(0)
+    mouth = v[list(marks["mouth"])].mean(0)
+    up = (eye_l + eye_r) / 2 - mouth
+    scale = float(np.linalg.norm(up))
+    h = (v - mouth) @ (up / scale) / scale
+    across = eye_l - eye_r
+    across -= (across @ up) / scale ** 2 * up
+    across /= np.linalg.norm(across)
+    d_eye = np.minimum(np.linalg.norm(v - eye_l, axis=1),
+                       np.linalg.norm(v - eye_r, axis=1)) / scale
+    return FaceFrame(scale, up / scale, across, h, (v - mouth) @ across / scale, d_eye,
+                     {"Left": eye_l, "Right": eye_r})
+
+
 def control_weights(kind: str, names: list[str], vertices: np.ndarray,
                     landmarks: dict | None = None) -> np.ndarray | None:
     """Soft per-vertex limits of each control, or None where none apply (not ARKit names,
@@ -124,20 +165,9 @@ def control_weights(kind: str, names: list[str], vertices: np.ndarray,
     """
     if not has_parts(kind, names, vertices.shape[0], landmarks):
         return None
-    marks = mesh_landmarks(vertices.shape[0], landmarks)
     parts = [_part_of(n) for n in names]
-    v = np.asarray(vertices, np.float64)
-    eye_l = v[list(marks["eye_left"])].mean(0)
-    eye_r = v[list(marks["eye_right"])].mean(0)
-    mouth = v[list(marks["mouth"])].mean(0)
-    up = (eye_l + eye_r) / 2 - mouth
-    scale = float(np.linalg.norm(up))
-    h = (v - mouth) @ (up / scale) / scale
-    across = eye_l - eye_r
-    across -= (across @ up) / scale ** 2 * up
-    s = (v - mouth) @ (across / np.linalg.norm(across)) / scale  # > 0 on the subject's left
-    d_eye = np.minimum(np.linalg.norm(v - eye_l, axis=1),
-                       np.linalg.norm(v - eye_r, axis=1)) / scale
+    f = face_frame(vertices, mesh_landmarks(vertices.shape[0], landmarks))
+    h, s, d_eye = f.h, f.s, f.d_eye
     lo, hi = _EYE_RADIUS
     eye = np.clip((hi - d_eye) / (hi - lo), 0, 1) * _band(h, -np.inf, _EYE_TOP)
     weight = {
@@ -151,8 +181,8 @@ def control_weights(kind: str, names: list[str], vertices: np.ndarray,
         # nose scores stay under 0.001
         "upper": _band(h, *_UPPER_FACE) * (1 - eye),
         "eye": eye,
-        "none": np.zeros(len(v)),
-        None: np.ones(len(v)),
+        "none": np.zeros(len(h)),
+        None: np.ones(len(h)),
     }
     side = {"Left": np.clip((s + _MIDLINE) / (2 * _MIDLINE), 0, 1),
             "Right": np.clip((_MIDLINE - s) / (2 * _MIDLINE), 0, 1)}

@@ -131,9 +131,12 @@ class ExpressionConditioner(nn.Module):
     def normalize(self, x: Tensor) -> Tensor:
         return (x - self.center) / self.half_extent
 
-    def set_mesh_model(self, neutral: Tensor, basis: Tensor, faces: Tensor) -> None:
+    def set_mesh_model(self, neutral: Tensor, basis: Tensor, faces: Tensor,
+                       mesh_only: list[int] | tuple[int, ...] = ()) -> None:
         """neutral (V, 3), basis (E, V, 3) world units (`meshes.fit_expression_model`),
-        faces (F, 3)."""
+        faces (F, 3). `mesh_only`: controls that act through the mesh alone (generic shapes
+        of controls the training frames never moved, data/generic_shapes.py): no region, so
+        the fields never see them, as in training, and the mesh guide moves the face."""
         self.mesh_neutral.copy_(neutral)
         self.mesh_basis.copy_(basis)
         self.mesh_faces.copy_(faces)
@@ -143,6 +146,7 @@ class ExpressionConditioner(nn.Module):
         # soft membership: 1 where the control moves a vertex by thr of its largest motion
         # or more, fading to 0 with the motion, so that gates vary smoothly across the face
         soft = (motion / (thr * top).clamp_min(1e-12)).clamp(max=1.0) * (top > 0)
+        soft[list(mesh_only)] = 0.0
         self.mesh_regions.copy_(soft.T)
 
     def set_guide_skip(self, vertices: Tensor) -> None:

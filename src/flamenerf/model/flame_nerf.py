@@ -119,9 +119,10 @@ class FlameNeRF(nn.Module):
             raise ValueError(f"unknown sampler {s.kind!r}")
 
     # ---------------------------------------------------------------- expression
-    def set_expression_model(self, neutral: Tensor, basis: Tensor, faces: Tensor) -> None:
+    def set_expression_model(self, neutral: Tensor, basis: Tensor, faces: Tensor,
+                             mesh_only: list[int] | tuple[int, ...] = ()) -> None:
         """The per-subject β -> mesh model (`ExpressionConditioner.set_mesh_model`)."""
-        self.expression.set_mesh_model(neutral, basis, faces)
+        self.expression.set_mesh_model(neutral, basis, faces, mesh_only)
 
     def set_guide_skip(self, vertices: Tensor) -> None:
         """Vertex indices (K,) that the mesh guide ignores (`mesh_guide.max_residual`); kept

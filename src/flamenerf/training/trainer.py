@@ -19,7 +19,8 @@ from flamenerf.config import Config
 from flamenerf.data.dataset import Dataset, Frame, Intrinsics, fingerprint, load_dataset
 from flamenerf.data.expression_range import training_expressions
 from flamenerf.data.face_parts import applies, has_parts
-from flamenerf.data.mesh_model import expression_model_residual, fit_dataset_expression_model
+from flamenerf.data.mesh_model import (expression_model_residual, fit_dataset_expression_model,
+                                       generic_controls)
 from flamenerf.data.scene import (FrameSet, face_pixel_resolution, model_detail_region,
                                   model_head_region, model_warp_region, scene_box)
 from flamenerf.errors import Interrupted, UserError, warn
@@ -149,8 +150,13 @@ def build_for_dataset(cfg: Config, ds: Dataset) -> FlameNeRF:
         model.set_expression_mean(torch.from_numpy(training_expressions(ds).mean(0)))
     if model.expression.uses_mesh_model:
         mg = cfg.model.mesh_guide
-        neutral, basis = fit_dataset_expression_model(ds, mg.ridge, mg.face_parts, mg.stored)
-        model.set_expression_model(neutral, basis, torch.from_numpy(ds.faces).long())
+        # generic shapes act through the mesh guide alone, with the fields kept from them
+        generic = bool(mg.generic_shapes and model.expression.mesh_guided
+                       and model.expression.regions)
+        neutral, basis = fit_dataset_expression_model(ds, mg.ridge, mg.face_parts, mg.stored,
+                                                      generic)
+        model.set_expression_model(neutral, basis, torch.from_numpy(ds.faces).long(),
+                                   generic_controls(ds) if generic else ())
         limit = cfg.model.mesh_guide.max_residual
         if model.expression.mesh_guided and limit is not None:
             miss = expression_model_residual(ds, neutral, basis)
