@@ -377,3 +377,30 @@ def test_ground_truth_renderer_redraws_the_built_in_scene(tiny_scene, toy_datase
     jaw[ds.expression_names.index("jawOpen")] = 1.0
     assert np.abs(render(jaw) - own).max() > 0.1  # the mouth opens
     assert C.ground_truth_renderer(load_dataset(toy_dataset), ds.intrinsics) is None
+
+
+def test_a_sweep_read_by_geometry_follows_only_the_right_way():
+    from flamenerf.evaluation.control import geometry_of_sweep
+
+    rng = np.random.default_rng(0)
+    base = rng.uniform(0, 100, (468, 2))
+    base[[263, 362]] = [[70, 40], [60, 40]]  # the eyes 40 px apart
+    base[[33, 133]] = [[30, 40], [20, 40]]
+    commanded = np.linspace(0, 1, 5)
+
+    def widened(by: float) -> np.ndarray:
+        lm = base.copy()
+        lm[61] = [30 - by, 80]
+        lm[291] = [60 + by, 80]
+        return lm
+
+    wider = [widened(4 * v) for v in commanded]  # up to 0.2 of the eye distance
+    smile = geometry_of_sweep("mouthSmileLeft", commanded, wider)
+    assert smile["measure"] == "mouth_width" and smile["follows"]
+    assert smile["change"] == pytest.approx(8 / 40)
+    pucker = geometry_of_sweep("mouthPucker", commanded, wider)  # should narrow it
+    assert pucker["measure"] == "-mouth_width" and not pucker["follows"]
+    tiny = geometry_of_sweep("mouthSmileLeft", commanded, [widened(0.1 * v) for v in commanded])
+    assert tiny["correlation"] > 0.99 and not tiny["follows"]  # jitter-sized
+    assert geometry_of_sweep("cheekPuff", commanded, wider) is None  # no plain measure
+    assert geometry_of_sweep("jawOpen", commanded, [None] * 4 + [base]) is None

@@ -42,7 +42,8 @@ from flamenerf.data.companions import Companions
 from flamenerf.data.dataset import Dataset, DatasetError, Intrinsics, reference_position
 from flamenerf.data.scene import FrameSet
 from flamenerf.evaluation import metrics as M
-from flamenerf.evaluation.metrics import image_metrics, responds, scene_masks, summarize
+from flamenerf.evaluation.metrics import (GEOMETRY_FOLLOWS, image_metrics, responds, scene_masks,
+                                         summarize)
 from flamenerf.model.flame_nerf import FlameNeRF
 from flamenerf.model.render_image import StillCamera, render_image
 from flamenerf.data.prior import dataset_dilation, mesh_function, prior_mask
@@ -285,6 +286,7 @@ def control_response(render: RenderFn, names: list[str], base: np.ndarray,
 
     def sweep(vals: np.ndarray, name: str, make: Callable[[float], np.ndarray]):
         got, meshes, expected, own = [], [], [], []
+        shape = None
         for v in vals:
             beta = make(v)
             img = render(beta)
@@ -306,7 +308,8 @@ def control_response(render: RenderFn, names: list[str], base: np.ndarray,
             geo = landmark_gain(meshes, expected)
             if own:
                 geo = (*geo, *fit_line(vals, np.array(own)))
-        return got, fit, int(ok.sum()), geo
+            shape = geometry_of_sweep(name, vals, meshes)
+        return got, fit, int(ok.sum()), geo, shape
 
     for name in names:
         if name not in want:
@@ -322,19 +325,23 @@ def control_response(render: RenderFn, names: list[str], base: np.ndarray,
             beta[k] = v
             return beta
 
-        got, (gain, corr), n, geo = sweep(vals, name, alone)
+        got, (gain, corr), n, geo, shape = sweep(vals, name, alone)
         row = {"commanded": vals.tolist(), "retracked": got, "gain": gain,
                "correlation": corr, "detected": n}
         if geo is not None:
             row.update(zip(_GEO_KEYS + _MESH_KEYS, geo))
+        if shape is not None:
+            row["geometry"] = shape
         if companions is not None and companions.of(name):
-            got_c, (gain_c, corr_c), _, geo_c = sweep(
+            got_c, (gain_c, corr_c), _, geo_c, shape_c = sweep(
                 vals, name, lambda v, k=k: companions.complete(base, {k: float(v)}))
             row.update(companions=companions.of(name), retracked_with_companions=got_c,
                        gain_with_companions=gain_c, correlation_with_companions=corr_c)
             if geo_c is not None:
                 row.update(zip((key + "_with_companions" for key in _GEO_KEYS + _MESH_KEYS),
                                geo_c))
+            if shape_c is not None:
+                row["geometry_with_companions"] = shape_c
         out["controls"][name] = row
     rows = out["controls"].values()
     out["mean_gain"] = finite_mean(c["gain"] for c in rows)
@@ -347,6 +354,12 @@ def control_response(render: RenderFn, names: list[str], base: np.ndarray,
             responds(c.get("gain_with_companions", c["gain"]),
                      c.get("correlation_with_companions", c["correlation"])) for c in rows)
     if motion is not None:
+        with_geo = [c for c in rows if "geometry" in c]
+        if with_geo:
+            out["geometry_measured"] = len(with_geo)
+            out["geometry_following"] = sum(c["geometry"]["follows"] for c in with_geo)
+            out["geometry_following_with_companions"] = sum(
+                c.get("geometry_with_companions", c["geometry"])["follows"] for c in with_geo)
         out["mean_landmark_gain"] = finite_mean(
             c.get("landmark_gain_with_companions", c["landmark_gain"]) for c in rows)
         if motion.mesh_scores is not None:
@@ -443,6 +456,45 @@ _LIDS = {"eye_open_left": (386, 374), "eye_open_right": (159, 145)}
 _EYE_CORNERS = ((263, 362), (33, 133))
 _BROWS = {"brow_left": 334, "brow_right": 105}  # the middle of each brow's upper edge
 GEOMETRY = ("mouth_open", "mouth_width", *_LIDS, *_BROWS)
+
+SWEEP_GEOMETRY: dict[str, tuple[tuple[str, ...], int]] = {
+    "jawOpen": (("mouth_open",), 1),
+    "mouthLowerDownLeft": (("mouth_open",), 1), "mouthLowerDownRight": (("mouth_open",), 1),
+    "mouthUpperUpLeft": (("mouth_open",), 1), "mouthUpperUpRight": (("mouth_open",), 1),
+    "mouthSmileLeft": (("mouth_width",), 1), "mouthSmileRight": (("mouth_width",), 1),
+    "mouthStretchLeft": (("mouth_width",), 1), "mouthStretchRight": (("mouth_width",), 1),
+    "mouthPucker": (("mouth_width",), -1), "mouthFunnel": (("mouth_width",), -1),
+    "eyeBlinkLeft": (("eye_open_left",), -1), "eyeBlinkRight": (("eye_open_right",), -1),
+    "eyeSquintLeft": (("eye_open_left",), -1), "eyeSquintRight": (("eye_open_right",), -1),
+    "eyeWideLeft": (("eye_open_left",), 1), "eyeWideRight": (("eye_open_right",), 1),
+    "browInnerUp": (("brow_left", "brow_right"), 1),
+    "browOuterUpLeft": (("brow_left",), 1), "browOuterUpRight": (("brow_right",), 1),
+    "browDownLeft": (("brow_left",), -1), "browDownRight": (("brow_right",), -1),
+}
+"""The plain geometry (`openings`) each control moves, and which way: a blink shuts its own
+eye, a smile widens the mouth, a pucker narrows it ('Left': the subject's left)."""
+
+def geometry_of_sweep(name: str, commanded: np.ndarray, landmarks: list[np.ndarray | None]
+                      ) -> dict[str, Any] | None:
+    """A control's sweep read by plain geometry: the mean of its `SWEEP_GEOMETRY` measures
+    in each step's re-tracked landmarks (None: no face), signed so that the commanded way
+    is up. -> {"measure", "values", "change" (last minus first), "correlation",
+    "follows"}, or None for a control without a measure or fewer than two faces."""
+    if name not in SWEEP_GEOMETRY:
+        return None
+    keys, sign = SWEEP_GEOMETRY[name]
+    vals = [np.nan if lm is None else sign * float(np.mean([openings(lm)[k] for k in keys]))
+            for lm in landmarks]
+    v = np.array(vals)
+    ok = np.isfinite(v)
+    if ok.sum() < 2:
+        return None
+    corr = fit_line(np.asarray(commanded)[ok], v[ok])[1]
+    change = float(v[ok][-1] - v[ok][0])
+    return {"measure": "+".join(keys) if sign > 0 else "-" + "+".join(keys),
+            "values": vals, "change": change, "correlation": corr,
+            "follows": bool(np.isfinite(corr) and corr >= GEOMETRY_FOLLOWS[0]
+                            and change >= GEOMETRY_FOLLOWS[1])}
 
 
 def openings(landmarks: np.ndarray) -> dict[str, float]:

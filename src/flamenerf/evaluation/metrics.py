@@ -128,6 +128,11 @@ RESPONDS = (0.5, 0.9)
 """The bar for a control that responds: re-tracked gain at least 0.5 and correlation
 at least 0.9."""
 
+GEOMETRY_FOLLOWS = (0.9, 0.02)
+"""A sweep moves the face as commanded by geometry when its measure correlates at least
+this well with the command, the right way, and changes by at least this much of the eye
+distance over the sweep (a fraction of a pixel at 128 px is tracker jitter)."""
+
 
 def responds(gain: float, correlation: float) -> bool:
     """Whether a control's (gain, correlation) meets `RESPONDS` (NaN does not)."""

@@ -10,7 +10,7 @@ from typing import Any, Callable
 
 from flamenerf.data.captured_views import MAX_ANGLE_DEG
 from flamenerf.errors import UserError
-from flamenerf.evaluation.metrics import BEYOND_HEAD, RESPONDS
+from flamenerf.evaluation.metrics import BEYOND_HEAD, GEOMETRY_FOLLOWS, RESPONDS
 from flamenerf.io import read_json
 
 FORMAT = "flamenerf-eval"  # metrics.json, written by evaluation/protocol.py
@@ -94,6 +94,12 @@ control's true effect that a render of it alone reproduces (evaluation/separatio
 Controls following: of the controls
 the driven held-out renders are re-tracked for, how many meet the bar of `metrics.RESPONDS` (`driven` →
 `retracked`), where the frames themselves show any."""
+
+
+def _geometry_cells(g: dict | None) -> str:
+    if g is None:
+        return " | | |"
+    return f" {g['measure']} | {fmt(g['change'], 3)} | {fmt(g['correlation'])} |"
 
 
 def _best(values: list[float | None], higher: bool | None) -> float | None:
@@ -249,6 +255,7 @@ def eval_markdown(res: dict[str, Any]) -> str:
         comp = "mean_gain_with_companions" in ct
         geo = "mean_landmark_gain" in ct
         own = "mean_mesh_gain" in ct
+        shape = "geometry_measured" in ct
         L += ["", f"**Control response** ({ct.get('source')}): renders re-tracked with "
               "MediaPipe's landmarker; gain = slope of re-tracked on commanded"
               + (", gt = the same for the ground-truth images" if gt else "")
@@ -261,13 +268,20 @@ def eval_markdown(res: dict[str, Any]) -> str:
                  "the control has some" if geo else "")
               + ("; *mesh gain*: the landmarker's scores of the swept meshes themselves (its "
                  "blendshape stage on the projected β → mesh model): what a render that "
-                 "followed the mesh exactly would score" if own else ""), "",
+                 "followed the mesh exactly would score" if own else "")
+              + ("; *geometry*: the plain measure the control moves in the re-tracked "
+                 "landmarks (mouth opening or width, eye opening, brow height over the eye "
+                 "distance; '-': it should fall), its change over the sweep and its "
+                 "correlation with the command, with companions where the control has some"
+                 if shape else ""), "",
               "| control | gain | correlation |" + (" gt gain | gt correlation |" if gt else "")
               + (" gain with companions | correlation with companions |" if comp else "")
               + (" landmark gain | motion px |" if geo else "")
-              + (" mesh gain |" if own else ""),
+              + (" mesh gain |" if own else "")
+              + (" geometry | change | r |" if shape else ""),
               "|---|--:|--:|" + ("--:|--:|" if gt else "") + ("--:|--:|" if comp else "")
-              + ("--:|--:|" if geo else "") + ("--:|" if own else "")]
+              + ("--:|--:|" if geo else "") + ("--:|" if own else "")
+              + ("---|--:|--:|" if shape else "")]
         for n, c in ct["controls"].items():
             lg = c.get("landmark_gain_with_companions", c.get("landmark_gain"))
             lm = c.get("landmark_motion_px_with_companions", c.get("landmark_motion_px"))
@@ -278,13 +292,20 @@ def eval_markdown(res: dict[str, Any]) -> str:
                      + (f" {fmt(c.get('gain_with_companions'))} | "
                         f"{fmt(c.get('correlation_with_companions'))} |" if comp else "")
                      + (f" {fmt(lg)} | {fmt(lm)} |" if geo else "")
-                     + (f" {fmt(mg)} |" if own else ""))
+                     + (f" {fmt(mg)} |" if own else "")
+                     + (_geometry_cells(c.get("geometry_with_companions", c.get("geometry")))
+                        if shape else ""))
         L.append(f"| **mean** | **{fmt(ct.get('mean_gain'))}** | "
                  f"{fmt(ct.get('mean_correlation'))} |"
                  + (f" {fmt(ct.get('mean_gt_gain'))} | |" if gt else "")
                  + (f" **{fmt(ct.get('mean_gain_with_companions'))}** | |" if comp else "")
                  + (f" **{fmt(ct.get('mean_landmark_gain'))}** | |" if geo else "")
                  + (f" **{fmt(ct.get('mean_mesh_gain'))}** |" if own else ""))
+        if shape:
+            L.append(f"\nMoving the face as commanded by geometry (correlation ≥ "
+                     f"{GEOMETRY_FOLLOWS[0]}, change ≥ {GEOMETRY_FOLLOWS[1]} of the eye "
+                     f"distance): **{ct['geometry_following']}** of {ct['geometry_measured']} "
+                     f"alone, **{ct['geometry_following_with_companions']}** with companions.")
         if ct.get("responding") is not None:
             L.append(f"\nResponding (gain ≥ {RESPONDS[0]}, correlation ≥ {RESPONDS[1]}): "
                      f"**{ct['responding']}** of {len(ct['controls'])}"

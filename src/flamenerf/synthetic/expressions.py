@@ -114,23 +114,25 @@ def entangled_trajectory(n: int, seed: int) -> np.ndarray:
             e[:, CONTROL_INDEX[name]] += amp * _bump(t, centre, hw)
 
     pos, seen, order = rng.uniform(0, 6), set(), []
+
+    def amp(group: str, lo: float) -> float:  # the first time a group comes: full strength
+        return 1.0 if group not in seen else rng.uniform(lo, 1.0)
+
     while pos < n + 10:
         if not order:  # each cycle shows every group once, in a new order
             order = [str(g) for g in rng.permutation(["surprise", "smile", "speech", "anger"])]
         group = order.pop()
-        # the first time a group appears it is at full strength
-        amp = (lambda lo: 1.0 if group not in seen else rng.uniform(lo, 1.0))
         if group == "speech":  # syllables: the jaw and the lips together
             end = pos + rng.uniform(25, 50)
             while pos < end:
                 gap = rng.uniform(6, 9)
-                add("speech", pos + gap * 0.75, gap * 0.75, amp(0.3))
+                add("speech", pos + gap * 0.75, gap * 0.75, amp(group, 0.3))
                 seen.add(group)
                 pos += gap
             pos += gap * 0.75
         else:
             hw = rng.uniform(8, 16)
-            add(group, pos + hw, hw, amp(0.5))
+            add(group, pos + hw, hw, amp(group, 0.5))
             pos += 2 * hw
         seen.add(group)
         pos += rng.uniform(2, 8)
