@@ -63,3 +63,27 @@ def test_only_the_controls_left_still_take_a_generic_shape(no_blink):
     for k in range(len(names)):
         want = g[k] if k in still else fitted[k].numpy()
         np.testing.assert_allclose(filled[k].numpy(), want, atol=1e-7)
+
+
+def test_a_run_acts_on_a_generic_control_through_the_mesh_alone(no_blink):
+    import torch
+
+    from flamenerf.config import preset
+    from flamenerf.data.expression_range import training_range
+    from flamenerf.training.trainer import build_for_dataset, settle_dataset_defaults
+
+    names = no_blink.expression_names
+    blinks = [names.index("eyeBlinkLeft"), names.index("eyeBlinkRight")]
+    cfg = preset("fast")
+    settle_dataset_defaults(cfg, no_blink)
+    model = build_for_dataset(cfg, no_blink)
+    assert set(blinks) <= set(model.generic_controls)
+    assert model.init_args["generic_controls"] == model.generic_controls
+    regions = model.expression.mesh_regions
+    assert torch.all(regions[:, blinks] == 0)  # the fields never see them ...
+    assert torch.all(model.expression.mesh_basis[blinks].norm(dim=-1).amax(-1) > 0)  # ... the mesh does
+    rng = training_range(no_blink, model.generic_controls)
+    assert (rng.hi[blinks] == 1.0).all() and rng.hi[names.index("jawOpen")] < 1.0 + 1e-9
+    cfg.model.mesh_guide.generic_shapes = False
+    plain = build_for_dataset(cfg, no_blink)
+    assert plain.generic_controls == [] and "generic_controls" not in plain.init_args

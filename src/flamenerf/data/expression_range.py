@@ -74,6 +74,12 @@ class ExpressionRange:
                 "range there (film them to have them)")
 
     @staticmethod
+    def generic_note(names: list[str]) -> str:
+        """The line that says which asked-for controls take a generic shape."""
+        return (f"the training frames never move {', '.join(names)}: a generic shape stands "
+                "in for them (the clip's own skin, moved as a generic blink or brow moves)")
+
+    @staticmethod
     def note(over: list[str], how: str = "--extrapolate renders them as given") -> str:
         """The one line that says what was clamped (`beyond`'s lines); `how`: what a user
         gives to have them as asked, or where the clamp comes from."""
@@ -111,6 +117,10 @@ def training_expressions(ds) -> np.ndarray:
     return ds.expression_matrix(ds.training_frames())
 
 
-def training_range(ds) -> ExpressionRange:
-    """The range of a dataset's training frames."""
-    return ExpressionRange.of(ds.expression_names, training_expressions(ds))
+def training_range(ds, generic: list[int] | tuple[int, ...] = ()) -> ExpressionRange:
+    """The range of a dataset's training frames; the controls `generic` (a run's
+    `FlameNeRF.generic_controls`: generic shapes stand in for them) reach up to 1."""
+    rng = ExpressionRange.of(ds.expression_names, training_expressions(ds))
+    for k in generic:
+        rng.hi[k] = max(float(rng.hi[k]), 1.0)
+    return rng

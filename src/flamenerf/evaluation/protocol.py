@@ -406,7 +406,7 @@ def drive_section(run, ds: Dataset, intr, omega0, phi0, opts: EvalOptions
     render = C.reference_renderer(run.model, ds, intr, omega0, phi0)[0]
     rendered, notes = seq.values, list(seq.notes)
     if ds.expression_names == names:  # as `render` does by default
-        rng = training_range(ds)
+        rng = training_range(ds, run.model.generic_controls)
         if over := rng.beyond(seq.values):
             rendered = rng.clamp(seq.values)
             notes.append("rendered " + rng.note(over, "as `render` does unless "

@@ -52,7 +52,8 @@ class FlameNeRF(nn.Module):
                  mesh_vertices: int = 0, mesh_faces: int = 0, head_region: dict | None = None,
                  detail_region: dict | None = None, warp_region: dict | None = None,
                  expression_mean: list[float] | None = None,
-                 guide_skip: list[int] | None = None, background: float = 0.0):
+                 guide_skip: list[int] | None = None, background: float = 0.0,
+                 generic_controls: list[int] | None = None):
         super().__init__()
         self.cfg = cfg
         # what a ray left unfinished is rendered over outside training (TrainConfig's
@@ -62,6 +63,9 @@ class FlameNeRF(nn.Module):
         self.captured_max_angle = 0.0
         self.near, self.far = float(near), float(far)
         self.expr_dim = expr_dim
+        # controls whose mesh shape is generic (`set_expression_model`), for the ranges that
+        # what users ask for is clamped to
+        self.generic_controls: list[int] = list(generic_controls or [])
         self.init_args = dict(num_codes=num_codes, expr_dim=expr_dim, near=near, far=far,
                               box_min=list(map(float, box_min)),
                               box_max=list(map(float, box_max)))
@@ -121,8 +125,14 @@ class FlameNeRF(nn.Module):
     # ---------------------------------------------------------------- expression
     def set_expression_model(self, neutral: Tensor, basis: Tensor, faces: Tensor,
                              mesh_only: list[int] | tuple[int, ...] = ()) -> None:
-        """The per-subject β -> mesh model (`ExpressionConditioner.set_mesh_model`)."""
+        """The per-subject β -> mesh model (`ExpressionConditioner.set_mesh_model`);
+        `mesh_only`, generic shapes' controls, kept in init_args as `generic_controls`."""
         self.expression.set_mesh_model(neutral, basis, faces, mesh_only)
+        self.generic_controls = [int(k) for k in mesh_only]
+        if self.generic_controls:
+            self.init_args["generic_controls"] = list(self.generic_controls)
+        else:
+            self.init_args.pop("generic_controls", None)
 
     def set_guide_skip(self, vertices: Tensor) -> None:
         """Vertex indices (K,) that the mesh guide ignores (`mesh_guide.max_residual`); kept

@@ -323,12 +323,13 @@ def keyframe_companions(opts: RenderOptions, ds: Dataset, names: list[str]):
 
 
 def within_training_range(opts: RenderOptions, ds: Dataset, names: list[str],
-                          values: np.ndarray, log=print) -> np.ndarray:
+                          values: np.ndarray, log=print, generic: list[int] = ()
+                          ) -> np.ndarray:
     """What the user asked for (keyframes, a file, a driving video), each control clamped
     to the training frames' range unless --extrapolate (data/expression_range.py); a
     split's own expressions are taken as they are (an edit of them is clamped by
-    `apply_edits`)."""
-    rng = training_limits(opts, ds, names)
+    `apply_edits`); `generic`: the run's generic shapes' controls, which reach 1."""
+    rng = training_limits(opts, ds, names, generic)
     if opts.split or rng is None:
         return values
     over = rng.beyond(values)
@@ -337,12 +338,14 @@ def within_training_range(opts: RenderOptions, ds: Dataset, names: list[str],
     return rng.clamp(values) if over else values
 
 
-def training_limits(opts: RenderOptions, ds: Dataset, names: list[str]):
+def training_limits(opts: RenderOptions, ds: Dataset, names: list[str],
+                    generic: list[int] = ()):
     """The training frames' range (data/expression_range.ExpressionRange) that what the
-    user asks for is clamped to; None with --extrapolate or another expression model."""
+    user asks for is clamped to (`generic` controls up to 1); None with --extrapolate or
+    another expression model."""
     if opts.extrapolate or ds.expression_names != names:
         return None
-    return training_range(ds)
+    return training_range(ds, generic)
 
 
 def clamp_note(over: list[str]) -> str:
@@ -555,17 +558,19 @@ def plan_render(opts: RenderOptions, log=print) -> RenderPlan:
             f"its first controls (--frames sets the tour's whole length)")
     values, poses, label = seq.values[:n], poses[:n], seq.label
     fps = opts.fps or seq.fps or 30.0
-    not_covered(opts, ds, names, values, edits, log)
+    generic = run.model.generic_controls
+    not_covered(opts, ds, names, values, edits, log, generic)
     # the source as the model has learnt it, then the edit of it (clamped on its own), so
     # that `jawOpen-=0.3` lowers a drive's jaw from where the render shows it
-    values = within_training_range(opts, ds, names, values, log)
+    values = within_training_range(opts, ds, names, values, log, generic)
     changed = None  # the frames the edit changes (the side by side's titles say which)
     if edits:
         from flamenerf.rendering.edits import describe, edit_sequence
 
         source = values
         ed = edit_sequence(values, edits, opts.edit, names, comp,
-                           training_limits(opts, ds, names), opts.edit_during, fps)
+                           training_limits(opts, ds, names, generic), opts.edit_during,
+                           fps)
         values, changed, label = ed.values, ed.changed, f"{label}_{ed.tag}"
         held = not (opts.split or opts.drive or opts.expressions)
         log(f"note: edited {describe(opts.edit)} {ed.where}"
@@ -642,14 +647,19 @@ def plan_sound(opts: RenderOptions, ds: Dataset, frames: list, seq: X.Expression
 
 
 def not_covered(opts: RenderOptions, ds: Dataset, names: list[str], values: np.ndarray,
-                edits: list, log=print) -> list[str]:
+                edits: list, log=print, generic: list[int] = ()) -> list[str]:
     """Say which of the controls a drive, a file, keyframes or an edit ask for the
-    training frames never move (a clip without a blink has no blink to give). -> them."""
+    training frames never move (a clip without a blink has no blink to give), and which
+    of them a generic shape stands in for (`generic`). -> those with nothing to give."""
     if ds.expression_names != names or not (opts.drive or opts.expressions or edits):
         return []
     rng = training_range(ds)
     asked = None if opts.split and not (opts.drive or opts.expressions) else values
     missing = rng.uncovered(asked, [e.index for e in edits])
+    shaped = [n for n in missing if names.index(n) in generic]
+    if shaped:
+        log(f"note: {ExpressionRange.generic_note(shaped)}")
+    missing = [n for n in missing if n not in shaped]
     if missing:
         what = ("the drive" if opts.drive else "the edit" if edits and asked is None
                 else "the render")

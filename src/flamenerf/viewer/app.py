@@ -77,7 +77,7 @@ class Viewer:
 
         same = self.ds.expression_names == self.names
         self.companions = dataset_companions(self.ds) if same else None
-        self.range = training_range(self.ds) if same else None
+        self.range = training_range(self.ds, run.model.generic_controls) if same else None
         self.tracks: list[Track] = [load_track_file(p, self.names) for p in opts.track]
         tour = tour_track(self.ds, self.names, self.frame0_expression, self.companions)
         self.tracks += ([tour] if tour is not None else []) + dataset_tracks(self.ds)
