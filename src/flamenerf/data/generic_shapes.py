@@ -12,9 +12,10 @@ in the subject's own colours, though its look is generic. Controls the clip show
 their fitted shapes.
 
 Layout, in units of the mouth-to-eyes distance, from each eye's centre (y up, x across):
-the eye spans |x| <= _EYE_HALF (fading out over _EYE_FADE), the upper lid y <= _LID_UP, the
-brow y in [_BROW_LO, _BROW_HI] (MediaPipe's brows sit 0.13-0.32 above the eye's centre on a
-real face; the built-in head's lid opens to +0.08 / -0.055).
+the eye spans |x| <= _EYE_HALF (fading out over _EYE_FADE), the skin a blink shuts
+y <= _LID_UP, the brow y in [_BROW_LO, _BROW_HI] (MediaPipe's brows sit 0.13-0.32 above the
+eye's centre on a real face, its upper lid near +0.05; the built-in head's lid opens to
++0.08 / -0.055).
 """
 
 from __future__ import annotations
@@ -27,9 +28,14 @@ COVER = 0.1
 """A control whose largest training value stays below this is left to its generic shape."""
 
 _EYE_HALF, _EYE_FADE = 0.2, 0.1
-_LID_MEET = -0.04   # where the lids meet in a blink
-_LID_UP = 0.08      # the upper lid's edge ...
-_LID_TOP = 0.16     # ... and where its motion has faded out (below the brow)
+# where the lids meet in a blink; the skin up to _LID_UP shuts onto it, the skin above follows
+# less and less up to _LID_TOP (below the brow). Chosen on the built-in scene without blinks
+# (`synth --entangled --never eyeBlinkLeft eyeBlinkRight`, seed 0, 128 px) among
+# meet -0.04 / -0.08 / -0.12, up 0.08 / 0.12, top 0.16 / 0.24: the mean share of the blinks'
+# change reproduced 0.39 (0.26 with the lid's edge at 0.08; docs/decisions/generic-shapes.md)
+_LID_MEET = -0.04
+_LID_UP = 0.12
+_LID_TOP = 0.16
 _WIDE_LIFT = 0.035  # how far eyeWide lifts the upper lid
 _BROW_LO, _BROW_HI, _BROW_FADE = 0.12, 0.4, 0.08
 _BROW_LIFT, _BROW_DROP = 0.06, 0.05

@@ -262,8 +262,10 @@ def control_response(render: RenderFn, names: list[str], base: np.ndarray,
                      train_expressions: np.ndarray, track: Callable, steps: int = 5,
                      controls: list[str] | None = None,
                      companions: Companions | None = None,
-                     motion: LandmarkMotion | None = None) -> dict[str, Any]:
-    """Sweep each trackable control that varies in the training frames; re-track.
+                     motion: LandmarkMotion | None = None,
+                     generic: list[int] | tuple[int, ...] = ()) -> dict[str, Any]:
+    """Sweep each trackable control that varies in the training frames, and those that a
+    generic shape stands in for (`generic`, indices: from 0 to 1); re-track.
 
     base (E,) the β the other controls keep; train_expressions (N, E). With `companions`
     (data/companions.py), a control that has some is swept a second time with them moving
@@ -315,7 +317,8 @@ def control_response(render: RenderFn, names: list[str], base: np.ndarray,
         if name not in want:
             continue
         k = names.index(name)
-        vals = sweep_values(train_expressions[:, k], steps)
+        vals = (np.linspace(0.0, 1.0, steps) if k in generic
+                else sweep_values(train_expressions[:, k], steps))
         if vals is None:
             out["skipped"][name] = "varies by less than 0.1 in the training frames"
             continue
@@ -332,6 +335,8 @@ def control_response(render: RenderFn, names: list[str], base: np.ndarray,
             row.update(zip(_GEO_KEYS + _MESH_KEYS, geo))
         if shape is not None:
             row["geometry"] = shape
+        if k in generic:
+            row["generic"] = True  # a generic shape, swept 0 -> 1 (data/generic_shapes.py)
         if companions is not None and companions.of(name):
             got_c, (gain_c, corr_c), _, geo_c, shape_c = sweep(
                 vals, name, lambda v, k=k: companions.complete(base, {k: float(v)}))

@@ -370,7 +370,7 @@ def control_section(run, ds: Dataset, intr, omega0, phi0, opts: EvalOptions,
 
         res = C.control_response(keep, names, ds.expression_matrix([fr])[0], train_e, track,
                                  opts.control_steps, companions=dataset_companions(ds),
-                                 motion=motion)
+                                 motion=motion, generic=run.model.generic_controls)
         res["source"] = f"sweep over the training range at frame {fr.position}'s camera"
         if images is not None and res["controls"]:
             images["control.png"], res["figure_rows"] = _control_figure(res, renders)

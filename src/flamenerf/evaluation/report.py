@@ -286,7 +286,8 @@ def eval_markdown(res: dict[str, Any]) -> str:
             lg = c.get("landmark_gain_with_companions", c.get("landmark_gain"))
             lm = c.get("landmark_motion_px_with_companions", c.get("landmark_motion_px"))
             mg = c.get("mesh_gain_with_companions", c.get("mesh_gain"))
-            L.append(f"| {n} | {fmt(c['gain'])} | {fmt(c['correlation'])} |"
+            L.append(f"| {n}{' (generic shape)' if c.get('generic') else ''} | "
+                     f"{fmt(c['gain'])} | {fmt(c['correlation'])} |"
                      + (f" {fmt(c.get('gt_gain'))} | {fmt(c.get('gt_correlation'))} |"
                         if gt else "")
                      + (f" {fmt(c.get('gain_with_companions'))} | "
