@@ -14,6 +14,8 @@ control's own part of the face. Prints a table per scene and writes JSON.
 
     python benchmarks/bench_separation.py --size 128 --frames 300 \
         --json docs/bench/separation_128.json
+    python benchmarks/bench_separation.py --seed 1 --scenes noblink \
+        --json docs/bench/separation_128_seed1.json
     python benchmarks/bench_separation.py --scenes entangled,noblink \
         --variants "fast:;mixed:train.expression_mixing=0.5"
 
@@ -44,6 +46,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--size", type=int, default=128)
     ap.add_argument("--frames", type=int, default=300)
+    ap.add_argument("--seed", type=int, default=0, help="the scenes' seed")
     ap.add_argument("--scenes", default="default,entangled,noblink")
     ap.add_argument("--scene-root", type=Path, default=Path("scenes"))
     ap.add_argument("--runs", type=Path, default=Path("runs/bench_separation"))
@@ -74,14 +77,15 @@ def main() -> None:
                            "threads": torch.get_num_threads(),
                            "cuda": torch.cuda.get_device_name() if torch.cuda.is_available()
                            else None, "torch": torch.__version__},
-               "size": a.size, "frames": a.frames, "steps": a.steps, "fit_steps": a.fit_steps,
+               "size": a.size, "frames": a.frames, "seed": a.seed, "steps": a.steps,
+               "fit_steps": a.fit_steps,
                "scenes": {}}
     variants = parse_variants(a.variants)
     for scene_name in a.scenes.split(","):
-        scene = a.scene_root / f"{scene_name}_{a.size}_{a.frames}"
+        scene = a.scene_root / f"{scene_name}_{a.size}_{a.frames}_seed{a.seed}"
         if not (scene / "transforms.json").exists():
             print(f"making {scene}")
-            make_scene(scene, size=a.size, frames=a.frames,
+            make_scene(scene, seed=a.seed, size=a.size, frames=a.frames,
                        workers=1 if a.threads == 1 else 0, **SCENES[scene_name])
         ds = load_dataset(scene)
         out = results["scenes"].setdefault(scene_name, {"scene": str(scene), "variants": {}})
@@ -89,7 +93,7 @@ def main() -> None:
             cfg = override(preset("fast"), sets)
             cfg.train.downscale = ds.intrinsics.w / a.size
             cfg.train.num_threads = a.threads
-            run = a.runs / f"{scene_name}_{name}"
+            run = a.runs / f"{scene_name}_seed{a.seed}_{name}"
             t0 = time.perf_counter()
             print(f"[{scene_name} / {name}] training fast {sets or ''}")
             train(scene, run, cfg, steps=a.steps, resume=(run / "checkpoints").exists(),
