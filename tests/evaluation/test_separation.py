@@ -64,3 +64,17 @@ def test_a_change_the_wrong_way_scores_below_zero():
     assert outside_share(ref, truth, own, power=1) == pytest.approx(1 / 3)
     truth[4, 2:5] += 0.1  # the last row changes twice as much: 4x the squared change
     assert outside_share(ref, truth, own) == pytest.approx(4 / 6)
+
+
+def test_the_report_gives_each_control_and_pair_a_row(entangled):
+    from flamenerf.evaluation.report import compare_markdown, eval_markdown
+
+    leak, pairs = entangled
+    res = {"resolution": [40, 40],
+           "separation": separation(leak, _images(leak), pairs, _images(pairs))}
+    md = eval_markdown(res)
+    assert "**Controls alone**" in md
+    assert "| jawOpen+browDownLeft | 1.00 | 1.00 |" in md
+    never = next(line for line in md.splitlines() if line.startswith("Never moved"))
+    assert "eyeBlinkLeft" in never
+    assert "Controls alone ↑" in compare_markdown([res])
