@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
 import sys
 import time
 from pathlib import Path
@@ -70,14 +69,11 @@ def main() -> None:
     from flamenerf.synthetic.scene import make_scene
     from flamenerf.training.run import load_run
     from flamenerf.training.trainer import train
+    from flamenerf.workflows.bench import machine_description
 
     if a.threads > 0:
         torch.set_num_threads(a.threads)
-    results = {"machine": {"cpu": platform.processor() or platform.machine(),
-                           "threads": torch.get_num_threads(),
-                           "cuda": torch.cuda.get_device_name() if torch.cuda.is_available()
-                           else None, "torch": torch.__version__},
-               "size": a.size, "frames": a.frames, "seed": a.seed, "steps": a.steps,
+    results = {"machine": machine_description(), "size": a.size, "frames": a.frames, "seed": a.seed, "steps": a.steps,
                "fit_steps": a.fit_steps,
                "scenes": {}}
     variants = parse_variants(a.variants)
