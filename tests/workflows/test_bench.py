@@ -44,3 +44,16 @@ def test_bench_end_to_end(toy_dataset, tmp_path, monkeypatch):
     # a second invocation reuses the finished runs
     rep2 = run_bench(o, log=lambda s: None)
     assert all(m["reused"] for m in rep2["methods"].values())
+
+
+def test_an_entangled_bench_makes_its_own_scene_and_refuses_another(tmp_path):
+    from flamenerf.data.dataset import load_dataset
+    from flamenerf.errors import UserError
+
+    o = BenchOptions(work=tmp_path, scene_size=16, frames=4, entangled=True)
+    scene, _, reused = bench._prepare_scene(o, log=lambda *_: None)
+    assert not reused and load_dataset(scene).splits.get("pairs")
+    assert bench._prepare_scene(o, log=lambda *_: None)[2]  # the same scene is reused
+    with pytest.raises(UserError, match="holds another scene"):
+        bench._prepare_scene(BenchOptions(work=tmp_path, scene_size=16, frames=4),
+                             log=lambda *_: None)
