@@ -179,3 +179,16 @@ def test_controls_the_training_frames_never_move_are_named():
     assert rng.uncovered(None, controls=[0]) == []
     assert "never move eyeBlinkLeft" in ExpressionRange.not_covered_note(["eyeBlinkLeft"],
                                                                          "the drive")
+
+
+def test_the_side_by_side_caption_says_what_the_clip_cannot_give():
+    from flamenerf.rendering.videos import caption_strip, lacking_caption, short_names
+
+    assert short_names(["eyeBlinkLeft", "eyeBlinkRight", "jawOpen", "browDownLeft"]) == \
+        "eyeBlink L/R, jawOpen, browDownLeft"
+    assert lacking_caption([], []) is None
+    cap = lacking_caption(["mouthSmileLeft"], ["eyeBlinkLeft", "eyeBlinkRight"])
+    assert cap == "never in the clip: mouthSmileLeft; generic shape: eyeBlink L/R"
+    wide, narrow = caption_strip(cap, 400), caption_strip(cap, 120)
+    assert wide.shape == (14, 400, 3) and narrow.shape == (14, 120, 3)
+    assert wide.min() < 0.5  # text drawn

@@ -31,7 +31,8 @@ from flamenerf.data import head_pose as H
 from flamenerf.data.companions import dataset_companions
 from flamenerf.data.expression_range import ExpressionRange, training_expressions, training_range
 from flamenerf.geometry import se3_log
-from flamenerf.images import expression_panel, resize_to_height, titled_row
+from flamenerf.images import (expression_panel, resize_to_height, text_strip, text_width,
+                              titled_row, vstack)
 from flamenerf.outdir import folders_kept_only_on_success, writable_dir
 
 MAX_FRAMES = 1_000_000
@@ -264,6 +265,7 @@ class RenderPlan:
     sound: Any = None  # data/video.Soundtrack: for the video and side by side (soundtrack.py)
     shown: np.ndarray | None = None  # (T,) int: times each frame is shown (clip_pace); None: once
     frames_dir: Path | None = None  # --frames-dir: the result as PNG frames too
+    caption: str | None = None  # under the side by side: what the clip cannot give
 
     def frames(self):
         """The frames, rendered one at a time (an iterator of
@@ -503,6 +505,8 @@ def write_videos(plan: RenderPlan) -> None:
                 edited = plan.edited is not None and plan.edited[i]
                 row = titled_row([left, fr.rgb, dimg],
                                  [left_title, "edited" if edited else "render", "depth"], gap=2)
+                if plan.caption:
+                    row = vstack([row, caption_strip(plan.caption, row.shape[1])])
                 for _ in range(times):
                     writers["sbs"].write(row)
 
@@ -559,7 +563,7 @@ def plan_render(opts: RenderOptions, log=print) -> RenderPlan:
     values, poses, label = seq.values[:n], poses[:n], seq.label
     fps = opts.fps or seq.fps or 30.0
     generic = run.model.generic_controls
-    not_covered(opts, ds, names, values, edits, log, generic)
+    caption = lacking_caption(*not_covered(opts, ds, names, values, edits, log, generic))
     # the source as the model has learnt it, then the edit of it (clamped on its own), so
     # that `jawOpen-=0.3` lowers a drive's jaw from where the render shows it
     values = within_training_range(opts, ds, names, values, log, generic)
@@ -625,7 +629,8 @@ def plan_render(opts: RenderOptions, log=print) -> RenderPlan:
             + "; --codes first renders all with frame 0's")
     shown, sound = plan_sound(opts, ds, frames, seq, n, fps, log)
     return RenderPlan(run, ds, intr, poses, values, verts, heads, dil, settings, fps, paths,
-                      seq, label, cam_label, codes, changed, sound, shown, opts.frames_dir)
+                      seq, label, cam_label, codes, changed, sound, shown, opts.frames_dir,
+                      caption)
 
 
 def plan_sound(opts: RenderOptions, ds: Dataset, frames: list, seq: X.ExpressionSequence,
@@ -647,12 +652,14 @@ def plan_sound(opts: RenderOptions, ds: Dataset, frames: list, seq: X.Expression
 
 
 def not_covered(opts: RenderOptions, ds: Dataset, names: list[str], values: np.ndarray,
-                edits: list, log=print, generic: list[int] = ()) -> list[str]:
+                edits: list, log=print, generic: list[int] = ()
+                ) -> tuple[list[str], list[str]]:
     """Say which of the controls a drive, a file, keyframes or an edit ask for the
     training frames never move (a clip without a blink has no blink to give), and which
-    of them a generic shape stands in for (`generic`). -> those with nothing to give."""
+    of them a generic shape stands in for (`generic`). -> (those with nothing to give,
+    those with a generic shape)."""
     if ds.expression_names != names or not (opts.drive or opts.expressions or edits):
-        return []
+        return [], []
     rng = training_range(ds)
     asked = None if opts.split and not (opts.drive or opts.expressions) else values
     missing = rng.uncovered(asked, [e.index for e in edits])
@@ -664,4 +671,35 @@ def not_covered(opts: RenderOptions, ds: Dataset, names: list[str], values: np.n
         what = ("the drive" if opts.drive else "the edit" if edits and asked is None
                 else "the render")
         log(f"note: {ExpressionRange.not_covered_note(missing, what)}")
-    return missing
+    return missing, shaped
+
+
+def short_names(names: list[str]) -> str:
+    """Control names with their Left / Right pairs folded: eyeBlink L/R, jawOpen."""
+    out, seen = [], set(names)
+    for n in names:
+        for side, other in (("Left", "Right"), ("Right", "Left")):
+            if n.endswith(side) and n[:-len(side)] + other in seen:
+                stem = n[:-len(side)]
+                if stem + " L/R" not in out:
+                    out.append(stem + " L/R")
+                break
+        else:
+            out.append(n)
+    return ", ".join(out)
+
+
+def caption_strip(caption: str, width: int) -> np.ndarray:
+    """The caption as a strip `width` wide; where it does not fit, how many controls it
+    names (the command's note names them all)."""
+    if text_width(caption) + 4 > width:
+        n = len(caption.split(":", 1)[-1].split(","))
+        caption = f"{n} controls the clip never shows (see the note)"
+    return text_strip(caption, width)
+
+
+def lacking_caption(missing: list[str], shaped: list[str]) -> str | None:
+    """The side by side's caption for what the clip cannot give (`not_covered`), or None."""
+    parts = ([f"never in the clip: {short_names(missing)}"] if missing else []) + (
+        [f"generic shape: {short_names(shaped)}"] if shaped else [])
+    return "; ".join(parts) or None
