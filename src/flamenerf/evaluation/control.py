@@ -479,6 +479,7 @@ SWEEP_GEOMETRY: dict[str, tuple[tuple[str, ...], int]] = {
 """The plain geometry (`openings`) each control moves, and which way: a blink shuts its own
 eye, a smile widens the mouth, a pucker narrows it ('Left': the subject's left)."""
 
+
 def geometry_of_sweep(name: str, commanded: np.ndarray, landmarks: list[np.ndarray | None]
                       ) -> dict[str, Any] | None:
     """A control's sweep read by plain geometry: the mean of its `SWEEP_GEOMETRY` measures

@@ -38,7 +38,8 @@ PART_MARGIN_PX = 1
 7 % of its squared change across the part's pixel outline, under 1 % with a pixel more."""
 
 SHARE_TARGET = 0.6
-"""Reproduced share a control should reach alone (the measure's pass line in reports)."""
+"""The share a control should reach alone, counted for `reproduced` (`reaching_target`)
+and for `change` (`change_reaching_target`)."""
 
 
 def _sse(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> float:
@@ -158,7 +159,9 @@ def separation(leak: FrameSet, leak_preds: list[np.ndarray], pairs: FrameSet | N
         "mean_change": mean(per, "change"),
         "mean_outside": mean(per, "outside"),
         "reaching_target": int(sum(r["reproduced"] >= SHARE_TARGET for r in per.values())),
+        "change_reaching_target": int(sum(r["change"] >= SHARE_TARGET for r in per.values())),
     }
     if pair_rows:
         res["mean_pair_reproduced"] = mean(pair_rows, "reproduced")
+        res["mean_pair_change"] = mean(pair_rows, "change")
     return res

@@ -690,12 +690,13 @@ def short_names(names: list[str]) -> str:
 
 
 def caption_strip(caption: str, width: int) -> np.ndarray:
-    """The caption as a strip `width` wide; where it does not fit, how many controls it
-    names (the command's note names them all)."""
-    if text_width(caption) + 4 > width:
-        n = len(caption.split(":", 1)[-1].split(","))
-        caption = f"{n} controls the clip never shows (see the note)"
-    return text_strip(caption, width)
+    """The caption as a strip `width` wide; where it does not fit, a shorter line that
+    points at the command's note, which names them all."""
+    for text in (caption, "not every control asked for is in the clip (see the note)",
+                 "see the note"):
+        if text_width(text) + 4 <= width:
+            break
+    return text_strip(text, width)
 
 
 def lacking_caption(missing: list[str], shaped: list[str]) -> str | None:
