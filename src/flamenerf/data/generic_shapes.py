@@ -7,9 +7,10 @@ not personal: the upper lid comes down to the lower one. So for ARKit-named eye 
 controls that the training frames leave (nearly) still, the mesh model takes a generic
 shape instead, laid out in the face's own frame (data/face_parts.face_frame: heights in units
 of the mouth-to-eyes distance): the mesh guide then carries what the capture shows there
-(the upper lid's skin, the brow) to where the shape puts it, so the lid closes over the eye
-in the subject's own colours, though its look is generic. Controls the clip shows keep
-their fitted shapes.
+(the upper lid's skin, the brow) to where the shape puts it, so the eye narrows towards
+shut in the subject's own colours, though its look is generic (on the built-in scene a
+slit, where the truth shows the closed lid). Controls the clip shows keep their fitted
+shapes.
 
 Layout, in units of the mouth-to-eyes distance, from each eye's centre (y up, x across):
 the eye spans |x| <= _EYE_HALF (fading out over _EYE_FADE), the skin a blink shuts
