@@ -17,9 +17,10 @@ control's own part of the face. Prints a table per scene and writes JSON.
     python benchmarks/bench_separation.py --seed 1 --scenes noblink \
         --json docs/bench/separation_128_seed1.json
     python benchmarks/bench_separation.py --scenes entangled,noblink \
-        --variants "fast:;mixed:train.expression_mixing=0.5"
+        --variants "fast:;plain:model.mesh_guide.generic_shapes=False"
 
-An existing scene or run is reused (a run is resumed to --steps).
+An existing scene is reused, and a run with the same settings (resumed to --steps, its
+training time kept in RUN/bench_timing.json); a run with other settings is an error.
 """
 
 from __future__ import annotations
@@ -27,7 +28,6 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import time
 from pathlib import Path
 
 import torch
@@ -68,8 +68,7 @@ def main() -> None:
     from flamenerf.evaluation.protocol import EvalOptions, evaluate_run
     from flamenerf.synthetic.scene import make_scene
     from flamenerf.training.run import load_run
-    from flamenerf.training.trainer import train
-    from flamenerf.workflows.bench import machine_description
+    from flamenerf.workflows.bench import machine_description, timed_train
 
     if a.threads > 0:
         torch.set_num_threads(a.threads)
@@ -90,15 +89,16 @@ def main() -> None:
             cfg.train.downscale = ds.intrinsics.w / a.size
             cfg.train.num_threads = a.threads
             run = a.runs / f"{scene_name}_seed{a.seed}_{name}"
-            t0 = time.perf_counter()
+            if a.steps is not None:
+                cfg.train.steps = a.steps
             print(f"[{scene_name} / {name}] training fast {sets or ''}")
-            train(scene, run, cfg, steps=a.steps, resume=(run / "checkpoints").exists(),
-                  device=a.device, quiet=True)
-            train_s = time.perf_counter() - t0
+            trained = timed_train(run, cfg, scene, a.device, log=lambda *_: None)
             res = evaluate_run(load_run(run, a.device), ds,
                                EvalOptions(fit_steps=a.fit_steps, control=False),
                                out_dir=run / "eval", quiet=True, log=lambda *_: None)
-            out["variants"][name] = {"overrides": sets, "train_seconds": train_s,
+            out["variants"][name] = {"overrides": sets,
+                                     "train_seconds": trained["train_seconds"],
+                                     "reused": trained["reused"],
                                      "figures": figures(res), "separation": res["separation"]}
             print(table(scene_name, name, res))
             write(a.json, results)  # after every run: a long benchmark keeps what it has

@@ -180,10 +180,18 @@ def _prepare_scene(o: BenchOptions, log) -> tuple[Path, float, bool]:
 
 
 def _train(name: str, cfg: Config, scene: Path, o: BenchOptions, log) -> dict[str, Any]:
+    return timed_train(o.work / "runs" / name, cfg, scene, o.device, o.overwrite, log)
+
+
+def timed_train(run_dir: Path, cfg: Config, scene: Path, device: str = "auto",
+                overwrite: bool = False, log=print) -> dict[str, Any]:
+    """Train `cfg` on `scene` in `run_dir` for a benchmark: a finished run with the same
+    settings is reused and an unfinished one resumed, its training time kept across
+    sessions (RUN/bench_timing.json); other settings are an error unless `overwrite`.
+    -> {"run", "train_seconds", "step", "reused"}."""
     from flamenerf.training.checkpoint import latest_checkpoint
     from flamenerf.training.trainer import train
 
-    run_dir = o.work / "runs" / name
     timing_file = run_dir / "bench_timing.json"
     prev = 0.0
     if latest_checkpoint(run_dir) is not None:
@@ -194,7 +202,7 @@ def _train(name: str, cfg: Config, scene: Path, o: BenchOptions, log) -> dict[st
         same = (_comparable(saved.get("config", {})) == _comparable(cfg.to_dict())
                 and Path(saved.get("dataset", "")) == scene.resolve())
         if not same:
-            if not o.overwrite:
+            if not overwrite:
                 raise UserError(f"{run_dir}: holds a run with other settings; pass --overwrite "
                                 "to retrain it, or another --work")
 
@@ -205,9 +213,9 @@ def _train(name: str, cfg: Config, scene: Path, o: BenchOptions, log) -> dict[st
     ck = latest_checkpoint(run_dir)
     resume = ck is not None
     start = int(re.search(r"step-(\d+)", ck.name).group(1)) if ck is not None else 0
-    log(f"train {name}: {cfg.train.steps} steps x {cfg.train.batch_rays} rays "
+    log(f"train {run_dir.name}: {cfg.train.steps} steps x {cfg.train.batch_rays} rays "
         f"({'resuming' if resume else 'new run'}) -> {run_dir}")
-    res = train(scene, run_dir, cfg, resume=resume, device=o.device, steps=cfg.train.steps)
+    res = train(scene, run_dir, cfg, resume=resume, device=device, steps=cfg.train.steps)
     if res.interrupted:
         raise KeyboardInterrupt
     total = prev + res.seconds
