@@ -57,3 +57,19 @@ def test_an_entangled_bench_makes_its_own_scene_and_refuses_another(tmp_path):
     with pytest.raises(UserError, match="holds another scene"):
         bench._prepare_scene(BenchOptions(work=tmp_path, scene_size=16, frames=4),
                              log=lambda *_: None)
+
+
+def test_a_finished_run_is_reused_though_its_bf16_settled_off(toy_dataset, tmp_path,
+                                                             monkeypatch):
+    from flamenerf.training import trainer
+
+    monkeypatch.setattr(trainer, "bf16_pays", lambda: False)  # a CPU where it does not pay
+    cfg = toy_config(steps=1)
+    cfg.train.bf16 = True
+    first = bench.timed_train(tmp_path / "run", cfg, toy_dataset, "cpu", log=lambda *_: None)
+    assert not first["reused"] and first["step"] == 1
+    asked = toy_config(steps=1)  # asked afresh: bf16 on, as the preset has it
+    asked.train.bf16 = True
+    again = bench.timed_train(tmp_path / "run", asked, toy_dataset, "cpu", log=lambda *_: None)
+    assert again["reused"] and again["train_seconds"] == pytest.approx(
+        first["train_seconds"], rel=0.5)

@@ -199,7 +199,13 @@ def timed_train(run_dir: Path, cfg: Config, scene: Path, device: str = "auto",
 
         settle_dataset_defaults(cfg, load_dataset(scene))  # as the saved run has them
         saved = read_json(run_dir / "config.json")
-        same = (_comparable(saved.get("config", {})) == _comparable(cfg.to_dict())
+        want = cfg.to_dict()
+        # bf16 is settled when a run starts (on where the CPU does it faster, trainer.py): a
+        # run asked for it holds False where it did not pay
+        if want["train"].get("bf16") and saved.get("config", {}).get("train", {}).get(
+                "bf16") is False:
+            want["train"]["bf16"] = False
+        same = (_comparable(saved.get("config", {})) == _comparable(want)
                 and Path(saved.get("dataset", "")) == scene.resolve())
         if not same:
             if not overwrite:
