@@ -186,8 +186,8 @@ def _train(name: str, cfg: Config, scene: Path, o: BenchOptions, log) -> dict[st
 def timed_train(run_dir: Path, cfg: Config, scene: Path, device: str = "auto",
                 overwrite: bool = False, log=print) -> dict[str, Any]:
     """Train `cfg` on `scene` in `run_dir` for a benchmark: a finished run with the same
-    settings is reused and an unfinished one resumed, its training time kept across
-    sessions (RUN/bench_timing.json); other settings are an error unless `overwrite`.
+    settings is reused and an unfinished one resumed, its training time summed over the
+    invocations that trained it (RUN/bench_timing.json); other settings are an error unless `overwrite`.
     -> {"run", "train_seconds", "step", "reused"}."""
     from flamenerf.training.checkpoint import latest_checkpoint
     from flamenerf.training.trainer import train
