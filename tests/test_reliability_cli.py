@@ -12,7 +12,8 @@ import sys
 import pytest
 
 from flamenerf.cli import main
-from flamenerf.data.dataset import DatasetError, load_dataset
+from flamenerf.data.dataset import load_dataset
+from flamenerf.data.dataset_checks import DatasetError
 
 
 def run_cli(capsys, *args):

@@ -288,7 +288,8 @@ def test_deeply_nested_json_is_one_line(run_copy, tmp_path, capsys):
     (run_copy / "config.json").write_text(deep())
     with pytest.raises(UserError, match="config.json: not valid JSON here"):
         load_run(run_copy)
-    from flamenerf.data.dataset import DatasetError, load_dataset
+    from flamenerf.data.dataset import load_dataset
+    from flamenerf.data.dataset_checks import DatasetError
 
     ds = own_dataset(tmp_path)
     (ds / "transforms.json").write_text(deep())

@@ -11,7 +11,8 @@ from pathlib import Path
 import numpy as np
 
 from flamenerf.config import Config, ExpressionMode, preset
-from flamenerf.data.dataset import DatasetWriter, Intrinsics
+from flamenerf.data.dataset import Intrinsics
+from flamenerf.data.dataset_writer import DatasetWriter
 from flamenerf.geometry import look_at
 from flamenerf.data.prior import rasterize_silhouette
 

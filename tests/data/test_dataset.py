@@ -8,7 +8,9 @@ import json
 import numpy as np
 import pytest
 
-from flamenerf.data.dataset import DatasetError, frame_rate, load_dataset
+from flamenerf.data.dataset import load_dataset
+from flamenerf.data.dataset_checks import DatasetError
+from flamenerf.data.playback import frame_rate
 from flamenerf.synthetic.head import CONTROLS
 
 
@@ -34,7 +36,7 @@ def test_load_dataset_reads_every_split(dataset_dir):
         f.extra["time"] = round(float(tk), 6)
     assert frame_rate(ds.split("capture")) == round(11 / t[-1], 3)
     # a gap (dropped frames) plays for its time at the rate of the steps around it
-    from flamenerf.data.dataset import playback
+    from flamenerf.data.playback import playback
 
     rate, shown = playback(np.array([0.0, 0.1, 0.2, 0.7, 0.8]))
     assert rate == 10.0 and shown.tolist() == [1, 1, 5, 1, 1]

@@ -99,7 +99,8 @@ def test_default_range_is_where_the_head_was_seen_from_too(tmp_path):
     saw the face from 0..10 deg only: the default orbit stays there."""
     from toy import TOY_NAMES
 
-    from flamenerf.data.dataset import DatasetWriter, Intrinsics
+    from flamenerf.data.dataset import Intrinsics
+    from flamenerf.data.dataset_writer import DatasetWriter
     from flamenerf.geometry import euler_head, look_at
 
     intr = Intrinsics(16, 16, 20.0, 20.0, 8.0, 8.0)

@@ -6,7 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from flamenerf.data.dataset import DatasetError, load_dataset
+from flamenerf.data.dataset import load_dataset
+from flamenerf.data.dataset_checks import DatasetError
 from flamenerf.synthetic.expressions import GROUPS, PAIRS, entangled_trajectory
 from flamenerf.synthetic.head import CONTROL_INDEX, CONTROLS
 from flamenerf.synthetic.scene import frame_specs, make_scene

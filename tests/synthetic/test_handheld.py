@@ -8,7 +8,8 @@ import pytest
 import torch
 from scipy import ndimage
 
-from flamenerf.data.dataset import DatasetError, load_dataset
+from flamenerf.data.dataset import load_dataset
+from flamenerf.data.dataset_checks import DatasetError
 from flamenerf.geometry import head_euler
 from flamenerf.synthetic.background import FAR_Z, LEAVES_RECT, LEAVES_Z
 from flamenerf.synthetic.cameras import DISTANCE, TARGET, handheld_path, orbit

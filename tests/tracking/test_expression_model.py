@@ -7,8 +7,9 @@ import numpy as np
 import pytest
 import torch
 
-from flamenerf.data.dataset import (DatasetError, Intrinsics, StoredMeshModel, load_dataset,
-                                    write_mesh_model)
+from flamenerf.data.dataset import Intrinsics, StoredMeshModel, load_dataset
+from flamenerf.data.dataset_checks import DatasetError
+from flamenerf.data.dataset_writer import write_mesh_model
 from flamenerf.data.mesh_model import fit_dataset_expression_model
 from flamenerf.geometry import look_at
 from flamenerf.meshes import expression_model_system, fit_expression_model, model_from_coefficients

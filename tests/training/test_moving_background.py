@@ -13,7 +13,9 @@ import torch
 from toy import toy_config
 
 from flamenerf.config import preset
-from flamenerf.data.dataset import DatasetError, DatasetWriter, Intrinsics, load_dataset
+from flamenerf.data.dataset import Intrinsics, load_dataset
+from flamenerf.data.dataset_checks import DatasetError
+from flamenerf.data.dataset_writer import DatasetWriter
 from flamenerf.geometry import look_at
 from flamenerf.model.flame_nerf import FlameNeRF
 from flamenerf.model.losses import LossBatch, LossWeights

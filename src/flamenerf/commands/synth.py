@@ -79,7 +79,7 @@ def synth(
     """
     from tqdm import tqdm
 
-    from flamenerf.data.dataset import MAX_SIZE
+    from flamenerf.data.dataset_writer import MAX_SIZE
     from flamenerf.errors import UserError
     from flamenerf.outdir import writable_dir
     from flamenerf.synthetic.scene import frame_specs, make_scene, write_capture_video

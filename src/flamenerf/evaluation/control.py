@@ -39,7 +39,8 @@ import torch
 from flamenerf.tracking.landmarker import (FaceLandmarker, NUM_LANDMARKS, NUM_MESH_VERTICES,
                                            blendshape_names, part_outlines)
 from flamenerf.data.companions import Companions
-from flamenerf.data.dataset import Dataset, DatasetError, Intrinsics, reference_position
+from flamenerf.data.dataset import Dataset, Intrinsics, reference_position
+from flamenerf.data.dataset_checks import DatasetError
 from flamenerf.data.scene import FrameSet
 from flamenerf.evaluation import metrics as M
 from flamenerf.evaluation.metrics import (GEOMETRY_FOLLOWS, image_metrics, responds, scene_masks,

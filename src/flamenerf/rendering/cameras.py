@@ -43,7 +43,8 @@ from pathlib import Path
 
 import numpy as np
 
-from flamenerf.data.dataset import CAMERA_TOL, MAX_METRES, Dataset, reference_position, too_far
+from flamenerf.data.dataset import Dataset, reference_position
+from flamenerf.data.dataset_checks import CAMERA_TOL, MAX_METRES, too_far
 from flamenerf.data.head_pose import canonical_from_world, transform_points
 from flamenerf.errors import UserError
 from flamenerf.geometry import is_rigid, rotation_between

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from flamenerf.data.companions import Companions
-from flamenerf.data.dataset import MAX_CONTROL
+from flamenerf.data.dataset_checks import MAX_CONTROL
 from flamenerf.data.expression_range import ExpressionRange
 from flamenerf.errors import UserError
 from flamenerf.keyvalues import resolve_control, suggest

@@ -43,7 +43,7 @@ from flamenerf.errors import UserError
 from flamenerf.io import read_json
 from flamenerf.keyvalues import parse_assignments, resolve_control, suggest
 from flamenerf.rendering import takes
-from flamenerf.data.dataset import MAX_CONTROL
+from flamenerf.data.dataset_checks import MAX_CONTROL
 from flamenerf.data.expression_range import MIN_SPAN, span
 from flamenerf.data.face_parts import part_and_side
 from flamenerf.data.video import iter_frames, probe_video

@@ -5,7 +5,7 @@ any sound file laid under any render (`--audio`).
 A picture keeps step with its source's sound when frame i is on screen at the time it had
 in the source (from the first frame's): frames are sampled at the video's rate, and the
 frame before a gap (frames the camera dropped, or where no face was found) stays for as
-long as the gap lasted (`data/dataset.playback`). Where that cannot hold (`--max-frames`
+long as the gap lasted (`data/playback.playback`). Where that cannot hold (`--max-frames`
 spreading a few frames over the clip, another `--fps` than the clip's) the sound is left
 out with a note, not cut short or stretched.
 """
@@ -16,7 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-from flamenerf.data.dataset import CAPTURE, Dataset, frame_times, frames_shown, playback
+from flamenerf.data.dataset import CAPTURE, Dataset
+from flamenerf.data.playback import frame_times, frames_shown, playback
 from flamenerf.data.video import (SILENT_DB, Soundtrack, has_sound, loudest, sound_duration)
 from flamenerf.errors import UserError
 
@@ -85,7 +86,7 @@ def clip_sound(opts, ds: Dataset, frames: list, fps: float, log=print,
 
 def clip_pace(opts, ds: Dataset, frames: list, fps: float, log=print) -> np.ndarray | None:
     """How many times each of the capture's `frames` is shown when they play at the clip's
-    own pace (`dataset.playback`): the frame before a gap (frames the camera dropped, or
+    own pace (`data/playback.playback`): the frame before a gap (frames the camera dropped, or
     where no face was found) again for as long as the gap lasted, so that the video keeps
     the clip's timing; None where every frame is shown once (no gap, another split, or
     another pace)."""

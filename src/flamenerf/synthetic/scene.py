@@ -50,7 +50,9 @@ from flamenerf.synthetic.expressions import (PAIRS, entangled_trajectory, leakag
                                              speech_trajectory)
 from flamenerf.synthetic.head import CONTROL_INDEX, CONTROLS, mesh_landmarks
 from flamenerf import __version__
-from flamenerf.data.dataset import DatasetError, DatasetWriter, Intrinsics, load_dataset
+from flamenerf.data.dataset import Intrinsics, load_dataset
+from flamenerf.data.dataset_checks import DatasetError
+from flamenerf.data.dataset_writer import DatasetWriter
 from flamenerf.data.video import VideoWriter
 from flamenerf.geometry import project_points
 from flamenerf.synthetic.background import sway_pose

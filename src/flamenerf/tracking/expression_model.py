@@ -33,8 +33,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from flamenerf.data.dataset import (StoredMeshModel, load_dataset, reference_position,
-                                    write_mesh_model)
+from flamenerf.data.dataset import StoredMeshModel, load_dataset, reference_position
+from flamenerf.data.dataset_writer import write_mesh_model
 from flamenerf.data.expression_range import span, training_expressions, varies
 from flamenerf.data.face_parts import control_weights
 from flamenerf.data.head_pose import canonical_vertices

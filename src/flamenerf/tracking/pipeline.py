@@ -26,7 +26,8 @@ import numpy as np
 import tyro
 
 import flamenerf
-from flamenerf.data.dataset import DatasetError, DatasetWriter, MAX_METRES, MAX_SIZE
+from flamenerf.data.dataset_checks import DatasetError, MAX_METRES
+from flamenerf.data.dataset_writer import DatasetWriter, MAX_SIZE
 from flamenerf.errors import UserError
 from flamenerf.io import jsonable, write_json
 from flamenerf.tracking.clip import (MAX_ERROR, progress_bar, require_enough, solve_scene,

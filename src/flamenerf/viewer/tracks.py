@@ -9,7 +9,8 @@ from pathlib import Path
 
 import numpy as np
 
-from flamenerf.data.dataset import Dataset, Frame, frames_shown
+from flamenerf.data.dataset import Dataset, Frame
+from flamenerf.data.playback import frames_shown
 from flamenerf.data.expression_range import training_expressions
 from flamenerf.errors import UserError
 from flamenerf.rendering.expressions import from_items, load_take, map_by_name, split_fps
@@ -26,7 +27,7 @@ class Track:
     render_args: tuple[str, ...] = ()  # `flamenerf render`'s options for the same source
     shown: np.ndarray | None = None
     """(T,) int: ticks of 1 / fps each frame stays (a clip's gaps held, as `render` holds
-    them: dataset.playback); None: one each."""
+    them: data/playback.playback); None: one each."""
 
     @property
     def num_frames(self) -> int:
