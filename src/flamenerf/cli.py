@@ -14,7 +14,7 @@ import sys
 
 # Order shown in --help: the pipeline, then tools.
 COMMANDS = ["demo", "synth", "preprocess", "track", "train", "eval", "compare", "render",
-            "view", "bench", "convert"]
+            "view", "bake", "export", "bench", "convert"]
 
 
 def _tune_allocator() -> None:

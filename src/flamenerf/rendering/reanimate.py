@@ -17,6 +17,8 @@ from flamenerf.model.inference import FAST, RenderSettings
 from flamenerf.model.render_image import StillCamera
 from flamenerf.data.prior import prior_mask
 from flamenerf.images import colorize_depth
+from flamenerf.splats.avatar import BakedAvatar
+from flamenerf.splats.rasterise import render_avatar
 
 
 @dataclass
@@ -59,6 +61,20 @@ def render_sequence(model: FlameNeRF, ds: Dataset, intr: Intrinsics, cameras: np
                                 chunk, settings)
         out = still(beta, mask)
         yield RenderedFrame(out["rgb"].numpy(), out["depth"].numpy(), out["acc"].numpy(), mask)
+
+
+def baked_sequence(avatar: BakedAvatar, ds: Dataset, intr: Intrinsics, cameras: np.ndarray,
+                   expressions: np.ndarray, vertices: np.ndarray, dilate_px: int
+                   ) -> Iterator[RenderedFrame]:
+    """`render_sequence` of a bake (splats/avatar.py): frame 0's codes and head pose, as
+    baked; acc is 1 where a splat falls. The prior's mask is computed as for the run (the
+    side by side shows it), though the bake needs none: its offsets are the face's."""
+    for i in range(len(cameras)):
+        verts = vertices[i] if vertices.ndim == 3 else vertices
+        mask = prior_mask(ds, verts, cameras[i], intr, dilate_px)
+        out = render_avatar(avatar, np.asarray(expressions[i], np.float32), cameras[i], intr)
+        yield RenderedFrame(out["rgb"].numpy(), out["depth"].numpy(),
+                            out["hit"].numpy().astype(np.float32), mask)
 
 
 def depth_range(frame: RenderedFrame, near: float, far: float) -> tuple[float, float]:

@@ -137,6 +137,9 @@ class RenderOptions:
             frame of the video, at its rate), with frames.json (rate, count, size) and the
             sound as sound.wav where the video has one: for editing further without the
             video codec's loss.
+        baked: Render the run's bake (RUN/baked.npz, made by `flamenerf bake`) instead of
+            the NeRF: splats drawn as the web export draws them, frame 0's codes and head
+            pose, in milliseconds a frame.
         exact: Render with the training forward pass (what `flamenerf eval`'s PSNR uses)
             instead of the inference path, which is several times faster on a CPU and
             within 0.05 dB of it on the built-in scene (docs/bench/render.md).
@@ -176,6 +179,7 @@ class RenderOptions:
     sound: bool = True
     audio: Path | None = None
     frames_dir: Path | None = None
+    baked: bool = False
     exact: bool = False
     device: str = "auto"
     threads: int = 0
@@ -216,6 +220,15 @@ class RenderOptions:
         if (self.gain or self.match_range) and not self.drive:
             raise UserError(f"--{'gain' if self.gain else 'match-range'}: scales a driving "
                             "video's expressions; give one with --drive")
+        if self.baked and self.head_pose:
+            raise UserError("--baked: a bake holds the head at frame 0's pose; --head-pose "
+                            "needs the run itself (leave out --baked)")
+        if self.baked and self.exact:
+            raise UserError("--baked and --exact: give one (--exact is the NeRF's training "
+                            "forward, --baked its bake)")
+        if self.baked and self.codes == "own":
+            raise UserError("--baked: a bake has frame 0's codes only; --codes own needs the "
+                            "run itself (leave out --baked)")
         if self.codes == "own" and not self.split:
             raise UserError("--codes own: takes each frame's codes from a split of the run's "
                             "dataset; give --split (e.g. --split capture)")
@@ -266,12 +279,16 @@ class RenderPlan:
     shown: np.ndarray | None = None  # (T,) int: times each frame is shown (clip_pace); None: once
     frames_dir: Path | None = None  # --frames-dir: the result as PNG frames too
     caption: str | None = None  # under the side by side: what the clip cannot give
+    baked: Any = None  # splats.avatar.BakedAvatar: drawn instead of the run's NeRF
 
     def frames(self):
         """The frames, rendered one at a time (an iterator of
         rendering.reanimate.RenderedFrame)."""
-        from flamenerf.rendering.reanimate import render_sequence
+        from flamenerf.rendering.reanimate import baked_sequence, render_sequence
 
+        if self.baked is not None:
+            return baked_sequence(self.baked, self.ds, self.intr, self.poses, self.values,
+                                  self.verts, self.dilate_px)
         omega, phi = self.codes if self.codes is not None else self.run.frame_codes(0)
         return render_sequence(self.run.model, self.ds, self.intr, self.poses, self.values,
                                self.verts, omega, phi, self.dilate_px, heads=self.heads,
@@ -606,7 +623,8 @@ def plan_render(opts: RenderOptions, log=print) -> RenderPlan:
 
     # a split with frame 0's codes is named apart from the default (its own codes)
     paths = output_paths(opts, label, cam_label,
-                         "_first" if opts.split and opts.codes == "first" else "")
+                         ("_first" if opts.split and opts.codes == "first" else "")
+                         + ("_baked" if opts.baked else ""))
     writable_dir(paths["rgb"].parent, "video")
     if opts.frames_dir is not None:
         from flamenerf.rendering.frame_folder import check_frames_dir
@@ -616,7 +634,17 @@ def plan_render(opts: RenderOptions, log=print) -> RenderPlan:
     settings = dataclasses.replace(REFERENCE if opts.exact else FAST,
                                    chunk=opts.chunk or (REFERENCE.chunk if opts.exact else 0))
     codes, frames = None, ds.split(opts.split)[:n] if opts.split else []
-    if own_codes(opts, run, ds, frames):
+    baked = None
+    if opts.baked:
+        from flamenerf.splats.avatar import load_avatar
+
+        baked = load_avatar(Path(opts.run) / "baked.npz")
+        if baked.names != names:
+            raise UserError(f"{Path(opts.run) / 'baked.npz'}: baked with other controls "
+                            "than this run's; bake again (`flamenerf bake RUN`)")
+        if opts.split and opts.codes == "auto":
+            log("note: --baked renders every frame with frame 0's codes (the bake's)")
+    elif own_codes(opts, run, ds, frames):
         from flamenerf.rendering.filmed import own_codes_settings
 
         codes = run.clip_codes(ds, frames)
@@ -630,7 +658,7 @@ def plan_render(opts: RenderOptions, log=print) -> RenderPlan:
     shown, sound = plan_sound(opts, ds, frames, seq, n, fps, log)
     return RenderPlan(run, ds, intr, poses, values, verts, heads, dil, settings, fps, paths,
                       seq, label, cam_label, codes, changed, sound, shown, opts.frames_dir,
-                      caption)
+                      caption, baked)
 
 
 def plan_sound(opts: RenderOptions, ds: Dataset, frames: list, seq: X.ExpressionSequence,
