@@ -39,9 +39,10 @@ def export(
     Example: flamenerf export runs/fast --web site/ --track take.csv
     """
     from flamenerf.splats.avatar import load_avatar
-    from flamenerf.viewer.web_export import export_web
+    from flamenerf.viewer.web_export import check_web_folder, export_web
     from flamenerf.workflows.bake import BakeOptions, bake
 
+    check_web_folder(web, overwrite)
     baked = run / "baked.npz"
     if not baked.is_file():
         print(bake(BakeOptions(run, views=views)).describe())

@@ -65,6 +65,23 @@ def export_web(avatar: BakedAvatar, out: Path, track: tuple[np.ndarray, float] |
                overwrite: bool = False) -> Exported:
     """Write the page into `out` (a new or empty folder, or one this exported before with
     `overwrite`); each file is renamed into place only once it reads back whole."""
+    check_web_folder(out, overwrite)
+    files = {name: resources.files("flamenerf.viewer").joinpath("web", name).read_bytes()
+             for name in PAGE_FILES}
+    files["avatar.js"] = avatar_script(avatar, track).encode()
+    total = 0
+    for name, content in files.items():
+        def verify(tmp: Path, content=content) -> str | None:
+            return None if tmp.read_bytes() == content else "its bytes differ"
+
+        atomic_write_bytes(Path(out) / name, lambda f, content=content: f.write(content), verify)
+        total += len(content)
+    return Exported(Path(out), total, avatar.n, 0 if track is None else len(track[0]))
+
+
+def check_web_folder(out: Path, overwrite: bool = False) -> None:
+    """A one-line UserError unless `out` can take the page: new, empty, or an earlier
+    export with `overwrite` (checked before a bake, not after it)."""
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise UserError(f"{out}: is a file; give a folder for the page")
@@ -74,14 +91,3 @@ def export_web(avatar: BakedAvatar, out: Path, track: tuple[np.ndarray, float] |
             raise UserError(f"{out}: holds other files; give a new or empty folder")
         if not overwrite:
             raise UserError(f"{out}: an export is there already (--overwrite to replace it)")
-    files = {name: resources.files("flamenerf.viewer").joinpath("web", name).read_bytes()
-             for name in PAGE_FILES}
-    files["avatar.js"] = avatar_script(avatar, track).encode()
-    total = 0
-    for name, content in files.items():
-        def verify(tmp: Path, content=content) -> str | None:
-            return None if tmp.read_bytes() == content else "its bytes differ"
-
-        atomic_write_bytes(out / name, lambda f, content=content: f.write(content), verify)
-        total += len(content)
-    return Exported(out, total, avatar.n, 0 if track is None else len(track[0]))

@@ -180,13 +180,12 @@ def bake_run(run: Run, ds: Dataset, intr: Intrinsics, views: np.ndarray,
         rgb0, z0 = base["rgb"].reshape(-1, 3), snapped_depth(base["depth"]).reshape(-1)
         if n_total:
             seen = rasterise(torch.cat(pos), torch.cat(col), torch.cat(size), c2w, intr)
-            close = ((seen["depth"].reshape(-1) - z0).abs() <= DEPTH_TOLERANCE * z0) & (
-                (seen["rgb"].reshape(-1, 3) - rgb0).abs().mean(1) <= COLOUR_TOLERANCE)
             # what the splats leave out, or show at the right depth in another colour; not
             # where they stand at another depth: a render off the capture puts the run's
             # floaters there, which would then hide the scene from every other view
             same_depth = (seen["depth"].reshape(-1) - z0).abs() <= DEPTH_TOLERANCE * z0
-            new = ~seen["hit"].reshape(-1) | (same_depth & ~close)
+            recoloured = (seen["rgb"].reshape(-1, 3) - rgb0).abs().mean(1) > COLOUR_TOLERANCE
+            new = ~seen["hit"].reshape(-1) | (same_depth & recoloured)
         else:
             new = torch.ones(intr.w * intr.h, dtype=torch.bool)
         new &= z0 > 0
